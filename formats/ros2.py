@@ -1,0 +1,356 @@
+"""ROS 2 message definitions, CDR (de)serialisation and conversion to relpoint's core types.
+
+Message classes and their ``ros2msg`` definition texts come from rosbags' bundled typestore of the
+standard ROS 2 Humble messages (identical to Jazzy for every type used here), so nothing is typed by
+hand. Serialisation and deserialisation use the same typestore's CDR codec: it returns ``uint8[]``
+fields as numpy arrays, so point clouds and images decode without copies.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from formats.pointcloud2 import Field, decode_cloud, encode_cloud, xyz_from_cloud
+from relpoint.errors import InputError
+from relpoint.types import (
+    GroundTruthLandmarks,
+    Intrinsics,
+    OdometryMeasurement,
+    PointObservation,
+    Pose,
+    PositionFix,
+)
+
+POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+ODOMETRY = "nav_msgs/msg/Odometry"
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+#: Rotation variance written for an unknown orientation (the log format's convention for /fix).
+UNKNOWN_ROTATION_VARIANCE = 1e9
+
+
+@functools.cache
+def typestore() -> Any:
+    """The standard ROS 2 typestore (cached)."""
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+@functools.cache
+def message_definition(typename: str) -> str:
+    """The rosbag2-style ``ros2msg`` definition text of ``typename`` (with its dependencies)."""
+    return typestore().generate_msgdef(typename, ros_version=2)[0]
+
+
+def normalise_typename(name: str) -> str:
+    """``pkg/Type`` -> ``pkg/msg/Type``; other names unchanged."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def serialize(message: Any, typename: str) -> bytes:
+    """CDR (little-endian) bytes of ``message``."""
+    return bytes(typestore().serialize_cdr(message, typename))
+
+
+def deserialize(raw: bytes | memoryview, typename: str) -> Any:
+    """Decode CDR bytes of ``typename``; raises :class:`InputError` on malformed data."""
+    try:
+        return typestore().deserialize_cdr(raw, typename)
+    except Exception as error:  # rosbags raises assorted errors on malformed CDR
+        raise InputError(f"a {typename} message cannot be decoded ({type(error).__name__}: {error})") from None
+
+
+# --- building messages -------------------------------------------------------------------------
+
+
+def _types() -> Any:
+    return typestore().types
+
+
+def _stamp(stamp_ns: int) -> Any:
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return _types()["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    return _types()["std_msgs/msg/Header"](stamp=_stamp(stamp_ns), frame_id=frame_id)
+
+
+def stamp_ns_of(message: Any) -> int:
+    """``header.stamp`` of a message in integer nanoseconds."""
+    stamp = message.header.stamp
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _pose_msg(position: Any, quat_xyzw: Any) -> Any:
+    types = _types()
+    return types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2])),
+        orientation=types["geometry_msgs/msg/Quaternion"](
+            x=float(quat_xyzw[0]), y=float(quat_xyzw[1]), z=float(quat_xyzw[2]), w=float(quat_xyzw[3])
+        ),
+    )
+
+
+def point_cloud2(stamp_ns: int, frame_id: str, columns: dict[str, np.ndarray]) -> Any:
+    """A PointCloud2 (height 1, little-endian, dense) carrying the given columns as fields."""
+    fields, point_step, data = encode_cloud(columns)
+    n = len(next(iter(columns.values()))) if columns else 0
+    point_field = _types()["sensor_msgs/msg/PointField"]
+    return _types()[POINT_CLOUD2](
+        header=_header(stamp_ns, frame_id),
+        height=1,
+        width=n,
+        fields=[point_field(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in fields],
+        is_bigendian=False,
+        point_step=point_step,
+        row_step=point_step * n,
+        data=np.frombuffer(data, dtype=np.uint8),
+        is_dense=True,
+    )
+
+
+def observation_to_msg(observation: PointObservation) -> Any:
+    """``/points`` message: x, y, z FLOAT32 and, when known, id INT32."""
+    columns: dict[str, np.ndarray] = {
+        "x": observation.points[:, 0].astype(np.float32),
+        "y": observation.points[:, 1].astype(np.float32),
+        "z": observation.points[:, 2].astype(np.float32),
+    }
+    if observation.ids is not None:
+        columns["id"] = observation.ids.astype(np.int32)
+    return point_cloud2(observation.stamp_ns, observation.frame_id, columns)
+
+
+def landmarks_to_msg(stamp_ns: int, landmarks: GroundTruthLandmarks, frame_id: str = "world") -> Any:
+    """``/ground_truth/landmarks`` message: x, y, z FLOAT32, id INT32, dynamic UINT8."""
+    return point_cloud2(
+        stamp_ns,
+        frame_id,
+        {
+            "x": landmarks.positions[:, 0].astype(np.float32),
+            "y": landmarks.positions[:, 1].astype(np.float32),
+            "z": landmarks.positions[:, 2].astype(np.float32),
+            "id": landmarks.ids.astype(np.int32),
+            "dynamic": landmarks.dynamic.astype(np.uint8),
+        },
+    )
+
+
+def pose_to_msg(pose: Pose, frame_id: str = "world") -> Any:
+    """A PoseStamped of ``pose`` in ``frame_id``."""
+    return _types()[POSE_STAMPED](header=_header(pose.stamp_ns, frame_id), pose=_pose_msg(pose.position, pose.quat_xyzw))
+
+
+def odometry_to_msg(odometry: OdometryMeasurement, frame_id: str = "world", child_frame_id: str = "sensor") -> Any:
+    """A nav_msgs/Odometry with the body-frame twist and its covariance; pose fields zero."""
+    types = _types()
+    vector3 = types["geometry_msgs/msg/Vector3"]
+    twist = types["geometry_msgs/msg/Twist"](
+        linear=vector3(x=float(odometry.linear[0]), y=float(odometry.linear[1]), z=float(odometry.linear[2])),
+        angular=vector3(x=float(odometry.angular[0]), y=float(odometry.angular[1]), z=float(odometry.angular[2])),
+    )
+    return types[ODOMETRY](
+        header=_header(odometry.stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_pose_msg((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), covariance=np.zeros(36)
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=np.asarray(odometry.covariance, dtype=np.float64).reshape(36).copy()
+        ),
+    )
+
+
+def fix_to_msg(fix: PositionFix, frame_id: str = "world") -> Any:
+    """A PoseWithCovarianceStamped: position and its covariance; orientation unknown (1e9 variances)."""
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = fix.covariance
+    covariance[3:, 3:] = np.eye(3) * UNKNOWN_ROTATION_VARIANCE
+    types = _types()
+    return types[POSE_WITH_COVARIANCE_STAMPED](
+        header=_header(fix.stamp_ns, frame_id),
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_pose_msg(fix.position, (0.0, 0.0, 0.0, 1.0)), covariance=covariance.reshape(36)
+        ),
+    )
+
+
+def depth_image_to_msg(stamp_ns: int, depth_m: np.ndarray, frame_id: str = "camera", encoding: str = "16UC1") -> Any:
+    """A depth Image: ``16UC1`` millimetres (REP 118, 0 = none) or ``32FC1`` metres."""
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    height, width = depth_m.shape
+    if encoding == "16UC1":
+        valid = np.isfinite(depth_m) & (depth_m > 0)
+        pixels = np.where(valid, np.clip(np.round(depth_m * 1000.0), 0, 65535), 0).astype("<u2")
+    elif encoding == "32FC1":
+        pixels = np.where(np.isfinite(depth_m), depth_m, np.nan).astype("<f4")
+    else:
+        raise ValueError(f"unsupported depth encoding {encoding!r}")
+    return _types()[IMAGE](
+        header=_header(stamp_ns, frame_id),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=width * pixels.itemsize,
+        data=np.frombuffer(pixels.tobytes(), dtype=np.uint8),
+    )
+
+
+def color_image_to_msg(stamp_ns: int, rgb: np.ndarray, frame_id: str = "camera") -> Any:
+    """An ``rgb8`` Image from an (H, W, 3) uint8 array."""
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    height, width, _ = rgb.shape
+    return _types()[IMAGE](
+        header=_header(stamp_ns, frame_id), height=height, width=width, encoding="rgb8", is_bigendian=0,
+        step=width * 3, data=np.frombuffer(rgb.tobytes(), dtype=np.uint8),
+    )  # fmt: skip
+
+
+def camera_info_to_msg(stamp_ns: int, intrinsics: Intrinsics, frame_id: str = "camera") -> Any:
+    """A CameraInfo with pinhole ``k``, identity ``r``, ``p = [K | 0]`` and no distortion."""
+    types = _types()
+    k = intrinsics.matrix()
+    p = np.zeros((3, 4))
+    p[:, :3] = k
+    return types[CAMERA_INFO](
+        header=_header(stamp_ns, frame_id), height=intrinsics.height, width=intrinsics.width,
+        distortion_model="plumb_bob", d=np.zeros(5), k=k.reshape(9), r=np.eye(3).reshape(9), p=p.reshape(12),
+        binning_x=0, binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )  # fmt: skip
+
+
+def tf_to_msg(stamp_ns: int, parent: str, child: str, position: Any, quat_xyzw: Any) -> Any:
+    """A TFMessage with one transform ``parent -> child`` (the child's pose in the parent)."""
+    types = _types()
+    vector3 = types["geometry_msgs/msg/Vector3"]
+    transform = types["geometry_msgs/msg/Transform"](
+        translation=vector3(x=float(position[0]), y=float(position[1]), z=float(position[2])),
+        rotation=types["geometry_msgs/msg/Quaternion"](
+            x=float(quat_xyzw[0]), y=float(quat_xyzw[1]), z=float(quat_xyzw[2]), w=float(quat_xyzw[3])
+        ),
+    )
+    stamped = types["geometry_msgs/msg/TransformStamped"](
+        header=_header(stamp_ns, parent), child_frame_id=child, transform=transform
+    )
+    return types[TF_MESSAGE](transforms=[stamped])
+
+
+# --- reading messages into core types ------------------------------------------------------------
+
+
+def cloud_of(message: Any) -> np.ndarray:
+    """The structured array of a decoded PointCloud2 (see :func:`formats.pointcloud2.decode_cloud`)."""
+    fields = [Field(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in message.fields]
+    return decode_cloud(
+        message.data,
+        fields,
+        width=int(message.width),
+        height=int(message.height),
+        point_step=int(message.point_step),
+        row_step=int(message.row_step),
+        big_endian=bool(message.is_bigendian),
+    )
+
+
+def msg_to_observation(message: Any) -> tuple[PointObservation, int]:
+    """A PointObservation of the finite points of a PointCloud2, and the number of invalid points dropped."""
+    cloud = cloud_of(message)
+    xyz, finite = xyz_from_cloud(cloud)
+    ids = None
+    if cloud.dtype.names and "id" in cloud.dtype.names and cloud["id"].ndim == 1:
+        ids = cloud["id"][finite].astype(np.int64)
+    observation = PointObservation(stamp_ns_of(message), xyz, ids, str(message.header.frame_id) or "sensor")
+    return observation, int(len(cloud) - len(xyz))
+
+
+def msg_to_landmarks(message: Any) -> GroundTruthLandmarks:
+    """Ground-truth landmarks from a PointCloud2 with x, y, z, id and optional dynamic fields."""
+    cloud = cloud_of(message)
+    xyz, finite = xyz_from_cloud(cloud)
+    names = cloud.dtype.names or ()
+    if "id" not in names:
+        raise InputError("the ground-truth landmark cloud has no 'id' field")
+    ids = cloud["id"][finite].astype(np.int64)
+    dynamic = cloud["dynamic"][finite].astype(bool) if "dynamic" in names else np.zeros(len(ids), dtype=bool)
+    return GroundTruthLandmarks(xyz, ids, dynamic)
+
+
+def msg_to_pose(message: Any) -> Pose:
+    """A Pose from a PoseStamped, PoseWithCovarianceStamped or Odometry message's pose."""
+    pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
+    p, q = pose.position, pose.orientation
+    return Pose(stamp_ns_of(message), (float(p.x), float(p.y), float(p.z)), (float(q.x), float(q.y), float(q.z), float(q.w)))
+
+
+def msg_to_odometry(message: Any) -> OdometryMeasurement:
+    """Body-frame velocities and their covariance from a nav_msgs/Odometry."""
+    twist = message.twist.twist
+    return OdometryMeasurement(
+        stamp_ns_of(message),
+        np.array([twist.linear.x, twist.linear.y, twist.linear.z], dtype=np.float64),
+        np.array([twist.angular.x, twist.angular.y, twist.angular.z], dtype=np.float64),
+        np.asarray(message.twist.covariance, dtype=np.float64).reshape(6, 6),
+    )
+
+
+def msg_to_fix(message: Any) -> PositionFix:
+    """Position and its 3x3 covariance from a PoseWithCovarianceStamped."""
+    p = message.pose.pose.position
+    covariance = np.asarray(message.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    return PositionFix(stamp_ns_of(message), np.array([p.x, p.y, p.z], dtype=np.float64), covariance)
+
+
+def msg_to_intrinsics(message: Any) -> Intrinsics:
+    """Pinhole intrinsics from a CameraInfo's ``k``."""
+    k = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    try:
+        return Intrinsics(int(message.width), int(message.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    except ValueError as error:
+        raise InputError(f"unusable camera_info: {error}") from None
+
+
+def msg_to_depth(message: Any) -> np.ndarray:
+    """Depth in metres (H, W) float32 from a ``32FC1`` or ``16UC1`` Image; 0 where there is no measurement."""
+    height, width, step = int(message.height), int(message.width), int(message.step)
+    encoding = str(message.encoding).upper()
+    dtypes = {"32FC1": np.dtype(np.float32), "16UC1": np.dtype(np.uint16), "MONO16": np.dtype(np.uint16)}
+    if encoding not in dtypes:
+        raise InputError(f"depth image encoding {message.encoding!r} is not 32FC1 or 16UC1")
+    dtype = dtypes[encoding].newbyteorder(">" if message.is_bigendian else "<")
+    if height <= 0 or width <= 0:
+        raise InputError(f"depth image has size {width}x{height}")
+    data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
+    if step < width * dtype.itemsize or step * height > data.size:
+        raise InputError(f"depth image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
+    rows = np.lib.stride_tricks.as_strided(
+        data[: step * height].view(np.uint8), shape=(height, width * dtype.itemsize), strides=(step, 1)
+    )
+    pixels = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
+    depth = pixels.astype(np.float32) * (np.float32(0.001) if dtype.kind == "u" else np.float32(1.0))
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth
+
+
+def msg_to_rgb(message: Any) -> np.ndarray:
+    """An (H, W, 3) uint8 RGB array from an ``rgb8`` or ``bgr8`` Image."""
+    height, width, step = int(message.height), int(message.width), int(message.step)
+    encoding = str(message.encoding).lower()
+    if encoding not in ("rgb8", "bgr8"):
+        raise InputError(f"colour image encoding {message.encoding!r} is not rgb8 or bgr8")
+    data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
+    if step < width * 3 or step * height > data.size:
+        raise InputError(f"colour image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
+    rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * 3), strides=(step, 1))
+    rgb = np.ascontiguousarray(rows).reshape(height, width, 3)
+    return rgb[..., ::-1].copy() if encoding == "bgr8" else rgb

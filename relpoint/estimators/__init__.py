@@ -1,0 +1,17 @@
+"""Estimators behind ``relpoint run``, one module each, registered in :data:`ESTIMATORS`."""
+
+from __future__ import annotations
+
+from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
+
+#: Every estimator ``relpoint run --estimator NAME`` can build, by name.
+ESTIMATORS: dict[str, EstimatorSpec] = {}
+
+
+def register(spec: EstimatorSpec) -> EstimatorSpec:
+    """Add ``spec`` to :data:`ESTIMATORS` (called once per estimator module below)."""
+    ESTIMATORS[spec.name] = spec
+    return spec
+
+
+__all__ = ["DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "Estimator", "EstimatorSpec", "register"]

@@ -1,0 +1,73 @@
+"""The small interface every estimator implements, and the registry the CLI picks them from.
+
+An estimator consumes a log's records in time order through :meth:`Estimator.step` (one call per
+observation, i.e. per iteration) and the optional :meth:`Estimator.add_odometry` /
+:meth:`Estimator.add_fix`, and reports its map through :meth:`Estimator.landmark_map`. It never
+reads files, prints or exits: the pipeline (``relpoint.pipeline``) drives it and the CLI does I/O.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, PositionFix, Pose
+
+#: Input roles a log can provide (named after the default topics of the log format).
+POINTS = "points"
+DEPTH = "depth"
+ODOMETRY = "odometry"
+FIX = "fix"
+
+
+class Estimator(abc.ABC):
+    """Base class of point-landmark estimators.
+
+    Subclasses set :attr:`name` and implement :meth:`step` and :meth:`landmark_map`. Poses are
+    ``T_world_sensor``: the first pose is the identity unless an absolute reference is fused.
+    """
+
+    name: ClassVar[str]
+
+    @abc.abstractmethod
+    def step(self, observation: PointObservation) -> Pose:
+        """Process one iteration's untransformed points; return the sensor pose at its stamp."""
+
+    def add_odometry(self, odometry: OdometryMeasurement) -> None:  # noqa: B027 - optional hook
+        """Take a body-frame velocity measurement (ignored by estimators that do not use odometry)."""
+
+    def add_fix(self, fix: PositionFix) -> None:  # noqa: B027 - optional hook
+        """Take an absolute position fix (ignored by estimators that do not fuse fixes)."""
+
+    @abc.abstractmethod
+    def landmark_map(self) -> LandmarkMap:
+        """The current map of landmarks in ``world``."""
+
+    @property
+    def map_size(self) -> int:
+        """Number of landmarks currently mapped (for timing.csv)."""
+        return len(self.landmark_map())
+
+    def summary(self) -> dict[str, Any]:
+        """Estimator-specific summary figures for run.json (counts, flags); JSON-serialisable."""
+        return {}
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """How to build one estimator: its config class, a factory and the input roles it needs.
+
+    ``factory(config, rng)`` returns a fresh :class:`Estimator`; ``rng`` is the only source of
+    randomness it may use.
+    """
+
+    name: str
+    description: str
+    config_class: type
+    factory: Callable[[Any, np.random.Generator], Any]
+    needs: frozenset[str]
+    uses: frozenset[str] = frozenset()

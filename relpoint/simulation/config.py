@@ -1,0 +1,100 @@
+"""Settings of ``relpoint simulate``: one frozen dataclass, validated on construction."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from relpoint.errors import UsageError
+
+SCENARIOS = ("figure8", "stationary", "corridor")
+
+
+def setting(default: Any, help: str) -> Any:
+    """A config field with its help text (shown by ``--help`` and ``relpoint config``)."""
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Everything that determines a simulated log; the same config gives a byte-identical file.
+
+    Distances in metres, angles in degrees, times in seconds, rates in hertz.
+    """
+
+    scenario: str = setting("figure8", "Path: ``figure8`` (the paper's), ``stationary`` (viewpoint fixed, paper Fig. 10) or ``corridor`` (a long gently swaying run, for speed tests).")
+    passes: int = setting(1, "Figure-eight passes (the paper's long-term test runs 40).")
+    step: float = setting(1.2, 'Metres travelled per iteration (about 1000 iterations per 1200 m pass).')
+    iterations: int | None = setting(None, 'Total iterations; default: the whole path (``stationary``: 900).')
+    rate: float = setting(10.0, 'Iterations per second (sets the stamps and velocities).')
+    start_time: float = setting(0.0, 'Stamp of the first iteration, seconds.')
+    density: float = setting(25.0, 'Landmarks per 100 m of path, scattered around it (paper: 25 to 550).')
+    range: float = setting(70.0, 'Far end of the viewing frustum.')
+    min_range: float = setting(0.5, 'Near end of the viewing frustum.')
+    fov_horizontal: float = setting(150.0, 'Horizontal field of view (full angle).')
+    fov_vertical: float = setting(90.0, 'Vertical field of view (full angle).')
+    spread_lateral: float = setting(25.0, 'Landmarks lie up to this far left/right of the path.')
+    spread_vertical: float = setting(10.0, 'Landmarks lie up to this far above/below the path.')
+    noise: float = setting(0.3, 'Standard deviation of the white Gaussian observation noise, per axis.')
+    dynamic: float = setting(0.0, 'Fraction of landmarks that move (paper: up to 0.5).')
+    dynamic_amplitude: float = setting(5.0, 'Largest excursion of a moving landmark from its centre, per axis.')
+    clutter: float = setting(0.0, 'Mean number of spurious points (id -1) per iteration, uniform in the frustum.')
+    odometry_noise: float | None = setting(None, 'Linear velocity noise sigma (m/s); set to write /odom (0 = perfect odometry).')
+    odometry_angular_noise: float | None = setting(None, 'Angular velocity noise sigma (rad/s); default: odometry_noise / 10.')
+    fix_every: int = setting(0, 'Write an absolute position fix on /fix every this many iterations (0 = none).')
+    fix_noise: float = setting(1.0, 'Standard deviation of the fix position noise, per axis.')
+    radius: float = setting(95.0, 'Figure-eight loop radius (95 m gives about 1200 m per pass).')
+    climb: float = setting(25.0, 'Height of the middle crossing above the start, figure eight.')
+    length: float = setting(1200.0, 'Corridor length.')
+    seed: int = setting(0, 'Seed of every random draw.')
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise UsageError(f"unknown scenario {self.scenario!r}", f"choose one of {', '.join(SCENARIOS)}")
+        positive = {
+            "passes": self.passes, "step": self.step, "rate": self.rate, "density": self.density,
+            "range": self.range, "fov_horizontal": self.fov_horizontal, "fov_vertical": self.fov_vertical,
+            "radius": self.radius, "length": self.length,
+        }  # fmt: skip
+        for name, value in positive.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise UsageError(f"{name} must be a positive number, got {value!r}")
+        non_negative = {
+            "noise": self.noise, "clutter": self.clutter, "fix_noise": self.fix_noise, "fix_every": self.fix_every,
+            "dynamic_amplitude": self.dynamic_amplitude, "spread_lateral": self.spread_lateral,
+            "spread_vertical": self.spread_vertical, "min_range": self.min_range, "climb": self.climb,
+            "odometry_noise": 0.0 if self.odometry_noise is None else self.odometry_noise,
+            "odometry_angular_noise": 0.0 if self.odometry_angular_noise is None else self.odometry_angular_noise,
+            "start_time": self.start_time,
+        }  # fmt: skip
+        for name, value in non_negative.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        if not 0.0 <= self.dynamic <= 1.0:
+            raise UsageError(f"dynamic must be a fraction between 0 and 1, got {self.dynamic!r}")
+        if self.min_range >= self.range:
+            raise UsageError(f"min_range ({self.min_range}) must be below range ({self.range})")
+        if self.fov_horizontal > 360 or self.fov_vertical > 180:
+            raise UsageError("fov_horizontal must be at most 360 and fov_vertical at most 180 degrees")
+        if self.iterations is not None and self.iterations < 1:
+            raise UsageError(f"iterations must be at least 1, got {self.iterations}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise UsageError(f"seed must be a non-negative integer, got {self.seed!r}")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> SimulationConfig:
+        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
+        unknown = sorted(set(normalised) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown simulation setting(s): {', '.join(unknown)}",
+                f"known settings are {', '.join(sorted(known))}",
+            )
+        return cls(**normalised)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)

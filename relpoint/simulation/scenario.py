@@ -1,0 +1,229 @@
+"""Simulated point-landmark runs: ground truth, noisy observations, odometry and position fixes.
+
+Implements the simulation of Kraut, *A Relative Point Algorithm* (section III): landmarks scattered
+around a figure-eight path, the untransformed points inside a viewing frustum observed each iteration
+with white Gaussian noise, optionally moving ("dynamic") landmarks and clutter; plus odometry and
+low-rate absolute fixes ("buoys", Zhang, Milios and Gu, *General Concept of 3D SLAM*, section 5).
+
+Every random draw comes from child streams of one :class:`numpy.random.SeedSequence`, one stream per
+concern, so enabling odometry or fixes does not change the observations of the same seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from relpoint.geometry import FloatArray, body_twist
+from relpoint.simulation import paths
+from relpoint.simulation.config import SimulationConfig
+from relpoint.types import (
+    GroundTruthLandmarks,
+    OdometryMeasurement,
+    PointObservation,
+    PositionFix,
+    Trajectory,
+)
+
+STATIONARY_ITERATIONS = 900
+_STREAMS = ("landmarks", "dynamics", "noise", "clutter", "odometry", "fixes")
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedStep:
+    """One iteration of a simulated run.
+
+    ``T_world_sensor`` is the true sensor pose (4, 4); ``odometry`` holds the body-frame velocities
+    that carry this pose to the next one (``None`` when odometry is off); ``fix`` is an absolute
+    position at this stamp (``None`` on iterations without one).
+    """
+
+    index: int
+    stamp_ns: int
+    T_world_sensor: FloatArray
+    observation: PointObservation
+    odometry: OdometryMeasurement | None
+    fix: PositionFix | None
+
+
+class Simulation:
+    """A simulated run, produced lazily step by step (see :meth:`steps`).
+
+    Attributes
+    ----------
+    config: the settings.
+    ground_truth: true sensor trajectory ``T_world_sensor``, one pose per iteration.
+    landmarks: true landmarks at the first stamp (moving ones at their first position).
+    """
+
+    def __init__(self, config: SimulationConfig) -> None:
+        self.config = config
+        rngs = _random_streams(config.seed)
+        self._poses = _sensor_poses(config)
+        self.stamps_ns = _stamps_ns(config, len(self._poses))
+        self.ground_truth = Trajectory.from_matrices(self.stamps_ns, self._poses)
+        self._centres = _scatter_landmarks(config, rngs["landmarks"])
+        n = len(self._centres)
+        dyn_rng = rngs["dynamics"]
+        self._dynamic = np.zeros(n, dtype=bool)
+        n_dynamic = int(round(config.dynamic * n))
+        if n_dynamic:
+            self._dynamic[dyn_rng.choice(n, size=n_dynamic, replace=False)] = True
+        # Moving landmarks oscillate about their centre: a * sin(2 pi t / period + phase), per axis.
+        self._amplitude = dyn_rng.uniform(-config.dynamic_amplitude, config.dynamic_amplitude, (n, 3))
+        self._period = dyn_rng.uniform(20.0, 60.0, (n, 3))
+        self._phase = dyn_rng.uniform(0.0, 2.0 * np.pi, (n, 3))
+        self.landmarks = GroundTruthLandmarks(
+            self.landmark_positions(self.stamps_ns[0]), np.arange(n, dtype=np.int64), self._dynamic
+        )
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    def landmark_positions(self, stamp_ns: int) -> FloatArray:
+        """True positions (M, 3) of every landmark at ``stamp_ns``, in ``world``."""
+        t = stamp_ns * 1e-9
+        positions = self._centres.copy()
+        d = self._dynamic
+        positions[d] += self._amplitude[d] * np.sin(2.0 * np.pi * t / self._period[d] + self._phase[d])
+        return positions
+
+    def steps(self) -> Iterator[SimulatedStep]:
+        """Yield every iteration in order; the draws are the same on every call."""
+        config = self.config
+        rngs = _random_streams(config.seed)
+        half_h = np.deg2rad(config.fov_horizontal) / 2.0
+        half_v = np.deg2rad(config.fov_vertical) / 2.0
+        dt = 1.0 / config.rate
+        angular_sigma = (
+            config.odometry_angular_noise
+            if config.odometry_angular_noise is not None
+            else (config.odometry_noise or 0.0) / 10.0
+        )
+        for k, (stamp_ns, T_world_sensor) in enumerate(zip(self.stamps_ns, self._poses, strict=True)):
+            landmarks_world = self.landmark_positions(int(stamp_ns))
+            R = T_world_sensor[:3, :3]
+            in_sensor = (landmarks_world - T_world_sensor[:3, 3]) @ R
+            visible = _in_frustum(in_sensor, config.min_range, config.range, half_h, half_v)
+            ids = np.flatnonzero(visible)
+            points = in_sensor[ids] + rngs["noise"].normal(0.0, config.noise, (len(ids), 3))
+            n_clutter = int(rngs["clutter"].poisson(config.clutter)) if config.clutter > 0 else 0
+            if n_clutter:
+                clutter = _sample_frustum(rngs["clutter"], n_clutter, config.min_range, config.range, half_h, half_v)
+                points = np.vstack([points, clutter])
+                ids = np.concatenate([ids, np.full(n_clutter, -1)])
+            observation = PointObservation(int(stamp_ns), points, ids, "sensor")
+
+            odometry = None
+            if config.odometry_noise is not None:
+                T_next = self._poses[k + 1] if k + 1 < len(self._poses) else self._next_pose()
+                linear, angular = body_twist(T_world_sensor, T_next, dt)
+                linear = linear + rngs["odometry"].normal(0.0, config.odometry_noise, 3)
+                angular = angular + rngs["odometry"].normal(0.0, angular_sigma, 3)
+                covariance = np.diag([config.odometry_noise**2] * 3 + [angular_sigma**2] * 3)
+                odometry = OdometryMeasurement(int(stamp_ns), linear, angular, covariance)
+
+            fix = None
+            if config.fix_every and k % config.fix_every == 0:
+                position = T_world_sensor[:3, 3] + rngs["fixes"].normal(0.0, config.fix_noise, 3)
+                fix = PositionFix(int(stamp_ns), position, np.eye(3) * config.fix_noise**2)
+            yield SimulatedStep(k, int(stamp_ns), T_world_sensor, observation, odometry, fix)
+
+    def _next_pose(self) -> FloatArray:
+        """The pose one step past the end of the run (so the last odometry has a target)."""
+        return _sensor_poses(self.config, extra=1)[-1]
+
+
+def _random_streams(seed: int) -> dict[str, np.random.Generator]:
+    """One independent generator per concern, all children of ``seed``."""
+    children = np.random.SeedSequence(seed).spawn(len(_STREAMS))
+    return {name: np.random.default_rng(child) for name, child in zip(_STREAMS, children, strict=True)}
+
+
+def _stamps_ns(config: SimulationConfig, n: int) -> np.ndarray:
+    start_ns = int(round(config.start_time * 1e9))
+    period_ns = int(round(1e9 / config.rate))
+    return start_ns + period_ns * np.arange(n, dtype=np.int64)
+
+
+def _iteration_count(config: SimulationConfig) -> int:
+    if config.iterations is not None:
+        return config.iterations
+    if config.scenario == "figure8":
+        per_pass = paths.figure8_length(config.radius, config.climb) / config.step
+        return max(1, int(round(per_pass * config.passes)))
+    if config.scenario == "corridor":
+        return max(1, int(round(config.length / config.step)))
+    return STATIONARY_ITERATIONS
+
+
+def _sensor_poses(config: SimulationConfig, extra: int = 0) -> FloatArray:
+    """True poses ``T_world_sensor`` (N, 4, 4) of every iteration (plus ``extra`` beyond the end)."""
+    n = _iteration_count(config) + extra
+    if config.scenario == "stationary":
+        return np.repeat(np.eye(4)[None], n, axis=0)
+    if config.scenario == "figure8":
+        pass_length = paths.figure8_length(config.radius, config.climb)
+        positions, tangents = paths.figure8(np.arange(n) * config.step / pass_length, config.radius, config.climb)
+    else:
+        positions, tangents = paths.corridor(np.arange(n) * config.step)
+    poses = np.zeros((n, 4, 4))
+    poses[:, :3, :3] = paths.orientations_from_tangents(tangents)
+    poses[:, :3, 3] = positions
+    poses[:, 3, 3] = 1.0
+    return poses
+
+
+def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> FloatArray:
+    """Landmark centres (M, 3) in ``world``: ``density`` per 100 m of path, scattered around it."""
+    if config.scenario == "stationary":
+        # The fixed viewpoint looks along +x: put about `density` points inside its frustum.
+        count = max(3, int(round(config.density)))
+        half_h = np.deg2rad(config.fov_horizontal) / 2.0
+        half_v = np.deg2rad(config.fov_vertical) / 2.0
+        return _sample_frustum(rng, count, max(config.min_range, 0.1 * config.range), config.range, half_h, half_v)
+    if config.scenario == "figure8":
+        pass_length = paths.figure8_length(config.radius, config.climb)
+        count = max(3, int(round(config.density * pass_length / 100.0)))
+        base, tangents = paths.figure8(rng.uniform(0.0, 1.0, count), config.radius, config.climb)
+    else:
+        length = config.length + config.range  # landmarks ahead of the end stay in view to the last step
+        count = max(3, int(round(config.density * length / 100.0)))
+        base, tangents = paths.corridor(rng.uniform(-0.1 * config.range, length, count))
+    frames = paths.orientations_from_tangents(tangents)
+    lateral = rng.uniform(-config.spread_lateral, config.spread_lateral, count)
+    vertical = rng.uniform(-config.spread_vertical, config.spread_vertical, count)
+    return base + frames[:, :, 1] * lateral[:, None] + frames[:, :, 2] * vertical[:, None]
+
+
+def _in_frustum(points: FloatArray, near: float, far: float, half_h: float, half_v: float) -> np.ndarray:
+    """Mask of sensor-frame points (x forward) inside the viewing frustum."""
+    distance = np.linalg.norm(points, axis=1)
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    elevation = np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1]))
+    return (distance >= near) & (distance <= far) & (np.abs(azimuth) <= half_h) & (np.abs(elevation) <= half_v)
+
+
+def _sample_frustum(
+    rng: np.random.Generator, count: int, near: float, far: float, half_h: float, half_v: float
+) -> FloatArray:
+    """``count`` points uniform in volume inside the frustum, sensor frame (x forward)."""
+    radius = np.cbrt(rng.uniform(near**3, far**3, count))
+    azimuth = rng.uniform(-half_h, half_h, count)
+    # Uniform in solid angle over the elevation band.
+    elevation = np.arcsin(rng.uniform(np.sin(-half_v), np.sin(half_v), count))
+    return np.stack(
+        [
+            radius * np.cos(elevation) * np.cos(azimuth),
+            radius * np.cos(elevation) * np.sin(azimuth),
+            radius * np.sin(elevation),
+        ],
+        axis=1,
+    )
+
+
+def simulate(config: SimulationConfig) -> Simulation:
+    """Set up a simulated run from ``config`` (see :class:`Simulation`)."""
+    return Simulation(config)

@@ -1,0 +1,290 @@
+"""Typed containers for what flows between the log readers, the estimators and the writers.
+
+They validate shapes on construction and freeze their arrays (``writeable = False``), so no caller's
+data changes behind its back. Times are integer nanoseconds (``stamp_ns``); positions are metres;
+quaternions are ``(x, y, z, w)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.geometry import FloatArray, matrix_to_position_quat, pose_matrix
+
+IntArray = npt.NDArray[np.int64]
+
+
+def _frozen(array: npt.ArrayLike, dtype: npt.DTypeLike, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    out = np.array(array, dtype=dtype, copy=True)
+    if out.ndim != 1 + len(shape_tail) or out.shape[1:] != shape_tail:
+        expected = ", ".join(["N", *map(str, shape_tail)])
+        raise ValueError(f"{name} must have shape ({expected}), got {out.shape}")
+    out.flags.writeable = False
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class PointObservation:
+    """The untransformed 3D points seen in one iteration.
+
+    Attributes
+    ----------
+    stamp_ns:
+        Time of the observation, integer nanoseconds.
+    points:
+        (N, 3) float64, metres, in the sensor frame ``frame_id`` (finite values only).
+    ids:
+        (N,) int64 ground-truth landmark ids (-1 = clutter), or ``None`` when the log has none.
+        Estimators must not use them except in an explicit known-association mode.
+    frame_id:
+        Frame of ``points`` (``sensor`` or ``camera``).
+    """
+
+    stamp_ns: int
+    points: FloatArray
+    ids: IntArray | None = None
+    frame_id: str = "sensor"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "points", _frozen(self.points, np.float64, (3,), "points"))
+        if self.ids is not None:
+            ids = _frozen(self.ids, np.int64, (), "ids")
+            if len(ids) != len(self.points):
+                raise ValueError(f"ids has {len(ids)} entries for {len(self.points)} points")
+            object.__setattr__(self, "ids", ids)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A timestamped pose ``T_world_frame``: position (3,) metres and quaternion (x, y, z, w)."""
+
+    stamp_ns: int
+    position: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+
+    @classmethod
+    def from_matrix(cls, stamp_ns: int, T_world_frame: npt.ArrayLike) -> Pose:
+        position, quat = matrix_to_position_quat(T_world_frame)
+        return cls(int(stamp_ns), tuple(position.tolist()), tuple(quat.tolist()))  # type: ignore[arg-type]
+
+    def as_matrix(self) -> FloatArray:
+        """The pose as a 4x4 homogeneous matrix ``T_world_frame``."""
+        return pose_matrix(self.position, self.quat_xyzw)
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A sequence of poses ``T_world_frame`` with strictly increasing stamps.
+
+    Attributes
+    ----------
+    stamps_ns: (N,) int64 nanoseconds.
+    positions: (N, 3) float64 metres, in ``world``.
+    quats_xyzw: (N, 4) float64 unit quaternions, orientation of the frame in ``world``.
+    """
+
+    stamps_ns: IntArray
+    positions: FloatArray
+    quats_xyzw: FloatArray
+
+    def __post_init__(self) -> None:
+        stamps = _frozen(self.stamps_ns, np.int64, (), "stamps_ns")
+        positions = _frozen(self.positions, np.float64, (3,), "positions")
+        quats = np.array(self.quats_xyzw, dtype=np.float64)
+        if quats.ndim != 2 or quats.shape[1] != 4:
+            raise ValueError(f"quats_xyzw must have shape (N, 4), got {quats.shape}")
+        if not (len(stamps) == len(positions) == len(quats)):
+            raise ValueError(
+                f"stamps ({len(stamps)}), positions ({len(positions)}) and quaternions ({len(quats)}) differ in length"
+            )
+        if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+            raise ValueError("trajectory stamps must strictly increase")
+        norms = np.linalg.norm(quats, axis=1)
+        if np.any(~np.isfinite(norms)) or np.any(norms < 1e-9):
+            raise ValueError("trajectory quaternions must be finite and non-zero")
+        quats = _frozen(quats / norms[:, None], np.float64, (4,), "quats_xyzw")
+        object.__setattr__(self, "stamps_ns", stamps)
+        object.__setattr__(self, "positions", positions)
+        object.__setattr__(self, "quats_xyzw", quats)
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    @property
+    def timestamps(self) -> FloatArray:
+        """Stamps in seconds (float64)."""
+        return self.stamps_ns.astype(np.float64) * 1e-9
+
+    def matrices(self) -> FloatArray:
+        """All poses as (N, 4, 4) homogeneous matrices."""
+        return pose_matrix(self.positions, self.quats_xyzw)
+
+    @classmethod
+    def from_poses(cls, poses: Iterable[Pose]) -> Trajectory:
+        poses = list(poses)
+        return cls(
+            np.array([p.stamp_ns for p in poses], dtype=np.int64),
+            np.array([p.position for p in poses], dtype=np.float64).reshape(-1, 3),
+            np.array([p.quat_xyzw for p in poses], dtype=np.float64).reshape(-1, 4),
+        )
+
+    @classmethod
+    def from_matrices(cls, stamps_ns: npt.ArrayLike, T_world_frame: npt.ArrayLike) -> Trajectory:
+        positions, quats = matrix_to_position_quat(np.asarray(T_world_frame).reshape(-1, 4, 4))
+        return cls(np.asarray(stamps_ns, dtype=np.int64), positions, quats)
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkMap:
+    """Estimated point landmarks in ``world``.
+
+    Attributes
+    ----------
+    positions: (M, 3) float64 metres.
+    observations: (M,) int64, how many observations were fused into each landmark.
+    dynamic: (M,) bool, landmark judged to move (kept out of the static map).
+    gt_id: (M,) int64, majority ground-truth id of the fused observations, -1 if unknown.
+    """
+
+    positions: FloatArray
+    observations: IntArray
+    dynamic: npt.NDArray[np.bool_]
+    gt_id: IntArray
+
+    def __post_init__(self) -> None:
+        positions = _frozen(self.positions, np.float64, (3,), "positions")
+        n = len(positions)
+        for name, dtype in (("observations", np.int64), ("dynamic", np.bool_), ("gt_id", np.int64)):
+            array = _frozen(getattr(self, name), dtype, (), name)
+            if len(array) != n:
+                raise ValueError(f"{name} has {len(array)} entries for {n} landmarks")
+            object.__setattr__(self, name, array)
+        object.__setattr__(self, "positions", positions)
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @classmethod
+    def empty(cls) -> LandmarkMap:
+        return cls(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64))
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruthLandmarks:
+    """True landmarks at the first stamp: positions (M,3) in ``world``, ids (M,), dynamic flags (M,)."""
+
+    positions: FloatArray
+    ids: IntArray
+    dynamic: npt.NDArray[np.bool_]
+
+    def __post_init__(self) -> None:
+        positions = _frozen(self.positions, np.float64, (3,), "positions")
+        ids = _frozen(self.ids, np.int64, (), "ids")
+        dynamic = _frozen(self.dynamic, np.bool_, (), "dynamic")
+        if not (len(positions) == len(ids) == len(dynamic)):
+            raise ValueError("ground-truth landmark positions, ids and dynamic flags differ in length")
+        object.__setattr__(self, "positions", positions)
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "dynamic", dynamic)
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryMeasurement:
+    """Body-frame velocities of the sensor, held from ``stamp_ns`` until the next measurement.
+
+    linear: (3,) m/s and angular: (3,) rad/s, in the sensor frame; covariance: (6,6) of
+    (vx, vy, vz, wx, wy, wz), row-major as in ``nav_msgs/Odometry.twist.covariance``.
+    """
+
+    stamp_ns: int
+    linear: FloatArray
+    angular: FloatArray
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+
+    def __post_init__(self) -> None:
+        for name, shape in (("linear", (3,)), ("angular", (3,)), ("covariance", (6, 6))):
+            array = np.array(getattr(self, name), dtype=np.float64)
+            if array.shape != shape:
+                raise ValueError(f"odometry {name} must have shape {shape}, got {array.shape}")
+            array.flags.writeable = False
+            object.__setattr__(self, name, array)
+
+
+@dataclass(frozen=True, eq=False)
+class PositionFix:
+    """An absolute position of the sensor in ``world`` (buoys, GNSS): position (3,) m, covariance (3,3) m²."""
+
+    stamp_ns: int
+    position: FloatArray
+    covariance: FloatArray
+
+    def __post_init__(self) -> None:
+        for name, shape in (("position", (3,)), ("covariance", (3, 3))):
+            array = np.array(getattr(self, name), dtype=np.float64)
+            if array.shape != shape:
+                raise ValueError(f"fix {name} must have shape {shape}, got {array.shape}")
+            array.flags.writeable = False
+            object.__setattr__(self, name, array)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of a depth camera: image size in pixels, focal lengths and principal point in pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        if not (np.isfinite([self.fx, self.fy, self.cx, self.cy]).all() and self.fx > 0 and self.fy > 0):
+            raise ValueError("focal lengths must be finite and positive")
+
+    def matrix(self) -> FloatArray:
+        """The 3x3 camera matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class DepthFrame:
+    """One depth image in the camera optical frame: depth (H, W) float32 metres, 0 = no measurement.
+
+    ``color`` is an optional (H, W, 3) uint8 RGB image registered to the depth image.
+    """
+
+    stamp_ns: int
+    depth: npt.NDArray[np.float32]
+    intrinsics: Intrinsics
+    color: npt.NDArray[np.uint8] | None = None
+
+    def __post_init__(self) -> None:
+        depth = np.array(self.depth, dtype=np.float32)
+        if depth.shape != (self.intrinsics.height, self.intrinsics.width):
+            raise ValueError(
+                f"depth image is {depth.shape[::-1]} but the intrinsics say {self.intrinsics.width}x{self.intrinsics.height}"
+            )
+        depth[~np.isfinite(depth)] = 0.0
+        depth.flags.writeable = False
+        object.__setattr__(self, "depth", depth)
+        if self.color is not None:
+            color = np.array(self.color, dtype=np.uint8)
+            if color.shape != (*depth.shape, 3):
+                raise ValueError(f"colour image shape {color.shape} does not match depth {depth.shape}")
+            color.flags.writeable = False
+            object.__setattr__(self, "color", color)
+
+
+def stack_positions(poses: Sequence[Pose]) -> FloatArray:
+    """Positions of ``poses`` as an (N, 3) array."""
+    return np.array([p.position for p in poses], dtype=np.float64).reshape(-1, 3)

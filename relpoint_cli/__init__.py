@@ -1,0 +1,1 @@
+"""The ``relpoint`` command line: thin click commands over library calls in ``relpoint`` and ``formats``."""

@@ -1,0 +1,67 @@
+"""The ``relpoint`` command group."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+import relpoint
+from relpoint_cli.errors import handle_errors  # noqa: F401  (re-exported for subcommands)
+
+EPILOG = """\b
+Examples:
+  relpoint simulate -o run.mcap --scenario figure8 --density 25 --seed 1
+  relpoint simulate -o long.mcap --passes 40 --dynamic 0.3 --odometry-noise 0.05
+  relpoint info run.mcap
+  relpoint simulate --config sim.toml -o run.mcap
+
+Exit codes: 0 ok, 1 internal error, 2 usage error, 3 input error,
+4 estimator failure, 5 evaluation gate exceeded, 130 interrupted.
+"""
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return f"relpoint: {record.levelname.lower()}: {record.getMessage()}"
+
+
+@click.group(epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(relpoint.__version__, prog_name="relpoint")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars or warnings.")
+@click.option("-v", "--verbose", is_flag=True, help="Debug logging (and tracebacks of internal errors).")
+@click.pass_context
+def cli(ctx: click.Context, quiet: bool, verbose: bool) -> None:
+    """relpoint: offline 3D SLAM over recorded ROS 2 (MCAP) logs.
+
+    Simulate observation logs, run estimators over them, and evaluate the results.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["quiet"] = quiet
+    handler = logging.StreamHandler()
+    handler.setFormatter(_Formatter())
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
+    # Third-party chatter stays out of the user's terminal unless debugging.
+    for name in ("matplotlib", "PIL", "numba"):
+        logging.getLogger(name).setLevel(logging.WARNING if verbose else logging.ERROR)
+
+
+def _register() -> None:
+    from relpoint_cli import info, simulate
+
+    cli.add_command(simulate.simulate)
+    cli.add_command(info.info)
+
+
+_register()
+
+
+def main() -> None:
+    """Console entry point."""
+    cli(prog_name="relpoint")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,54 @@
+"""Click options generated from config dataclasses, so ``--help``, config files and defaults agree."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Callable
+from typing import Any
+
+import click
+from click.core import ParameterSource
+
+_TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+
+
+def _click_type(annotation: str) -> Any:
+    base = annotation.replace(" | None", "").replace("None | ", "").strip()
+    return _TYPES.get(base, str)
+
+
+def _plain(text: str) -> str:
+    return re.sub(r"``(.*?)``", r"\1", text)
+
+
+def config_options(config_class: type, *, skip: tuple[str, ...] = (), choices: dict[str, tuple[str, ...]] | None = None) -> Callable[[Any], Any]:
+    """Decorator adding one ``--option`` per field of ``config_class`` (default shown, None = unset)."""
+    choices = choices or {}
+
+    def decorate(command: Any) -> Any:
+        for f in reversed(dataclasses.fields(config_class)):
+            if f.name in skip:
+                continue
+            option_type = click.Choice(choices[f.name]) if f.name in choices else _click_type(str(f.type))
+            default = f.default if f.default is not dataclasses.MISSING else None
+            command = click.option(
+                f"--{f.name.replace('_', '-')}",
+                f.name,
+                type=option_type,
+                default=default,
+                show_default=default is not None,
+                help=_plain(f.metadata.get("help", "")),
+            )(command)
+        return command
+
+    return decorate
+
+
+def explicit_options(ctx: click.Context, names: list[str]) -> dict[str, Any]:
+    """The options among ``names`` the user actually gave on the command line."""
+    return {
+        name: ctx.params[name]
+        for name in names
+        if name in ctx.params and ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, None)
+    }
