@@ -177,7 +177,7 @@ class LogReader:
         stream.seek(0)
         try:
             summary = make_reader(stream).get_summary()
-        except _READ_ERRORS as error:
+        except (*_READ_ERRORS, OSError) as error:  # seeking before the start of a cut-off file: EINVAL
             raise _corrupt(self.path, error) from None
         counts: Counter[str] = Counter()
         first: dict[str, int] = {}
@@ -194,7 +194,7 @@ class LogReader:
                 counts[channel.topic] += 1
                 first[channel.topic] = min(first.get(channel.topic, message.log_time), message.log_time)
                 last[channel.topic] = max(last.get(channel.topic, message.log_time), message.log_time)
-        except _READ_ERRORS as error:
+        except (*_READ_ERRORS, OSError) as error:
             raise _corrupt(self.path, error) from None
         if summary is not None:
             channels.update(summary.channels)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import logging
+import sys
+from typing import Any
 
 import click
 
 import relpoint
-from relpoint_cli.errors import handle_errors  # noqa: F401  (re-exported for subcommands)
+from relpoint_cli.errors import EXIT_INTERRUPTED, EXIT_USAGE
 
 EPILOG = """\b
 Examples:
@@ -16,9 +18,31 @@ Examples:
   relpoint info run.mcap
   relpoint simulate --config sim.toml -o run.mcap
 
+\b
 Exit codes: 0 ok, 1 internal error, 2 usage error, 3 input error,
-4 estimator failure, 5 evaluation gate exceeded, 130 interrupted.
+            4 estimator failure, 5 evaluation gate exceeded, 130 interrupted.
 """
+
+
+class RelpointGroup(click.Group):
+    """A click group whose usage errors are one line on stderr (exit 2), like every other error."""
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+        kwargs["standalone_mode"] = False
+        try:
+            return super().main(*args, **kwargs)
+        except click.UsageError as error:
+            where = f"'{error.ctx.command_path} --help'" if error.ctx else "'relpoint --help'"
+            click.echo(f"relpoint: error: {error.format_message()} (see {where})", err=True)
+            sys.exit(EXIT_USAGE)
+        except click.ClickException as error:
+            click.echo(f"relpoint: error: {error.format_message()}", err=True)
+            sys.exit(error.exit_code)
+        except click.Abort:
+            click.echo("relpoint: error: interrupted; no output was written", err=True)
+            sys.exit(EXIT_INTERRUPTED)
+        except click.exceptions.Exit as exit_:
+            sys.exit(exit_.exit_code)
 
 
 class _Formatter(logging.Formatter):
@@ -26,7 +50,7 @@ class _Formatter(logging.Formatter):
         return f"relpoint: {record.levelname.lower()}: {record.getMessage()}"
 
 
-@click.group(epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.group(cls=RelpointGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(relpoint.__version__, prog_name="relpoint")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars or warnings.")
 @click.option("-v", "--verbose", is_flag=True, help="Debug logging (and tracebacks of internal errors).")

@@ -1,0 +1,56 @@
+"""Binary PLY point clouds (maps) read and written through ``plyfile``.
+
+A cloud is a numpy structured array whose fields become vertex properties (``x, y, z`` float, plus
+any of ``nx, ny, nz``, ``red, green, blue`` uint8, ``weight``, ``observations``, ``dynamic``,
+``gt_id``...). Open3D, MeshLab and CloudCompare read the files written here.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from plyfile import PlyData, PlyElement, PlyParseError
+
+from formats.atomic import atomic_path
+from relpoint.errors import InputError
+from relpoint.types import LandmarkMap
+
+
+def write_ply(path: str | os.PathLike[str], vertices: np.ndarray, *, comments: list[str] | None = None) -> None:
+    """Write a structured array as the ``vertex`` element of a binary little-endian PLY, atomically."""
+    if vertices.dtype.names is None:
+        raise ValueError("vertices must be a structured array (one field per PLY property)")
+    # plyfile wants native scalar fields; bool becomes uint8.
+    fields = [(name, np.uint8 if vertices.dtype[name] == np.bool_ else vertices.dtype[name].newbyteorder("<"))
+              for name in vertices.dtype.names]  # fmt: skip
+    packed = np.empty(len(vertices), dtype=fields)
+    for name in vertices.dtype.names:
+        packed[name] = vertices[name]
+    data = PlyData([PlyElement.describe(packed, "vertex")], text=False, byte_order="<", comments=comments or [])
+    with atomic_path(path) as tmp, tmp.open("wb") as stream:
+        data.write(stream)
+
+
+def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
+    """The ``vertex`` element of a PLY file (ASCII or binary) as a structured array."""
+    try:
+        data = PlyData.read(str(path))
+        return np.asarray(data["vertex"].data)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (PlyParseError, KeyError, ValueError, EOFError) as error:
+        raise InputError(f"{path} is not a readable PLY point cloud ({error})") from None
+
+
+def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
+    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id."""
+    vertices = np.empty(
+        len(landmarks),
+        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")],
+    )
+    vertices["x"], vertices["y"], vertices["z"] = landmarks.positions.T
+    vertices["observations"] = landmarks.observations
+    vertices["dynamic"] = landmarks.dynamic
+    vertices["gt_id"] = landmarks.gt_id
+    return vertices

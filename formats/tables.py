@@ -1,0 +1,88 @@
+"""The CSV files of a run's output directory (``trajectory.csv``, ``map.csv``, ``timing.csv``).
+
+All are plain comma-separated text with one header line, written atomically. Floats are written
+with 9 significant digits past the point for coordinates, so they round-trip at sub-micrometre level.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from formats.atomic import write_text
+from relpoint.errors import InputError
+from relpoint.types import LandmarkMap, Trajectory
+
+TRAJECTORY_HEADER = ["iteration", "timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"]
+MAP_HEADER = ["landmark", "x", "y", "z", "observations", "dynamic", "gt_id"]
+TIMING_HEADER = ["iteration", "observed", "map_size", "seconds"]
+
+
+def _rows_to_text(header: list[str], rows: list[list[str]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def write_trajectory_csv(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
+    """``iteration,timestamp,x,y,z,qx,qy,qz,qw``; timestamp in seconds."""
+    rows = [
+        [str(i), f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}",
+         *(f"{v:.9f}" for v in position), *(f"{v:.9f}" for v in quat)]
+        for i, (stamp, position, quat) in enumerate(
+            zip(trajectory.stamps_ns.tolist(), trajectory.positions, trajectory.quats_xyzw, strict=True)
+        )
+    ]  # fmt: skip
+    write_text(path, _rows_to_text(TRAJECTORY_HEADER, rows))
+
+
+def write_map_csv(path: str | os.PathLike[str], landmarks: LandmarkMap) -> None:
+    """``landmark,x,y,z,observations,dynamic,gt_id``; dynamic is 0 or 1."""
+    rows = [
+        [str(i), f"{p[0]:.9f}", f"{p[1]:.9f}", f"{p[2]:.9f}", str(int(n)), str(int(d)), str(int(g))]
+        for i, (p, n, d, g) in enumerate(
+            zip(landmarks.positions, landmarks.observations, landmarks.dynamic, landmarks.gt_id, strict=True)
+        )
+    ]
+    write_text(path, _rows_to_text(MAP_HEADER, rows))
+
+
+def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
+    """Read a ``map.csv`` back into a :class:`LandmarkMap`."""
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as stream:
+            reader = csv.DictReader(stream)
+            missing = [c for c in MAP_HEADER[1:] if c not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(f"{path}: not a relpoint map.csv (missing column(s) {', '.join(missing)})")
+            rows = list(reader)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+    try:
+        positions = np.array([[float(r["x"]), float(r["y"]), float(r["z"])] for r in rows]).reshape(-1, 3)
+        return LandmarkMap(
+            positions,
+            np.array([int(r["observations"]) for r in rows], dtype=np.int64),
+            np.array([int(r["dynamic"]) != 0 for r in rows], dtype=bool),
+            np.array([int(r["gt_id"]) for r in rows], dtype=np.int64),
+        )
+    except (ValueError, TypeError) as error:
+        raise InputError(f"{path}: malformed row ({error})") from None
+
+
+def write_timing_csv(
+    path: str | os.PathLike[str], observed: np.ndarray, map_size: np.ndarray, seconds: np.ndarray
+) -> None:
+    """``iteration,observed,map_size,seconds`` per iteration."""
+    rows = [
+        [str(i), str(int(o)), str(int(m)), f"{s:.9f}"]
+        for i, (o, m, s) in enumerate(zip(observed, map_size, seconds, strict=True))
+    ]
+    write_text(path, _rows_to_text(TIMING_HEADER, rows))

@@ -1,0 +1,39 @@
+"""Shared fixtures: small simulated logs made once per session, and a CLI runner."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from formats.simulation_log import write_simulation
+from relpoint.simulation import SimulationConfig, simulate
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def small_config() -> SimulationConfig:
+    return SimulationConfig(iterations=120, density=25, noise=0.3, odometry_noise=0.05, fix_every=10, seed=3)
+
+
+@pytest.fixture(scope="session")
+def small_log(tmp_path_factory: pytest.TempPathFactory, small_config: SimulationConfig) -> Path:
+    path = tmp_path_factory.mktemp("logs") / "small.mcap"
+    write_simulation(simulate(small_config), path)
+    return path
+
+
+@pytest.fixture()
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def shared_data(*parts: str) -> Path:
+    """A path under ../shared/data; skips the test when the shared data is not beside the checkout."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"shared data {path.name} is not available")
+    return path

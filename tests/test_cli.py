@@ -1,0 +1,110 @@
+"""The command line: simulate, info, config files, determinism and one-line errors."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from formats.log import LogReader
+from relpoint_cli.main import cli
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def invoke(runner: CliRunner, *args: str) -> tuple[int, str, str]:
+    result = runner.invoke(cli, list(args), catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_help_and_version(runner: CliRunner) -> None:
+    code, out, _ = invoke(runner, "--help")
+    assert code == 0 and "Examples:" in out and "simulate" in out and "Exit codes" in out
+    code, out, _ = invoke(runner, "simulate", "--help")
+    assert code == 0 and "--density" in out and "--odometry-noise" in out and "--fix-every" in out
+    code, out, _ = invoke(runner, "--version")
+    assert code == 0 and "relpoint, version" in out
+
+
+def test_same_seed_gives_byte_identical_logs(runner: CliRunner, tmp_path: Path) -> None:
+    args = ["--iterations", "150", "--dynamic", "0.2", "--clutter", "1", "--odometry-noise", "0.05", "--fix-every", "7"]
+    paths = [tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "c.mcap"]
+    for path, seed in zip(paths, ("4", "4", "5"), strict=True):
+        code, _, err = invoke(runner, "simulate", "-o", str(path), "--seed", seed, *args)
+        assert code == 0, err
+    assert sha256(paths[0]) == sha256(paths[1])
+    assert sha256(paths[0]) != sha256(paths[2])
+
+
+def test_config_files_and_option_precedence(runner: CliRunner, tmp_path: Path) -> None:
+    toml = tmp_path / "sim.toml"
+    toml.write_text('[simulate]\nscenario = "corridor"\niterations = 40\ndensity = 60\nfix-every = 4\nseed = 2\n')
+    yaml = tmp_path / "sim.yaml"
+    yaml.write_text("scenario: corridor\niterations: 40\ndensity: 60\nfix_every: 4\nseed: 2\n")
+    for config, out in ((toml, "t.mcap"), (yaml, "y.mcap")):
+        code, _, err = invoke(runner, "simulate", "-o", str(tmp_path / out), "--config", str(config))
+        assert code == 0, err
+    assert sha256(tmp_path / "t.mcap") == sha256(tmp_path / "y.mcap")
+    reader = LogReader(tmp_path / "t.mcap")
+    assert reader.topic_infos["/points"].count == 40 and reader.topic_infos["/fix"].count == 10
+    settings = json.loads(reader.metadata()["relpoint.simulation"]["density"])
+    assert settings == 60
+    # An option on the command line beats the file.
+    code, _, _ = invoke(runner, "simulate", "-o", str(tmp_path / "o.mcap"), "--config", str(toml), "--iterations", "12")
+    assert code == 0 and LogReader(tmp_path / "o.mcap").topic_infos["/points"].count == 12
+    bad = tmp_path / "bad.toml"
+    bad.write_text("densty = 3\n")
+    code, _, err = invoke(runner, "simulate", "-o", str(tmp_path / "x.mcap"), "--config", str(bad))
+    assert code == 2 and "unknown simulation setting(s): densty" in err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_info_lists_topics_rates_and_capabilities(runner: CliRunner, small_log: Path) -> None:
+    code, out, _ = invoke(runner, "info", str(small_log), "--json")
+    assert code == 0
+    document = json.loads(out)
+    topics = {t["topic"]: t for t in document["topics"]}
+    assert topics["/points"]["count"] == 120 and topics["/points"]["rate_hz"] == pytest.approx(10.0)
+    assert topics["/fix"]["count"] == 12 and topics["/fix"]["rate_hz"] == pytest.approx(1.0)
+    assert topics["/odom"]["type"] == "nav_msgs/msg/Odometry" and topics["/odom"]["role"] == "odometry"
+    assert document["duration_s"] == pytest.approx(11.9)
+    assert document["evaluate_trajectory"] and document["evaluate_landmarks"]
+    code, out, _ = invoke(runner, "info", str(small_log))
+    assert code == 0 and "/ground_truth/pose" in out and "10.00" in out
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "relpoint_cli.main", *args], capture_output=True, text=True, cwd=cwd, timeout=120)
+
+
+@pytest.mark.parametrize("case", ["missing", "text", "truncated", "directory"])
+def test_unusable_files_give_one_line_and_exit_3(tmp_path: Path, small_log: Path, case: str) -> None:
+    path = tmp_path / "log.mcap"
+    if case == "text":
+        path.write_text("not a log")
+    elif case == "truncated":
+        path.write_bytes(small_log.read_bytes()[: small_log.stat().st_size // 2])
+    elif case == "directory":
+        path.mkdir()
+    result = run_cli("info", str(path))
+    assert result.returncode == 3
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("relpoint: error: ") and "Traceback" not in result.stderr
+
+
+def test_unknown_options_give_one_line_and_exit_2(tmp_path: Path) -> None:
+    result = run_cli("simulate", "-o", str(tmp_path / "x.mcap"), "--no-such-option")
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "relpoint: error: No such option '--no-such-option'. (see 'relpoint simulate --help')"
+    ]
+    result = run_cli("simulate", "-o", str(tmp_path / "x.mcap"), "--noise", "-2")
+    assert result.returncode == 2 and "noise must be a number >= 0" in result.stderr
+    assert not (tmp_path / "x.mcap").exists()

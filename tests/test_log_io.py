@@ -1,0 +1,208 @@
+"""Log round trips for every message kind, interoperability with other ROS 2 MCAP tools, bad files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from formats import ros2
+from formats.log import LogReader, LogWriter, Topics
+from relpoint.errors import InputError
+from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
+
+ALL_ROLES = ["points", "ground_truth_pose", "ground_truth_landmarks", "odometry", "fix", "depth", "camera_info", "color"]
+
+
+def write_every_kind(path: Path, compression: str = "zstd") -> dict[str, object]:
+    rng = np.random.default_rng(7)
+    stamp = 1_700_000_000_123_456_789
+    observation = PointObservation(stamp, rng.normal(size=(50, 3)) * 10, rng.integers(-1, 99, 50), "sensor")
+    pose = Pose(stamp, (1.0, -2.0, 3.5), tuple(np.array([0.1, 0.2, 0.3, 0.9]) / np.linalg.norm([0.1, 0.2, 0.3, 0.9])))
+    landmarks = GroundTruthLandmarks(rng.normal(size=(30, 3)), np.arange(30), np.arange(30) % 3 == 0)
+    covariance = np.diag(rng.uniform(0.01, 0.1, 6))
+    odometry = OdometryMeasurement(stamp, [1.0, 0.1, -0.2], [0.01, -0.02, 0.3], covariance)
+    fix = PositionFix(stamp, [10.0, 20.0, -1.0], np.diag([1.0, 2.0, 3.0]))
+    intrinsics = Intrinsics(64, 48, 52.5, 52.0, 31.5, 23.5)
+    depth = rng.uniform(0.3, 5.0, (48, 64)).astype(np.float32)
+    depth[::7, ::5] = 0.0
+    color = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    with LogWriter(path, compression=compression) as writer:
+        writer.write_ground_truth_landmarks(stamp, landmarks)
+        writer.write_ground_truth_pose(pose)
+        writer.write_observation(observation)
+        writer.write_odometry(odometry)
+        writer.write_fix(fix)
+        writer.write_camera_info(stamp, intrinsics)
+        writer.write_depth(stamp, depth)
+        writer.write_color(stamp, color)
+        writer.write_depth(stamp + 1, depth, topic="/depth32", encoding="32FC1")
+    return {"observation": observation, "pose": pose, "landmarks": landmarks, "odometry": odometry, "fix": fix,
+            "intrinsics": intrinsics, "depth": depth, "color": color}  # fmt: skip
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_every_message_kind_round_trips(tmp_path: Path, compression: str) -> None:
+    path = tmp_path / "all.mcap"
+    written = write_every_kind(path, compression)
+    reader = LogReader(path)
+    assert reader.available_roles() == set(ALL_ROLES)
+    records = {r.role: r.value for r in reader.records(ALL_ROLES)}
+    obs = records["points"]
+    np.testing.assert_allclose(obs.points, written["observation"].points.astype(np.float32), rtol=0, atol=0)
+    np.testing.assert_array_equal(obs.ids, written["observation"].ids)
+    assert obs.stamp_ns == written["observation"].stamp_ns and obs.frame_id == "sensor"
+    assert records["ground_truth_pose"] == written["pose"]
+    gt = records["ground_truth_landmarks"]
+    np.testing.assert_allclose(gt.positions, written["landmarks"].positions.astype(np.float32))
+    np.testing.assert_array_equal(gt.ids, written["landmarks"].ids)
+    np.testing.assert_array_equal(gt.dynamic, written["landmarks"].dynamic)
+    odo = records["odometry"]
+    np.testing.assert_array_equal(odo.linear, written["odometry"].linear)
+    np.testing.assert_array_equal(odo.angular, written["odometry"].angular)
+    np.testing.assert_array_equal(odo.covariance, written["odometry"].covariance)
+    fix = records["fix"]
+    np.testing.assert_array_equal(fix.position, written["fix"].position)
+    np.testing.assert_array_equal(fix.covariance, written["fix"].covariance)
+    assert records["camera_info"] == written["intrinsics"]
+    # 16UC1 keeps millimetres.
+    np.testing.assert_allclose(records["depth"], np.round(written["depth"] * 1000) / 1000, atol=1e-6)
+    assert (records["depth"] == 0).sum() == (written["depth"] == 0).sum()
+    np.testing.assert_array_equal(records["color"], written["color"])
+    float_depth = LogReader(path, Topics(depth="/depth32"))
+    depth32 = next(r.value for r in float_depth.records(["depth"]))
+    np.testing.assert_array_equal(depth32, written["depth"])
+
+
+def test_our_logs_decode_with_mcap_ros2_support(tmp_path: Path) -> None:
+    path = tmp_path / "all.mcap"
+    written = write_every_kind(path)
+    with path.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        decoded = {channel.topic: (schema.name, msg) for schema, channel, _, msg in reader.iter_decoded_messages()}
+        assert reader.get_header().profile == "ros2"
+    name, cloud = decoded["/points"]
+    assert name == "sensor_msgs/msg/PointCloud2"
+    assert cloud.width == 50 and [f.name for f in cloud.fields] == ["x", "y", "z", "id"]
+    name, odom = decoded["/odom"]
+    assert odom.twist.twist.angular.z == pytest.approx(written["odometry"].angular[2])
+    assert decoded["/fix"][1].pose.covariance[35] == pytest.approx(1e9)
+
+
+def test_reads_a_log_written_by_another_tool(tmp_path: Path) -> None:
+    """mcap-ros2-support's writer, other topic names, padded points with extra fields."""
+    path = tmp_path / "other.mcap"
+    rng = np.random.default_rng(3)
+    n = 40
+    dtype = np.dtype({"names": ["x", "y", "z", "intensity", "id"], "formats": ["<f4", "<f4", "<f4", "<f4", "<i4"],
+                      "offsets": [0, 4, 8, 16, 20], "itemsize": 32})  # fmt: skip
+    fields = [{"name": n_, "offset": o, "datatype": d, "count": 1}
+              for n_, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("id", 20, 5))]  # fmt: skip
+    with path.open("wb") as stream:
+        writer = Ros2Writer(stream)
+        schema = writer.register_msgdef(ros2.POINT_CLOUD2, ros2.message_definition(ros2.POINT_CLOUD2))
+        clouds = []
+        for k in range(5):
+            points = np.zeros(n, dtype=dtype)
+            points["x"], points["y"], points["z"] = rng.normal(size=(3, n))
+            points["id"] = np.arange(n)
+            points["x"][0] = np.nan
+            clouds.append(points)
+            stamp = 5_000_000_000 + k * 100_000_000
+            writer.write_message(
+                topic="/robot/landmarks", schema=schema, log_time=stamp, publish_time=stamp,
+                message={"header": {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "base"},
+                         "height": 1, "width": n, "fields": fields, "is_bigendian": False, "point_step": 32,
+                         "row_step": 32 * n, "data": points.tobytes(), "is_dense": False},
+            )  # fmt: skip
+        writer.finish()
+    reader = LogReader(path, Topics(points="/robot/landmarks"))
+    reader.require("points")
+    observations = [r.value for r in reader.records(["points"])]
+    assert len(observations) == 5
+    for obs, points in zip(observations, clouds, strict=True):
+        assert obs.frame_id == "base" and len(obs) == n - 1
+        np.testing.assert_allclose(obs.points[:, 1], points["y"][1:])
+        np.testing.assert_array_equal(obs.ids, np.arange(1, n))
+    assert reader.skipped["/robot/landmarks: non-finite points"] == 5
+    with pytest.raises(InputError, match="no messages on /points"):
+        LogReader(path).require("points")
+
+
+def test_writer_is_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "broken.mcap"
+    with pytest.raises(RuntimeError), LogWriter(path) as writer:
+        writer.write_fix(PositionFix(1, [0, 0, 0], np.eye(3)))
+        raise RuntimeError("simulated crash")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_files_are_input_errors(tmp_path: Path, small_log: Path) -> None:
+    with pytest.raises(InputError, match="no such file"):
+        LogReader(tmp_path / "missing.mcap")
+    (tmp_path / "text.mcap").write_text("hello, not a log\n")
+    with pytest.raises(InputError, match="not an MCAP file"):
+        LogReader(tmp_path / "text.mcap")
+    data = small_log.read_bytes()
+    for cut in (9, 100, len(data) // 3, len(data) // 2, len(data) - 40, len(data) - 1):
+        truncated = tmp_path / f"cut{cut}.mcap"
+        truncated.write_bytes(data[:cut])
+        with pytest.raises(InputError, match="truncated or corrupt"):
+            reader = LogReader(truncated)
+            list(reader.records(["points"]))
+
+
+def test_flipped_bytes_in_a_chunk_are_detected(tmp_path: Path, small_log: Path) -> None:
+    data = bytearray(small_log.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    damaged = tmp_path / "flipped.mcap"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="truncated or corrupt"):
+        list(LogReader(damaged).records(["points", "ground_truth_pose"]))
+
+
+def test_wrong_type_and_backwards_stamps(tmp_path: Path) -> None:
+    path = tmp_path / "bad.mcap"
+    with LogWriter(path) as writer:
+        writer.write_ground_truth_pose(Pose(10, (0, 0, 0), (0, 0, 0, 1)), topic="/points")
+    with pytest.raises(InputError, match="carries geometry_msgs/msg/PoseStamped, not sensor_msgs/msg/PointCloud2"):
+        LogReader(path).require("points")
+    path = tmp_path / "backwards.mcap"
+    with LogWriter(path) as writer:
+        for log_time, stamp in ((1000, 100), (1001, 200), (1002, 150)):
+            # log_time increases in file order while header.stamp goes backwards at the third message
+            msg = ros2.observation_to_msg(PointObservation(stamp, np.ones((3, 3))))
+            writer.write("/points", ros2.POINT_CLOUD2, msg, log_time)
+    with pytest.raises(InputError, match="is not after the previous"):
+        list(LogReader(path).records(["points"]))
+
+
+def test_empty_and_nan_clouds_are_skipped_and_counted(tmp_path: Path) -> None:
+    path = tmp_path / "holes.mcap"
+    with LogWriter(path) as writer:
+        writer.write_observation(PointObservation(1, np.ones((4, 3))))
+        writer.write_observation(PointObservation(2, np.zeros((0, 3))))
+        writer.write_observation(PointObservation(3, np.array([[np.nan, 0, 0], [1, 2, 3], [np.inf, 1, 1]])))
+    reader = LogReader(path)
+    observations = [r.value for r in reader.records(["points"])]
+    assert [len(o) for o in observations] == [4, 0, 1]
+    assert reader.skipped["/points: empty clouds"] == 1
+    assert reader.skipped["/points: non-finite points"] == 2
+
+
+def test_reads_a_real_rosbag2_recording() -> None:
+    from tests.conftest import shared_data
+
+    path = shared_data("ros2-bags", "nav2_turtlebot.mcap")
+    reader = LogReader(path, Topics(odometry="/odom"))
+    infos = reader.topic_infos
+    assert infos["/odom"].count == 2639 and infos["/tf"].count == 5422 and infos["/amcl_pose"].count == 135
+    assert infos["/amcl_pose"].typename == "geometry_msgs/msg/PoseWithCovarianceStamped"
+    odometry = [r.value for r in reader.records(["odometry"])]
+    assert len(odometry) == 2639
+    assert all(np.isfinite(o.linear).all() for o in odometry)
+    assert max(abs(o.linear[0]) for o in odometry) > 0.05  # the robot drives
