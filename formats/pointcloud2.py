@@ -8,6 +8,7 @@ view is made, so a lying header cannot make us read past the data or allocate fr
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -41,6 +42,12 @@ class Field:
 
 
 def cloud_dtype(fields: Sequence[Field], point_step: int, big_endian: bool = False) -> np.dtype:
+    """Structured dtype for one point (cached: a log's clouds nearly always share one layout)."""
+    return _cloud_dtype(tuple(fields), point_step, big_endian)
+
+
+@functools.lru_cache(maxsize=64)
+def _cloud_dtype(fields: tuple[Field, ...], point_step: int, big_endian: bool) -> np.dtype:
     """Structured dtype for one point of a cloud with these fields and ``point_step`` bytes per point.
 
     Raises :class:`InputError` for unknown datatypes, duplicate names, or fields that do not fit
@@ -111,14 +118,11 @@ def xyz_from_cloud(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     missing = [axis for axis in "xyz" if axis not in names]
     if missing:
         raise InputError(f"PointCloud2 lacks the required field(s) {', '.join(missing)}")
-    xyz = np.empty((len(cloud), 3), dtype=np.float64)
-    for i, axis in enumerate("xyz"):
-        column = cloud[axis]
-        if column.ndim != 1:
-            raise InputError(f"PointCloud2 field {axis!r} must have count 1")
-        xyz[:, i] = column
+    if any(cloud.dtype[axis].shape != () for axis in "xyz"):
+        raise InputError("PointCloud2 fields x, y and z must have count 1")
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64, copy=False)
     finite = np.isfinite(xyz).all(axis=1)
-    return xyz[finite], finite
+    return (xyz if finite.all() else xyz[finite]), finite
 
 
 def encode_cloud(columns: dict[str, npt.ArrayLike]) -> tuple[list[Field], int, bytes]:

@@ -73,10 +73,12 @@ def cli(ctx: click.Context, quiet: bool, verbose: bool) -> None:
 
 
 def _register() -> None:
-    from relpoint_cli import info, simulate
+    from relpoint_cli import info, run, simulate
 
     cli.add_command(simulate.simulate)
     cli.add_command(info.info)
+    cli.add_command(run.run)
+    cli.add_command(run.config_command)
 
 
 _register()

@@ -1,0 +1,144 @@
+"""``relpoint run``: run an estimator over a log and write its output directory."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+import relpoint
+from formats.config_files import load_settings
+from formats.log import LogReader, Record
+from formats.run_output import file_sha256, write_run_directory
+from relpoint import pipeline
+from relpoint.errors import UsageError
+from relpoint.estimators import ESTIMATORS, EstimatorSpec
+from relpoint_cli.errors import handle_errors
+from relpoint_cli.info import NEED_ROLES
+from relpoint_cli.progress import progress_bar
+from relpoint_cli.topics import topic_options, topics_from
+
+EXAMPLES = """\b
+Examples:
+  relpoint run sample_logs/figure8.mcap --estimator relpoint -o out/fig8
+  relpoint run run.mcap --estimator ekf --param association=jcbb -o out/ekf
+  relpoint run robot.mcap --estimator fastslam --points-topic /landmarks --seed 3 -o out/fs
+  relpoint run run.mcap --estimator ekf --config params.toml -o out/ekf   # [ekf] table or flat keys
+  relpoint config --estimator ekf                                          # list parameters
+"""
+
+
+def parse_value(text: str) -> Any:
+    """``--param`` values: true/false, int, float, or the text itself."""
+    lowered = text.strip().lower()
+    if lowered in ("true", "yes", "on"):
+        return True
+    if lowered in ("false", "no", "off"):
+        return False
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[str, ...]) -> Any:
+    """The estimator's config dataclass from defaults, a settings file and ``--param KEY=VALUE``."""
+    values: dict[str, Any] = {}
+    if config_file is not None:
+        values.update(load_settings(config_file, section=spec.name))
+    for item in params:
+        if "=" not in item:
+            raise UsageError(f"--param {item!r} is not KEY=VALUE")
+        key, value = item.split("=", 1)
+        values[key.strip().replace("-", "_")] = parse_value(value)
+    known = {f.name for f in dataclasses.fields(spec.config_class)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise UsageError(
+            f"unknown {spec.name} parameter(s): {', '.join(unknown)}",
+            f"see `relpoint config --estimator {spec.name}` for the parameters",
+        )
+    try:
+        return spec.config_class(**values)
+    except (TypeError, ValueError) as error:
+        raise UsageError(f"bad {spec.name} parameter: {error}") from None
+
+
+def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
+    """Core-type inputs for the pipeline from decoded log records."""
+    for record in records:
+        if record.role in ("points", "odometry", "fix"):
+            yield record.value
+
+
+@click.command(epilog=EXAMPLES)
+@click.argument("log", type=click.Path(path_type=Path))
+@click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator to run (see `relpoint info LOG`).")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True, help="Output directory (replaced atomically).")
+@click.option("--param", "params", multiple=True, metavar="KEY=VALUE", help="Estimator parameter (repeatable).")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), help="TOML/YAML file of estimator parameters.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the estimator's random draws.")
+@click.option("--no-odometry", is_flag=True, help="Ignore /odom even if the log has it.")
+@click.option("--no-fixes", is_flag=True, help="Ignore /fix even if the log has it.")
+@topic_options
+@click.pass_context
+@handle_errors
+def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params: tuple[str, ...],
+        config_file: Path | None, seed: int, no_odometry: bool, no_fixes: bool, **topic_names: str) -> None:  # fmt: skip
+    """Run an estimator over LOG and write trajectory, map, timing and run.json to OUTPUT."""
+    if estimator_name not in ESTIMATORS:
+        known = ", ".join(sorted(ESTIMATORS)) or "none installed"
+        raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {known}")
+    spec = ESTIMATORS[estimator_name]
+    config = build_config(spec, config_file, params)
+    reader = LogReader(log, topics_from(topic_names))
+    needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
+    reader.require(*needed)
+    optional = [need for need in sorted(spec.uses) if not (need == "odometry" and no_odometry) and not (need == "fix" and no_fixes)]
+    roles = needed + [role for need in optional for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
+    estimator = spec.factory(config, np.random.default_rng(seed))
+    total = reader.topic_infos[reader.topics.roles()[needed[0]]].count
+    with progress_bar(total, f"{estimator_name}", unit="iter") as bar:
+        result = pipeline.run(estimator_inputs(reader.records(roles)), estimator, on_iteration=lambda *_: bar.update(1))
+    run_info = {
+        "estimator": spec.name,
+        "parameters": dataclasses.asdict(config),
+        "seed": seed,
+        "relpoint_version": relpoint.__version__,
+        "input": {"path": str(log), "sha256": file_sha256(log), "roles": sorted(roles),
+                  "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
+        "skipped": dict(sorted(reader.skipped.items())),
+    }  # fmt: skip
+    write_run_directory(output, result, run_info)
+    if not ctx.find_root().obj.get("quiet"):
+        timing = result.timing_summary()
+        skipped = sum(reader.skipped.values())
+        click.echo(
+            f"{spec.name}: {timing['iterations']} iterations, {len(result.landmarks)} landmarks, "
+            f"{timing['seconds_median'] * 1e3:.2f} ms median per iteration"
+            + (f", {skipped} unusable items skipped" if skipped else "")
+            + f" -> {output}",
+            err=True,
+        )
+
+
+@click.command("config")
+@click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator whose parameters to show.")
+@handle_errors
+def config_command(estimator_name: str) -> None:
+    """Print an estimator's parameters with their defaults, as TOML for --config."""
+    if estimator_name not in ESTIMATORS:
+        raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {', '.join(sorted(ESTIMATORS))}")
+    spec = ESTIMATORS[estimator_name]
+    click.echo(f"[{spec.name}]  # {spec.description}")
+    for f in dataclasses.fields(spec.config_class):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        text = "true" if default is True else "false" if default is False else repr(default) if isinstance(default, str) else default
+        help_text = f.metadata.get("help", "")
+        click.echo(f"{f.name} = {text}" + (f"  # {help_text}" if help_text else ""))
