@@ -241,8 +241,12 @@ class LogReader:
             info = self._channels.get(topic)
             option = ROLE_OPTIONS[role]
             if info is None or info.count == 0:
-                present = ", ".join(f"{t} ({i.typename})" for t, i in self._channels.items() if i.typename == ROLE_TYPES[role])
-                hint = f"name the right topic with {option}" + (f"; {ROLE_TYPES[role]} topics here: {present}" if present else "")
+                present = ", ".join(
+                    f"{t} ({i.typename})" for t, i in self._channels.items() if i.typename == ROLE_TYPES[role]
+                )
+                hint = f"name the right topic with {option}" + (
+                    f"; {ROLE_TYPES[role]} topics here: {present}" if present else ""
+                )
                 raise InputError(f"{self.path}: no messages on {topic} (needed: {ROLE_TYPES[role]})", hint)
             if info.typename != ROLE_TYPES[role]:
                 raise InputError(
@@ -436,16 +440,24 @@ class LogWriter:
     ) -> None:
         self.write(topic, ros2.POINT_CLOUD2, ros2.landmarks_to_msg(stamp_ns, landmarks), stamp_ns)
 
-    def write_odometry(self, odometry: OdometryMeasurement, topic: str = "/odom", child_frame_id: str = "sensor") -> None:
-        self.write(topic, ros2.ODOMETRY, ros2.odometry_to_msg(odometry, child_frame_id=child_frame_id), odometry.stamp_ns)
+    def write_odometry(
+        self, odometry: OdometryMeasurement, topic: str = "/odom", child_frame_id: str = "sensor"
+    ) -> None:
+        self.write(
+            topic, ros2.ODOMETRY, ros2.odometry_to_msg(odometry, child_frame_id=child_frame_id), odometry.stamp_ns
+        )
 
     def write_fix(self, fix: PositionFix, topic: str = "/fix") -> None:
         self.write(topic, ros2.POSE_WITH_COVARIANCE_STAMPED, ros2.fix_to_msg(fix), fix.stamp_ns)
 
-    def write_camera_info(self, stamp_ns: int, intrinsics: Intrinsics, topic: str = "/camera/depth/camera_info") -> None:
+    def write_camera_info(
+        self, stamp_ns: int, intrinsics: Intrinsics, topic: str = "/camera/depth/camera_info"
+    ) -> None:
         self.write(topic, ros2.CAMERA_INFO, ros2.camera_info_to_msg(stamp_ns, intrinsics), stamp_ns)
 
-    def write_depth(self, stamp_ns: int, depth_m: Any, topic: str = "/camera/depth/image", encoding: str = "16UC1") -> None:
+    def write_depth(
+        self, stamp_ns: int, depth_m: Any, topic: str = "/camera/depth/image", encoding: str = "16UC1"
+    ) -> None:
         self.write(topic, ros2.IMAGE, ros2.depth_image_to_msg(stamp_ns, depth_m, encoding=encoding), stamp_ns)
 
     def write_color(self, stamp_ns: int, rgb: Any, topic: str = "/camera/color/image") -> None:

@@ -90,7 +90,7 @@ def decode_cloud(
     """
     buffer = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8)
     buffer = buffer.reshape(-1)
-    if width < 0 or height < 0 or point_step <= 0 and width * height > 0:
+    if width < 0 or height < 0 or (point_step <= 0 and width * height > 0):
         raise InputError(f"PointCloud2 has impossible sizes: width {width}, height {height}, point_step {point_step}")
     n_points = width * height
     dtype = cloud_dtype(fields, max(point_step, 1), big_endian)

@@ -147,7 +147,9 @@ def landmarks_to_msg(stamp_ns: int, landmarks: GroundTruthLandmarks, frame_id: s
 
 def pose_to_msg(pose: Pose, frame_id: str = "world") -> Any:
     """A PoseStamped of ``pose`` in ``frame_id``."""
-    return _types()[POSE_STAMPED](header=_header(pose.stamp_ns, frame_id), pose=_pose_msg(pose.position, pose.quat_xyzw))
+    return _types()[POSE_STAMPED](
+        header=_header(pose.stamp_ns, frame_id), pose=_pose_msg(pose.position, pose.quat_xyzw)
+    )
 
 
 def odometry_to_msg(odometry: OdometryMeasurement, frame_id: str = "world", child_frame_id: str = "sensor") -> Any:
@@ -290,7 +292,9 @@ def msg_to_pose(message: Any) -> Pose:
     """A Pose from a PoseStamped, PoseWithCovarianceStamped or Odometry message's pose."""
     pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
     p, q = pose.position, pose.orientation
-    return Pose(stamp_ns_of(message), (float(p.x), float(p.y), float(p.z)), (float(q.x), float(q.y), float(q.z), float(q.w)))
+    return Pose(
+        stamp_ns_of(message), (float(p.x), float(p.y), float(p.z)), (float(q.x), float(q.y), float(q.z), float(q.w))
+    )
 
 
 def msg_to_odometry(message: Any) -> OdometryMeasurement:

@@ -39,7 +39,9 @@ def write_result_mcap(path: Path, result: RunResult, frame_id: str = "sensor") -
     """``/relpoint/pose`` and ``/tf`` (world -> sensor) per iteration, ``/relpoint/map`` at the end."""
     trajectory = result.trajectory
     with LogWriter(path) as writer:
-        for stamp, position, quat in zip(trajectory.stamps_ns.tolist(), trajectory.positions, trajectory.quats_xyzw, strict=True):
+        for stamp, position, quat in zip(
+            trajectory.stamps_ns.tolist(), trajectory.positions, trajectory.quats_xyzw, strict=True
+        ):
             pose = Pose(stamp, tuple(position.tolist()), tuple(quat.tolist()))  # type: ignore[arg-type]
             writer.write("/relpoint/pose", ros2.POSE_STAMPED, ros2.pose_to_msg(pose), stamp)
             writer.write("/tf", ros2.TF_MESSAGE, ros2.tf_to_msg(stamp, "world", frame_id, position, quat), stamp)

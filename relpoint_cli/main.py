@@ -50,7 +50,9 @@ class _Formatter(logging.Formatter):
         return f"relpoint: {record.levelname.lower()}: {record.getMessage()}"
 
 
-@click.group(cls=RelpointGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.group(
+    cls=RelpointGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100}
+)
 @click.version_option(relpoint.__version__, prog_name="relpoint")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars or warnings.")
 @click.option("-v", "--verbose", is_flag=True, help="Debug logging (and tracebacks of internal errors).")

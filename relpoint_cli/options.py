@@ -22,7 +22,9 @@ def _plain(text: str) -> str:
     return re.sub(r"``(.*?)``", r"\1", text)
 
 
-def config_options(config_class: type, *, skip: tuple[str, ...] = (), choices: dict[str, tuple[str, ...]] | None = None) -> Callable[[Any], Any]:
+def config_options(
+    config_class: type, *, skip: tuple[str, ...] = (), choices: dict[str, tuple[str, ...]] | None = None
+) -> Callable[[Any], Any]:
     """Decorator adding one ``--option`` per field of ``config_class`` (default shown, None = unset)."""
     choices = choices or {}
 

@@ -17,4 +17,6 @@ def progress_enabled() -> bool:
 
 def progress_bar(total: int | None, description: str, unit: str = "it") -> Any:
     """A tqdm bar on stderr, disabled when quiet or not a TTY."""
-    return tqdm(total=total, desc=description, unit=unit, disable=not progress_enabled(), leave=False, dynamic_ncols=True)
+    return tqdm(
+        total=total, desc=description, unit=unit, disable=not progress_enabled(), leave=False, dynamic_ncols=True
+    )

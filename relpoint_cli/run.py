@@ -80,9 +80,20 @@ def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
 @click.command(epilog=EXAMPLES)
 @click.argument("log", type=click.Path(path_type=Path))
 @click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator to run (see `relpoint info LOG`).")
-@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True, help="Output directory (replaced atomically).")
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Output directory (replaced atomically).",
+)
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE", help="Estimator parameter (repeatable).")
-@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), help="TOML/YAML file of estimator parameters.")
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML/YAML file of estimator parameters.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the estimator's random draws.")
 @click.option("--no-odometry", is_flag=True, help="Ignore /odom even if the log has it.")
 @click.option("--no-fixes", is_flag=True, help="Ignore /fix even if the log has it.")
@@ -100,7 +111,11 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     reader = LogReader(log, topics_from(topic_names))
     needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
     reader.require(*needed)
-    optional = [need for need in sorted(spec.uses) if not (need == "odometry" and no_odometry) and not (need == "fix" and no_fixes)]
+    optional = [
+        need
+        for need in sorted(spec.uses)
+        if not (need == "odometry" and no_odometry) and not (need == "fix" and no_fixes)
+    ]
     roles = needed + [role for need in optional for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
     estimator = spec.factory(config, np.random.default_rng(seed))
     total = reader.topic_infos[reader.topics.roles()[needed[0]]].count
@@ -139,6 +154,14 @@ def config_command(estimator_name: str) -> None:
     click.echo(f"[{spec.name}]  # {spec.description}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
-        text = "true" if default is True else "false" if default is False else repr(default) if isinstance(default, str) else default
+        text = (
+            "true"
+            if default is True
+            else "false"
+            if default is False
+            else repr(default)
+            if isinstance(default, str)
+            else default
+        )
         help_text = f.metadata.get("help", "")
         click.echo(f"{f.name} = {text}" + (f"  # {help_text}" if help_text else ""))

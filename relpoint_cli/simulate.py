@@ -11,7 +11,8 @@ import click
 from formats.config_files import load_settings
 from formats.log import COMPRESSIONS
 from formats.simulation_log import write_simulation
-from relpoint.simulation import SCENARIOS, SimulationConfig, simulate as make_simulation
+from relpoint.simulation import SCENARIOS, SimulationConfig
+from relpoint.simulation import simulate as make_simulation
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import config_options, explicit_options
 from relpoint_cli.progress import progress_bar
@@ -35,9 +36,19 @@ A config file holds the same settings by name (dashes or underscores), e.g. in T
 
 
 @click.command(epilog=EXAMPLES)
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap file to write.")
-@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), help="TOML or YAML file of settings.")
-@click.option("--compression", type=click.Choice(sorted(COMPRESSIONS)), default="zstd", show_default=True, help="MCAP chunk compression.")
+@click.option(
+    "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap file to write."
+)
+@click.option(
+    "--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), help="TOML or YAML file of settings."
+)
+@click.option(
+    "--compression",
+    type=click.Choice(sorted(COMPRESSIONS)),
+    default="zstd",
+    show_default=True,
+    help="MCAP chunk compression.",
+)
 @config_options(SimulationConfig, choices={"scenario": SCENARIOS})
 @click.pass_context
 @handle_errors

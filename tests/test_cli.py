@@ -81,7 +81,9 @@ def test_info_lists_topics_rates_and_capabilities(runner: CliRunner, small_log: 
 
 
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "relpoint_cli.main", *args], capture_output=True, text=True, cwd=cwd, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "relpoint_cli.main", *args], capture_output=True, text=True, cwd=cwd, timeout=120
+    )
 
 
 @pytest.mark.parametrize("case", ["missing", "text", "truncated", "directory"])

@@ -15,7 +15,16 @@ from formats.log import LogReader, LogWriter, Topics
 from relpoint.errors import InputError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
 
-ALL_ROLES = ["points", "ground_truth_pose", "ground_truth_landmarks", "odometry", "fix", "depth", "camera_info", "color"]
+ALL_ROLES = [
+    "points",
+    "ground_truth_pose",
+    "ground_truth_landmarks",
+    "odometry",
+    "fix",
+    "depth",
+    "camera_info",
+    "color",
+]
 
 
 def write_every_kind(path: Path, compression: str = "zstd") -> dict[str, object]:

@@ -17,7 +17,15 @@ def padded_cloud(n: int, rng: np.random.Generator, big_endian: bool = False) -> 
     dtype = np.dtype(
         {
             "names": ["x", "y", "z", "intensity", "id", "ring", "rgb"],
-            "formats": [f"{order}f4", f"{order}f4", f"{order}f4", f"{order}f8", f"{order}i4", f"{order}u2", ("u1", (3,))],
+            "formats": [
+                f"{order}f4",
+                f"{order}f4",
+                f"{order}f4",
+                f"{order}f8",
+                f"{order}i4",
+                f"{order}u2",
+                ("u1", (3,)),
+            ],
             "offsets": [0, 4, 8, 16, 24, 28, 32],
             "itemsize": 40,
         }

@@ -8,8 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.geometry import integrate_twist, transform_points
-from relpoint.simulation import SimulationConfig, simulate
-from relpoint.simulation import paths
+from relpoint.simulation import SimulationConfig, paths, simulate
 
 
 def test_observations_land_on_their_landmarks_with_the_configured_noise() -> None:

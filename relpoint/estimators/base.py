@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, PositionFix, Pose
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 #: Input roles a log can provide (named after the default topics of the log format).
 POINTS = "points"

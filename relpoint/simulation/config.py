@@ -24,31 +24,38 @@ class SimulationConfig:
     Distances in metres, angles in degrees, times in seconds, rates in hertz.
     """
 
-    scenario: str = setting("figure8", "Path: ``figure8`` (the paper's), ``stationary`` (viewpoint fixed, paper Fig. 10) or ``corridor`` (a long gently swaying run, for speed tests).")
+    scenario: str = setting(
+        "figure8",
+        "Path: ``figure8`` (the paper's), ``stationary`` (viewpoint fixed, paper Fig. 10) or ``corridor`` (a long gently swaying run, for speed tests).",
+    )
     passes: int = setting(1, "Figure-eight passes (the paper's long-term test runs 40).")
-    step: float = setting(1.2, 'Metres travelled per iteration (about 1000 iterations per 1200 m pass).')
-    iterations: int | None = setting(None, 'Total iterations; default: the whole path (``stationary``: 900).')
-    rate: float = setting(10.0, 'Iterations per second (sets the stamps and velocities).')
-    start_time: float = setting(0.0, 'Stamp of the first iteration, seconds.')
-    density: float = setting(25.0, 'Landmarks per 100 m of path, scattered around it (paper: 25 to 550).')
-    range: float = setting(70.0, 'Far end of the viewing frustum.')
-    min_range: float = setting(0.5, 'Near end of the viewing frustum.')
-    fov_horizontal: float = setting(150.0, 'Horizontal field of view (full angle).')
-    fov_vertical: float = setting(90.0, 'Vertical field of view (full angle).')
-    spread_lateral: float = setting(25.0, 'Landmarks lie up to this far left/right of the path.')
-    spread_vertical: float = setting(10.0, 'Landmarks lie up to this far above/below the path.')
-    noise: float = setting(0.3, 'Standard deviation of the white Gaussian observation noise, per axis.')
-    dynamic: float = setting(0.0, 'Fraction of landmarks that move (paper: up to 0.5).')
-    dynamic_amplitude: float = setting(5.0, 'Largest excursion of a moving landmark from its centre, per axis.')
-    clutter: float = setting(0.0, 'Mean number of spurious points (id -1) per iteration, uniform in the frustum.')
-    odometry_noise: float | None = setting(None, 'Linear velocity noise sigma (m/s); set to write /odom (0 = perfect odometry).')
-    odometry_angular_noise: float | None = setting(None, 'Angular velocity noise sigma (rad/s); default: odometry_noise / 10.')
-    fix_every: int = setting(0, 'Write an absolute position fix on /fix every this many iterations (0 = none).')
-    fix_noise: float = setting(1.0, 'Standard deviation of the fix position noise, per axis.')
-    radius: float = setting(95.0, 'Figure-eight loop radius (95 m gives about 1200 m per pass).')
-    climb: float = setting(25.0, 'Height of the middle crossing above the start, figure eight.')
-    length: float = setting(1200.0, 'Corridor length.')
-    seed: int = setting(0, 'Seed of every random draw.')
+    step: float = setting(1.2, "Metres travelled per iteration (about 1000 iterations per 1200 m pass).")
+    iterations: int | None = setting(None, "Total iterations; default: the whole path (``stationary``: 900).")
+    rate: float = setting(10.0, "Iterations per second (sets the stamps and velocities).")
+    start_time: float = setting(0.0, "Stamp of the first iteration, seconds.")
+    density: float = setting(25.0, "Landmarks per 100 m of path, scattered around it (paper: 25 to 550).")
+    range: float = setting(70.0, "Far end of the viewing frustum.")
+    min_range: float = setting(0.5, "Near end of the viewing frustum.")
+    fov_horizontal: float = setting(150.0, "Horizontal field of view (full angle).")
+    fov_vertical: float = setting(90.0, "Vertical field of view (full angle).")
+    spread_lateral: float = setting(25.0, "Landmarks lie up to this far left/right of the path.")
+    spread_vertical: float = setting(10.0, "Landmarks lie up to this far above/below the path.")
+    noise: float = setting(0.3, "Standard deviation of the white Gaussian observation noise, per axis.")
+    dynamic: float = setting(0.0, "Fraction of landmarks that move (paper: up to 0.5).")
+    dynamic_amplitude: float = setting(5.0, "Largest excursion of a moving landmark from its centre, per axis.")
+    clutter: float = setting(0.0, "Mean number of spurious points (id -1) per iteration, uniform in the frustum.")
+    odometry_noise: float | None = setting(
+        None, "Linear velocity noise sigma (m/s); set to write /odom (0 = perfect odometry)."
+    )
+    odometry_angular_noise: float | None = setting(
+        None, "Angular velocity noise sigma (rad/s); default: odometry_noise / 10."
+    )
+    fix_every: int = setting(0, "Write an absolute position fix on /fix every this many iterations (0 = none).")
+    fix_noise: float = setting(1.0, "Standard deviation of the fix position noise, per axis.")
+    radius: float = setting(95.0, "Figure-eight loop radius (95 m gives about 1200 m per pass).")
+    climb: float = setting(25.0, "Height of the middle crossing above the start, figure eight.")
+    length: float = setting(1200.0, "Corridor length.")
+    seed: int = setting(0, "Seed of every random draw.")
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:

@@ -62,9 +62,7 @@ def corridor(distance: FloatArray, sway: float = 5.0, wavelength: float = 200.0)
     s = np.asarray(distance, dtype=np.float64)
     k = 2.0 * np.pi / wavelength
     positions = np.stack([s, sway * np.sin(k * s), 0.25 * sway * np.sin(0.5 * k * s)], axis=1)
-    tangents = np.stack(
-        [np.ones_like(s), sway * k * np.cos(k * s), 0.125 * sway * k * np.cos(0.5 * k * s)], axis=1
-    )
+    tangents = np.stack([np.ones_like(s), sway * k * np.cos(k * s), 0.125 * sway * k * np.cos(0.5 * k * s)], axis=1)
     return positions, tangents
 
 

@@ -1,0 +1,215 @@
+"""One library call for ``relpoint evaluate``: associate, align, then APE, RPE and KITTI segment errors.
+
+The pipeline is evo's (``evo_ape`` / ``evo_rpe``: sync, Umeyama alignment, metric), run once for both
+metrics, with one settings object whose fields are the CLI options (``docs/evaluation.md`` maps each to
+its evo flag). The result holds a flat summary (``ate_rmse``, ``rpe_trans_rmse``, ...) and the per-pose
+error arrays for CSV output and plots.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from relpoint.errors import UsageError
+from relpoint.evaluation.alignment import Alignment, AlignMode, apply_alignment, estimate_alignment
+from relpoint.evaluation.ape import PoseRelation, ape_errors
+from relpoint.evaluation.association import MatchedPoses, associate
+from relpoint.evaluation.kitti import KITTI_LENGTHS, KittiSegmentErrors, kitti_segment_errors
+from relpoint.evaluation.rpe import DeltaUnit, RelativeErrors, accumulated_distances, rpe_errors
+from relpoint.evaluation.statistics import STATISTICS, error_statistics
+from relpoint.geometry import FloatArray
+from relpoint.types import IntArray, Trajectory
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """Options of a trajectory evaluation (CLI option and evo flag in brackets).
+
+    Attributes
+    ----------
+    align: none | se3 | sim3 | scale | origin (``--align``; evo ``-a``, ``-as``, ``-s``, ``--align_origin``).
+    n_to_align: fit the alignment on the first n matched poses, -1 = all (``--n-to-align``; evo ``--n_to_align``).
+    t_max_diff: largest stamp difference for a match, seconds (``--t-max-diff``; evo ``--t_max_diff``).
+    t_offset: added to the estimate's stamps, seconds (``--t-offset``; evo ``--t_offset``).
+    interpolate: resample the denser trajectory at the other's stamps (``--interpolate``; evo
+        ``--sync_method interpolation``).
+    pose_relation: relation of the ``ape_*`` and ``rpe_*`` figures (``--pose-relation``; evo ``-r``).
+    delta, delta_unit, delta_tol, all_pairs, pairs_from_reference: RPE pairs (``--delta``, ``--delta-unit``
+        f|m|d|r, ``--delta-tol``, ``--all-pairs``, ``--pairs-from-reference``; evo ``-d``, ``-u``, ``-t``,
+        ``--all_pairs``, ``--pairs_from_reference``).
+    rpe: compute the RPE figures.
+    kitti, kitti_lengths, kitti_step: KITTI segment errors (reported when any segment fits).
+    """
+
+    align: AlignMode = AlignMode.NONE
+    n_to_align: int = -1
+    t_max_diff: float = 0.01
+    t_offset: float = 0.0
+    interpolate: bool = False
+    pose_relation: PoseRelation = PoseRelation.TRANS_PART
+    delta: float = 1.0
+    delta_unit: DeltaUnit = DeltaUnit.FRAMES
+    delta_tol: float = 0.1
+    all_pairs: bool = False
+    pairs_from_reference: bool = False
+    rpe: bool = True
+    kitti: bool = True
+    kitti_lengths: tuple[float, ...] = KITTI_LENGTHS
+    kitti_step: int = 10
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "align", AlignMode.parse(self.align))
+        object.__setattr__(self, "pose_relation", PoseRelation.parse(self.pose_relation))
+        object.__setattr__(self, "delta_unit", DeltaUnit.parse(self.delta_unit))
+        object.__setattr__(self, "kitti_lengths", tuple(float(x) for x in self.kitti_lengths))
+        if self.n_to_align == 0 or self.n_to_align < -1:
+            raise UsageError(f"n_to_align must be -1 (all poses) or a positive count, got {self.n_to_align}")
+        if not (np.isfinite(self.t_max_diff) and self.t_max_diff >= 0):
+            raise UsageError(f"t_max_diff must be a finite number >= 0 s, got {self.t_max_diff}")
+        if not np.isfinite(self.t_offset):
+            raise UsageError(f"t_offset must be finite, got {self.t_offset}")
+        if not (np.isfinite(self.delta) and self.delta > 0):
+            raise UsageError(f"delta must be a positive number, got {self.delta}")
+        if self.delta_unit is DeltaUnit.FRAMES and float(self.delta) != int(self.delta):
+            raise UsageError(f"delta must be an integer for delta unit f (frames), got {self.delta}")
+        if not (np.isfinite(self.delta_tol) and self.delta_tol >= 0):
+            raise UsageError(f"delta_tol must be a finite number >= 0, got {self.delta_tol}")
+        if self.pose_relation is PoseRelation.POINT_DISTANCE_ERROR_RATIO:
+            raise UsageError("pose relation point_distance_error_ratio is defined for the RPE only")
+        if self.kitti_step < 1 or any(not (np.isfinite(x) and x > 0) for x in self.kitti_lengths):
+            raise UsageError("kitti_step must be >= 1 and kitti_lengths positive distances")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values (strings for the enums) for dumping beside the results."""
+        out = dataclasses.asdict(self)
+        for key, value in out.items():
+            if isinstance(value, AlignMode | PoseRelation | DeltaUnit):
+                out[key] = value.value
+        out["kitti_lengths"] = list(self.kitti_lengths)
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluationResult:
+    """Everything ``evaluate_trajectory`` found.
+
+    Attributes
+    ----------
+    summary: flat name -> float (see ``docs/evaluation.md`` for the keys).
+    matched: the associated pose pairs, estimate already aligned into the reference frame.
+    alignment: the transform applied to the estimate.
+    stamps_ns: (K,) estimate stamps of the matched pairs.
+    ape_translation: (K,) position error after alignment, metres.
+    ape_rotation_deg: (K,) rotation angle of the error pose, degrees.
+    ape: (K,) APE in ``settings.pose_relation``.
+    rpe_translation, rpe_rotation_deg, rpe: relative errors (None without RPE); their ``second`` indices
+        index ``stamps_ns``.
+    kitti: KITTI segment errors (None when disabled).
+    """
+
+    summary: dict[str, float]
+    settings: EvaluationSettings
+    matched: MatchedPoses
+    alignment: Alignment
+    stamps_ns: IntArray
+    ape_translation: FloatArray
+    ape_rotation_deg: FloatArray
+    ape: FloatArray
+    rpe_translation: RelativeErrors | None = None
+    rpe_rotation_deg: RelativeErrors | None = None
+    rpe: RelativeErrors | None = None
+    kitti: KittiSegmentErrors | None = field(default=None)
+
+
+def _prefixed(prefix: str, errors: FloatArray) -> dict[str, float]:
+    stats = error_statistics(errors)
+    return {f"{prefix}_{name}": stats[name] for name in STATISTICS}
+
+
+def evaluate_trajectory(
+    reference: Trajectory, estimate: Trajectory, settings: EvaluationSettings | None = None
+) -> EvaluationResult:
+    """Associate, align and measure ``estimate`` against ``reference`` (evo_ape + evo_rpe in one pass).
+
+    Summary keys: ``matched_poses``, ``reference_poses``, ``estimate_poses``, ``duration_s``,
+    ``path_length_m`` (reference, over matched poses), ``alignment_scale``; ``ate_*`` (translation, m),
+    ``ape_rot_deg_*`` (rotation angle, deg), ``ape_*`` (``settings.pose_relation``); with RPE
+    ``rpe_trans_*`` (m), ``rpe_rot_deg_*`` (deg), ``rpe_*`` (``settings.pose_relation``), ``rpe_pairs``; with
+    KITTI segments ``kitti_segments`` and, if any, ``kitti_t_err_pct``, ``kitti_r_err_deg_per_100m``.
+    Each ``*`` is one of rmse, mean, median, std, min, max, sse.
+
+    Raises
+    ------
+    EvaluationError
+        No matching stamps, fewer than three matched poses or collinear positions for an alignment, or
+        an RPE delta that yields no pairs.
+    """
+    settings = settings or EvaluationSettings()
+    matched = associate(
+        reference, estimate, max_diff=settings.t_max_diff, offset=settings.t_offset, interpolate=settings.interpolate
+    )
+    alignment = estimate_alignment(matched, settings.align, settings.n_to_align)
+    aligned = apply_alignment(matched, alignment)
+
+    stamps = aligned.estimate_stamps_ns
+    summary: dict[str, float] = {
+        "matched_poses": float(len(aligned)),
+        "reference_poses": float(len(reference)),
+        "estimate_poses": float(len(estimate)),
+        "duration_s": float((stamps[-1] - stamps[0]) / 1e9),
+        "path_length_m": float(accumulated_distances(aligned.reference_positions)[-1]),
+        "alignment_scale": float(alignment.scale),
+    }
+    ape_translation = ape_errors(aligned, PoseRelation.TRANS_PART)
+    ape_rotation = ape_errors(aligned, PoseRelation.ANGLE_DEG)
+    reuse = {PoseRelation.TRANS_PART: ape_translation, PoseRelation.ANGLE_DEG: ape_rotation}
+    ape_selected = reuse.get(settings.pose_relation)
+    if ape_selected is None:
+        ape_selected = ape_errors(aligned, settings.pose_relation)
+    summary |= _prefixed("ate", ape_translation) | _prefixed("ape_rot_deg", ape_rotation)
+    summary |= _prefixed("ape", ape_selected)
+
+    rpe_kwargs = {
+        "delta": settings.delta,
+        "delta_unit": settings.delta_unit,
+        "rel_tol": settings.delta_tol,
+        "all_pairs": settings.all_pairs,
+        "pairs_from_reference": settings.pairs_from_reference,
+    }
+    rpe_t = rpe_r = rpe_sel = None
+    if settings.rpe:
+        rpe_t = rpe_errors(aligned, PoseRelation.TRANS_PART, **rpe_kwargs)
+        rpe_r = rpe_errors(aligned, PoseRelation.ANGLE_DEG, **rpe_kwargs)
+        rpe_sel = {PoseRelation.TRANS_PART: rpe_t, PoseRelation.ANGLE_DEG: rpe_r}.get(settings.pose_relation)
+        if rpe_sel is None:
+            rpe_sel = rpe_errors(aligned, settings.pose_relation, **rpe_kwargs)
+        summary["rpe_pairs"] = float(len(rpe_t))
+        summary |= _prefixed("rpe_trans", rpe_t.errors) | _prefixed("rpe_rot_deg", rpe_r.errors)
+        summary |= _prefixed("rpe", rpe_sel.errors)
+
+    kitti = None
+    if settings.kitti:
+        kitti = kitti_segment_errors(aligned, settings.kitti_lengths, settings.kitti_step)
+        summary["kitti_segments"] = float(len(kitti))
+        if len(kitti):
+            summary["kitti_t_err_pct"] = kitti.translation_percent
+            summary["kitti_r_err_deg_per_100m"] = kitti.rotation_deg_per_100m
+
+    return EvaluationResult(
+        summary=summary,
+        settings=settings,
+        matched=aligned,
+        alignment=alignment,
+        stamps_ns=np.asarray(stamps),
+        ape_translation=ape_translation,
+        ape_rotation_deg=ape_rotation,
+        ape=ape_selected,
+        rpe_translation=rpe_t,
+        rpe_rotation_deg=rpe_r,
+        rpe=rpe_sel,
+        kitti=kitti,
+    )

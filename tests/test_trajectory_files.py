@@ -1,0 +1,186 @@
+"""TUM and KITTI trajectory files: round trips, evo compatibility and malformed input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from formats.trajectory_files import format_stamp, parse_stamp_ns, read_kitti, read_tum, write_kitti, write_tum
+from relpoint.errors import InputError
+from relpoint.types import Trajectory
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "evo-fr1xyz"
+
+
+def _trajectory(rng: np.random.Generator, n: int = 50) -> Trajectory:
+    stamps = 1_305_031_102_000_000_000 + np.cumsum(rng.integers(1, 50_000_000, size=n))
+    positions = rng.normal(scale=3.0, size=(n, 3))
+    quats = Rotation.random(n, random_state=np.random.RandomState(0)).as_quat()
+    return Trajectory(stamps, positions, quats)
+
+
+def _assert_same(a: Trajectory, b: Trajectory, atol: float = 0.0) -> None:
+    np.testing.assert_array_equal(a.stamps_ns, b.stamps_ns)
+    np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=atol)
+    # q and -q are the same rotation
+    dots = np.abs(np.sum(a.quats_xyzw * b.quats_xyzw, axis=1))
+    np.testing.assert_allclose(dots, 1.0, rtol=0, atol=1e-12)
+
+
+def test_tum_round_trip_is_exact(tmp_path: Path) -> None:
+    original = _trajectory(np.random.default_rng(0))
+    path = tmp_path / "traj.tum"
+    write_tum(path, original, header="estimate of run 7")
+    again = read_tum(path)
+    np.testing.assert_array_equal(again.stamps_ns, original.stamps_ns)
+    np.testing.assert_array_equal(again.positions, original.positions)
+    # Written exactly; Trajectory re-normalises on construction, which may move the last bit.
+    np.testing.assert_allclose(again.quats_xyzw, original.quats_xyzw, rtol=0, atol=1e-15)
+    assert path.read_text().startswith("# estimate of run 7\n# timestamp tx ty tz qx qy qz qw\n")
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
+
+
+def test_tum_written_file_is_read_by_evo_identically(tmp_path: Path) -> None:
+    file_interface = pytest.importorskip("evo.tools.file_interface")
+    original = _trajectory(np.random.default_rng(1))
+    path = tmp_path / "traj.txt"
+    write_tum(path, original)
+    evo_traj = file_interface.read_tum_trajectory_file(str(path))
+    np.testing.assert_array_equal(evo_traj.timestamps, [s / 1_000_000_000 for s in original.stamps_ns.tolist()])
+    np.testing.assert_array_equal(evo_traj.positions_xyz, original.positions)
+
+
+def test_tum_tolerates_whitespace_comments_and_scientific_notation(tmp_path: Path) -> None:
+    path = tmp_path / "messy.txt"
+    path.write_text(
+        "\ufeff# a comment\n"
+        "\n"
+        "  1.5   1 2 3\t0 0 0 1  \n"
+        "   # indented comment\n"
+        "1.6e0 1.0e-1 2 3 0 0 0 2\r\n"
+        "1.700000001,4,5,6,0,0,1,0\n"
+    )
+    traj = read_tum(path)
+    assert traj.stamps_ns.tolist() == [1_500_000_000, 1_600_000_000, 1_700_000_001]
+    np.testing.assert_array_equal(traj.positions[1], [0.1, 2, 3])
+    np.testing.assert_array_equal(traj.quats_xyzw[1], [0, 0, 0, 1])  # normalised
+
+
+def test_reads_the_shared_tum_files_like_evo() -> None:
+    if not DATA.is_dir():
+        pytest.skip("../shared/data/evo-fr1xyz is absent")
+    file_interface = pytest.importorskip("evo.tools.file_interface")
+    for name in ("freiburg1_xyz-groundtruth.txt", "freiburg1_xyz-rgbdslam.txt", "freiburg1_xyz-ORB_kf_mono.txt"):
+        ours = read_tum(DATA / name)
+        theirs = file_interface.read_tum_trajectory_file(str(DATA / name))
+        np.testing.assert_array_equal([s / 1_000_000_000 for s in ours.stamps_ns.tolist()], theirs.timestamps)
+        np.testing.assert_array_equal(ours.positions, theirs.positions_xyz)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("1 2 3 4 5 6 7\n", r":1: expected 8 values"),
+        ("# ok\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1 9\n", r":3: expected 8 values"),
+        ("1 0 0 zero 0 0 0 1\n", r":1: non-numeric value"),
+        ("abc 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
+        ("1 0 0 nan 0 0 0 1\n", r":1: non-finite value"),
+        ("inf 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
+        ("1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":2: timestamp does not increase"),
+        ("1 0 0 0 0 0 0 0\n", r":1: zero quaternion"),
+        ("# only comments\n\n", r"no poses"),
+    ],
+)
+def test_malformed_tum_names_file_and_line(tmp_path: Path, content: str, message: str) -> None:
+    path = tmp_path / "bad.txt"
+    path.write_text(content)
+    with pytest.raises(InputError, match=message) as info:
+        read_tum(path)
+    assert str(path) in str(info.value)
+
+
+def test_unreadable_inputs(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no such file"):
+        read_tum(tmp_path / "missing.txt")
+    with pytest.raises(InputError, match="is a directory"):
+        read_tum(tmp_path)
+    binary = tmp_path / "binary.mcap"
+    binary.write_bytes(b"\x89MCAP0\r\n\xff\xfe\x00")
+    with pytest.raises(InputError, match="not a text file"):
+        read_tum(binary)
+
+
+def test_kitti_round_trip_with_times(tmp_path: Path) -> None:
+    original = _trajectory(np.random.default_rng(2))
+    poses, times = tmp_path / "poses.txt", tmp_path / "times.txt"
+    write_kitti(poses, original, times)
+    again = read_kitti(poses, times)
+    _assert_same(again, original, atol=1e-12)
+    np.testing.assert_allclose(again.matrices(), original.matrices(), rtol=0, atol=1e-15)
+    assert len(poses.read_text().splitlines()[0].split()) == 12
+
+
+def test_kitti_without_times_uses_frame_index_seconds(tmp_path: Path) -> None:
+    path = tmp_path / "00.txt"
+    path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1.5 0 1 0 0 0 0 1 0\n0 -1 0 2 1 0 0 0 0 0 1 0\n")
+    traj = read_kitti(path)
+    assert traj.stamps_ns.tolist() == [0, 1_000_000_000, 2_000_000_000]
+    np.testing.assert_array_equal(traj.positions[1], [1.5, 0, 0])
+    assert Rotation.from_quat(traj.quats_xyzw[2]).as_rotvec()[2] == pytest.approx(np.pi / 2)
+
+
+def test_kitti_times_in_scientific_notation(tmp_path: Path) -> None:
+    poses, times = tmp_path / "poses.txt", tmp_path / "times.txt"
+    poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n")
+    times.write_text("0.000000e+00\n1.036896e-01\n")
+    assert read_kitti(poses, times).stamps_ns.tolist() == [0, 103_689_600]
+
+
+@pytest.mark.parametrize(
+    ("poses_text", "times_text", "message"),
+    [
+        ("1 0 0 0 0 1 0 0 0 0 1\n", None, r"poses.txt:1: expected 12 values"),
+        ("1 0 0 0 0 1 0 0 0 0 1 x\n", None, r"poses.txt:1: non-numeric"),
+        ("2 0 0 0 0 1 0 0 0 0 1 0\n", None, r"poses.txt:1: .*not a rotation"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n", "0.0\n0.1\n", r"times.txt: 2 times for 1 poses"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2, "0.1\n0.1\n", r"times.txt:2: timestamp does not increase"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n", "0.1 0.2\n", r"times.txt:1: expected one time"),
+    ],
+)
+def test_malformed_kitti(tmp_path: Path, poses_text: str, times_text: str | None, message: str) -> None:
+    poses = tmp_path / "poses.txt"
+    poses.write_text(poses_text)
+    times = None
+    if times_text is not None:
+        times = tmp_path / "times.txt"
+        times.write_text(times_text)
+    with pytest.raises(InputError, match=message):
+        read_kitti(poses, times)
+
+
+def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path: Path) -> None:
+    path = tmp_path / "keep.txt"
+    path.write_text("old\n")
+
+    class Exploding(Trajectory):
+        pass
+
+    traj = _trajectory(np.random.default_rng(3), n=3)
+    broken = object.__new__(Exploding)
+    object.__setattr__(broken, "stamps_ns", traj.stamps_ns)
+    object.__setattr__(broken, "positions", traj.positions)
+    object.__setattr__(broken, "quats_xyzw", None)  # fails midway through formatting
+    with pytest.raises(AttributeError):
+        write_tum(path, broken)
+    assert path.read_text() == "old\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt"]
+
+
+@pytest.mark.parametrize("text", ["0", "1305031102.175304", "-3.25", "12.000000001", "1e-9"])
+def test_stamp_text_round_trips(text: str) -> None:
+    ns = parse_stamp_ns(text)
+    assert parse_stamp_ns(format_stamp(ns)) == ns
+    assert float(format_stamp(ns)) == pytest.approx(float(text), abs=1e-9)
