@@ -45,7 +45,7 @@ def test_figure_eight_geometry() -> None:
     np.testing.assert_allclose(middle[:2], 0.0, atol=1e-9)
     assert middle[2] == pytest.approx(climb)  # well above the start at the middle
     right, left = positions[1:2000], positions[2001:-1]
-    assert np.all(right[:, 0] > 0) and np.all(left[:, 0] < 0)  # two loops, right first
+    assert np.all(right[:, 1] > 0) and np.all(left[:, 1] < 0)  # two loops, right (+y) first
 
     def signed_area(xy: np.ndarray) -> float:
         return 0.5 * float(np.sum(xy[:-1, 0] * xy[1:, 1] - xy[1:, 0] * xy[:-1, 1]))
@@ -61,6 +61,7 @@ def test_figure_eight_geometry() -> None:
 def test_sensor_looks_along_the_path_with_pitch() -> None:
     sim = simulate(SimulationConfig(passes=1, step=2.0))
     poses = sim.ground_truth.matrices()
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)  # starts at the identity, like the estimators
     forward = poses[:, :3, 0]
     motion = np.diff(poses[:, :3, 3], axis=0)
     motion /= np.linalg.norm(motion, axis=1, keepdims=True)

@@ -15,10 +15,10 @@ from relpoint.geometry import FloatArray
 def figure8(phase: FloatArray, radius: float, climb: float) -> tuple[FloatArray, FloatArray]:
     """The paper's figure eight at pass phase ``phase`` (cycles; 0..1 is one pass, repeats after).
 
-    Starts at the origin (the middle), travels the right loop (centre ``(radius, 0)``)
-    counter-clockwise while climbing, reaches the middle ``climb`` metres above the start at phase
-    0.5, then travels the left loop (centre ``(-radius, 0)``) clockwise while descending back to
-    the start. Height ``z = climb/2 (1 - cos 2π phase)`` is smooth, so pitch has no jumps.
+    Starts at the origin (the middle) heading along +x, so the first true pose is the identity;
+    travels the right loop (centre ``(0, radius)``) counter-clockwise while climbing, reaches the
+    middle ``climb`` metres above the start at phase 0.5, then travels the left loop (centre
+    ``(0, -radius)``) clockwise while descending back to the start. Height ``z = climb/2 (1 - cos 2π phase)`` is smooth, so pitch has no jumps.
 
     Returns
     -------
@@ -43,6 +43,11 @@ def figure8(phase: FloatArray, radius: float, climb: float) -> tuple[FloatArray,
     tangents[~right, 1] = -4.0 * np.pi * radius * np.cos(angle)
     positions[:, 2] = 0.5 * climb * (1.0 - np.cos(2.0 * np.pi * u))
     tangents[:, 2] = np.pi * climb * np.sin(2.0 * np.pi * u)
+    # Turn the figure a quarter turn about z so the sensor starts at the identity pose (heading +x):
+    # the first loop then lies on the +y side, which is the right-hand loop of a top view drawn with
+    # the start heading pointing down the page, as in the paper's Fig. 1.
+    for array in (positions, tangents):
+        array[:, :2] = np.stack([-array[:, 1], array[:, 0]], axis=1)
     return positions, tangents
 
 
