@@ -140,12 +140,14 @@ def body_twist(T_world_a: npt.ArrayLike, T_world_b: npt.ArrayLike, dt: float) ->
 
     The model is the one :func:`integrate_twist` inverts: ``p_b = p_a + R_a v dt`` and
     ``R_b = R_a exp([w] dt)``, with ``v`` (m/s) and ``w`` (rad/s) expressed in frame ``a``.
+    Also batched: poses (N, 4, 4) give velocities (N, 3).
     """
     T_world_a = np.asarray(T_world_a, dtype=np.float64)
     T_world_b = np.asarray(T_world_b, dtype=np.float64)
-    R_a = T_world_a[:3, :3]
-    linear = R_a.T @ (T_world_b[:3, 3] - T_world_a[:3, 3]) / dt
-    angular = Rotation.from_matrix(R_a.T @ T_world_b[:3, :3]).as_rotvec() / dt
+    R_a_T = np.swapaxes(T_world_a[..., :3, :3], -1, -2)
+    linear = np.einsum("...ij,...j->...i", R_a_T, T_world_b[..., :3, 3] - T_world_a[..., :3, 3]) / dt
+    relative = R_a_T @ T_world_b[..., :3, :3]
+    angular = Rotation.from_matrix(relative.reshape(-1, 3, 3)).as_rotvec().reshape(linear.shape) / dt
     return linear, angular
 
 

@@ -102,6 +102,9 @@ class Simulation:
             if config.odometry_angular_noise is not None
             else (config.odometry_noise or 0.0) / 10.0
         )
+        if config.odometry_noise is not None:
+            following = np.concatenate([self._poses[1:], self._next_pose()[None]])
+            true_linear, true_angular = body_twist(self._poses, following, dt)
         for k, (stamp_ns, T_world_sensor) in enumerate(zip(self.stamps_ns, self._poses, strict=True)):
             landmarks_world = self.landmark_positions(int(stamp_ns))
             R = T_world_sensor[:3, :3]
@@ -118,10 +121,8 @@ class Simulation:
 
             odometry = None
             if config.odometry_noise is not None:
-                T_next = self._poses[k + 1] if k + 1 < len(self._poses) else self._next_pose()
-                linear, angular = body_twist(T_world_sensor, T_next, dt)
-                linear = linear + rngs["odometry"].normal(0.0, config.odometry_noise, 3)
-                angular = angular + rngs["odometry"].normal(0.0, angular_sigma, 3)
+                linear = true_linear[k] + rngs["odometry"].normal(0.0, config.odometry_noise, 3)
+                angular = true_angular[k] + rngs["odometry"].normal(0.0, angular_sigma, 3)
                 covariance = np.diag([config.odometry_noise**2] * 3 + [angular_sigma**2] * 3)
                 odometry = OdometryMeasurement(int(stamp_ns), linear, angular, covariance)
 

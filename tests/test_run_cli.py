@@ -1,0 +1,118 @@
+"""``relpoint run``: the output directory, parameters, topic errors and skipped data."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from formats.log import LogReader, LogWriter
+from formats.ply import read_ply
+from formats.run_output import RUN_FILES
+from formats.trajectory_files import read_tum
+from relpoint.estimators import ESTIMATORS
+from relpoint.types import PointObservation
+from relpoint_cli.main import cli
+
+ESTIMATOR = "ekf"
+
+
+def invoke(*args: str) -> tuple[int, str]:
+    result = CliRunner().invoke(cli, list(args))
+    return result.exit_code, result.stderr
+
+
+def test_run_writes_every_output_file(tmp_path: Path, small_log: Path) -> None:
+    out = tmp_path / "out"
+    code, err = invoke("-q", "run", str(small_log), "--estimator", ESTIMATOR, "-o", str(out))
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(RUN_FILES)
+    trajectory = read_tum(out / "trajectory.tum")
+    truth = [r.value for r in LogReader(small_log).records(["ground_truth_pose"])]
+    assert len(trajectory) == len(truth) == 120
+    np.testing.assert_array_equal(trajectory.stamps_ns, [p.stamp_ns for p in truth])
+    # The estimate follows the truth: the first pose is the identity and the simulated start is too.
+    error = np.linalg.norm(trajectory.positions - np.array([p.position for p in truth]), axis=1)
+    assert error.max() < 5.0
+    with (out / "map.csv").open() as stream:
+        rows = list(csv.DictReader(stream))
+    vertices = read_ply(out / "map.ply")
+    assert len(rows) == len(vertices) > 20
+    assert {"observations", "dynamic", "gt_id"} <= set(vertices.dtype.names)
+    document = json.loads((out / "run.json").read_text())
+    assert document["estimator"] == ESTIMATOR and len(document["input"]["sha256"]) == 64
+    assert document["summary"]["iterations"] == 120 and document["timing"]["iterations"] == 120
+    result = LogReader(out / "result.mcap")
+    assert result.topic_infos["/relpoint/pose"].count == 120 and result.topic_infos["/tf"].count == 120
+    assert result.topic_infos["/relpoint/map"].count == 1
+
+
+def test_unknown_estimator_and_parameters_are_usage_errors(tmp_path: Path, small_log: Path) -> None:
+    code, err = invoke("run", str(small_log), "--estimator", "magic", "-o", str(tmp_path / "o"))
+    assert code == 2 and "unknown estimator 'magic'" in err
+    code, err = invoke(
+        "run", str(small_log), "--estimator", ESTIMATOR, "--param", "no_such=1", "-o", str(tmp_path / "o")
+    )
+    assert code == 2 and "unknown ekf parameter(s): no_such" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_points_topic_is_an_input_error(tmp_path: Path, small_log: Path) -> None:
+    code, err = invoke(
+        "run", str(small_log), "--estimator", ESTIMATOR, "--points-topic", "/lidar", "-o", str(tmp_path / "o")
+    )
+    assert code == 3 and "no messages on /lidar" in err and "--points-topic" in err
+    code, err = invoke("run", str(small_log), "--estimator", ESTIMATOR, "--points-topic", "/ground_truth/pose",
+                       "-o", str(tmp_path / "o"))  # fmt: skip
+    assert code == 3 and "not sensor_msgs/msg/PointCloud2" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_nan_and_empty_clouds_are_skipped_counted_and_the_run_goes_on(tmp_path: Path, small_log: Path) -> None:
+    holes = tmp_path / "holes.mcap"
+    with LogWriter(holes) as writer:
+        for k, record in enumerate(LogReader(small_log).records(["points"])):
+            points = np.array(record.value.points)
+            if k == 30:
+                points = np.zeros((0, 3))
+            elif k % 10 == 5:
+                points[:3] = np.nan
+            writer.write_observation(PointObservation(record.stamp_ns, points, None))
+    out = tmp_path / "out"
+    code, err = invoke("run", str(holes), "--estimator", ESTIMATOR, "-o", str(out))
+    assert code == 0, err
+    assert "skipping" in err
+    skipped = json.loads((out / "run.json").read_text())["skipped"]
+    assert skipped == {"/points: empty clouds": 1, "/points: non-finite points": 36}
+
+
+def test_config_command_lists_parameters() -> None:
+    result = CliRunner().invoke(cli, ["config", "--estimator", ESTIMATOR])
+    assert result.exit_code == 0 and result.stdout.startswith(f"[{ESTIMATOR}]")
+
+
+@pytest.mark.parametrize("name", sorted(ESTIMATORS))
+def test_info_reports_each_estimator(name: str, small_log: Path) -> None:
+    result = CliRunner().invoke(cli, ["info", str(small_log), "--json"])
+    assert json.loads(result.stdout)["estimators"][name]["can_run"] is True
+
+
+def test_stamps_going_backwards_stop_the_run_without_output(tmp_path: Path, small_log: Path) -> None:
+    from formats import ros2
+
+    backwards = tmp_path / "backwards.mcap"
+    records = list(LogReader(small_log).records(["points"]))
+    with LogWriter(backwards) as writer:
+        for k, record in enumerate(records[:40]):
+            stamp = record.stamp_ns if k != 30 else records[10].stamp_ns  # header stamp jumps back at 30
+            message = ros2.observation_to_msg(PointObservation(stamp, record.value.points))
+            writer.write("/points", ros2.POINT_CLOUD2, message, record.stamp_ns)
+    out = tmp_path / "out"
+    code, err = invoke("run", str(backwards), "--estimator", ESTIMATOR, "-o", str(out))
+    assert code == 3
+    assert len(err.strip().splitlines()) == 1 and "is not after the previous" in err
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["backwards.mcap"]
