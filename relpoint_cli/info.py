@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 
 from formats.log import ROLE_TYPES, LogReader
 from relpoint.estimators import ESTIMATORS
@@ -55,11 +56,22 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
             "rate_hz": None if item.rate_hz is None else round(item.rate_hz, 3),
             "role": role if role and item.typename == ROLE_TYPES[role] else None,
         })  # fmt: skip
+    observations = None
+    if "points" in available:
+        clouds = [r.value for r in reader.records(["points"])]
+        counts = [len(cloud) for cloud in clouds]
+        frames = sorted({cloud.frame_id for cloud in clouds})
+        observations = {
+            "topic": reader.topics.points, "frame_ids": frames, "points_mean": round(float(np.mean(counts)), 3),
+            "points_min": int(np.min(counts)), "points_max": int(np.max(counts)),
+            "skipped": dict(sorted(reader.skipped.items())),
+        }  # fmt: skip
     document = {
         "path": str(log),
         "size_bytes": log.stat().st_size,
         "duration_s": round(reader.duration_s(), 6),
         "topics": topics,
+        "observations": observations,
         **capabilities(available),
     }
     if as_json:
@@ -72,6 +84,14 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     for t in topics:
         rate = "-" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['count']:>7}  {rate:>8}  {t['role'] or ''}")
+    if observations:
+        click.echo(
+            f"observations on {observations['topic']} (frame {', '.join(observations['frame_ids'])}): "
+            f"{observations['points_mean']:.1f} points per iteration (min {observations['points_min']}, "
+            f"max {observations['points_max']})"
+        )
+        for kind, count in observations["skipped"].items():
+            click.echo(f"  unusable: {count} {kind.split(': ', 1)[1]}")
     click.echo("estimators:")
     if not document["estimators"]:
         click.echo("  (none installed)")

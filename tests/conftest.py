@@ -6,12 +6,20 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from threadpoolctl import threadpool_limits
 
 from formats.simulation_log import write_simulation
 from relpoint.simulation import SimulationConfig, simulate
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def single_blas_thread() -> object:
+    """One BLAS thread: the small matrices here gain nothing from more, and spinning workers steal the CPU."""
+    with threadpool_limits(limits=1):
+        yield
 
 
 @pytest.fixture(scope="session")

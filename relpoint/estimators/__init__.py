@@ -15,3 +15,13 @@ def register(spec: EstimatorSpec) -> EstimatorSpec:
 
 
 __all__ = ["DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "Estimator", "EstimatorSpec", "register"]
+
+
+def _register_builtin() -> None:
+    from relpoint.estimators import ekf, fastslam
+
+    for spec in (ekf.SPEC, fastslam.SPEC):
+        register(spec)
+
+
+_register_builtin()

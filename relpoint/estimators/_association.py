@@ -1,0 +1,243 @@
+"""Data association and rotation helpers shared by the EKF-SLAM and FastSLAM estimators.
+
+Implements the innovation gating of Zhang, Milios and Gu, *General Concept of 3D SLAM*, section 3.2
+(eq. 14-16: innovation, its normalisation by the innovation covariance, and a chi-square validation
+region), the nearest-neighbour choice among gated pairs, and Joint Compatibility Branch and Bound
+(Neira and Tardós, 2001), which tests a whole set of pairings against one joint chi-square gate so
+that pairings made wrong by a shared pose error are rejected together.
+
+Also holds the few SO(3) helpers both filters' motion models need (right-perturbation error state:
+``R_true = R Exp(dtheta)``, with ``dtheta`` in the sensor frame).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+
+import numpy as np
+import numpy.typing as npt
+from scipy import linalg, stats
+from scipy.spatial.transform import Rotation
+
+from relpoint.geometry import FloatArray
+
+logger = logging.getLogger(__name__)
+
+IntArray = npt.NDArray[np.int64]
+
+
+# --------------------------------------------------------------------------------------------- SO(3)
+
+
+def skew(vectors: npt.ArrayLike) -> FloatArray:
+    """Cross-product matrices ``[v]x`` of vectors (..., 3) -> (..., 3, 3), so ``[v]x @ u = v x u``."""
+    v = np.asarray(vectors, dtype=np.float64)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def so3_exp(rotvecs: npt.ArrayLike) -> FloatArray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) in radians."""
+    v = np.asarray(rotvecs, dtype=np.float64)
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(*v.shape[:-1], 3, 3)
+
+
+def so3_right_jacobian(rotvecs: npt.ArrayLike) -> FloatArray:
+    """Right Jacobians (..., 3, 3) of SO(3): ``Exp(phi + d) ~= Exp(phi) Exp(Jr(phi) d)`` for small ``d``."""
+    phi = np.asarray(rotvecs, dtype=np.float64)
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def twist_step(
+    positions: FloatArray, rotations: FloatArray, linear: FloatArray, angular: FloatArray, dt: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Hold a body-frame twist for ``dt`` seconds (the process model, *3D SLAM* eq. 5-7), batched.
+
+    ``p' = p + R v dt`` and ``R' = R Exp(w dt)``, as :func:`relpoint.geometry.integrate_twist`.
+
+    Parameters
+    ----------
+    positions: (..., 3) sensor positions in ``world``, metres.
+    rotations: (..., 3, 3) ``R_world_sensor``.
+    linear, angular: (..., 3) body-frame velocities, m/s and rad/s.
+    dt: seconds.
+
+    Returns
+    -------
+    positions', rotations':
+        The propagated pose.
+    F_pose: (..., 6, 6)
+        Jacobian of the new pose error ``(dp, dtheta)`` with respect to the old one.
+    G_twist: (..., 6, 6)
+        Jacobian of the new pose error with respect to an error in the twist ``(dv, dw)``.
+    """
+    step_v = linear * dt
+    step_w = angular * dt
+    new_positions = positions + np.einsum("...ij,...j->...i", rotations, step_v)
+    increment = so3_exp(step_w)
+    new_rotations = rotations @ increment
+    batch = positions.shape[:-1]
+    F_pose = np.zeros((*batch, 6, 6))
+    F_pose[..., :3, :3] = np.eye(3)
+    F_pose[..., :3, 3:] = -rotations @ skew(step_v)
+    F_pose[..., 3:, 3:] = np.swapaxes(increment, -1, -2)
+    G_twist = np.zeros((*batch, 6, 6))
+    G_twist[..., :3, :3] = rotations * dt
+    G_twist[..., 3:, 3:] = so3_right_jacobian(step_w) * dt
+    return new_positions, new_rotations, F_pose, G_twist
+
+
+# ------------------------------------------------------------------------------------------- gating
+
+
+@functools.lru_cache(maxsize=4096)
+def chi2_gate(probability: float, dof: int) -> float:
+    """Chi-square quantile: squared Mahalanobis distance inside which ``probability`` of innovations fall."""
+    return float(stats.chi2.ppf(probability, dof))
+
+
+def mahalanobis_squared(innovations: FloatArray, S_inv: FloatArray) -> FloatArray:
+    """Normalised innovations ``nu^T S^-1 nu`` (eq. 15) of (k, n, 3) innovations with (n, 3, 3) ``S^-1``."""
+    return np.einsum("kna,nab,knb->kn", innovations, S_inv, innovations)
+
+
+def nearest_neighbour(d2: FloatArray, gate: float) -> tuple[IntArray, npt.NDArray[np.bool_]]:
+    """One-to-one nearest-neighbour pairing of k observations with n landmarks.
+
+    Gated pairs (``d2 < gate``) are taken in increasing Mahalanobis distance; an observation or
+    landmark already paired is skipped, so each landmark explains at most one observation.
+
+    Parameters
+    ----------
+    d2: (k, n) squared Mahalanobis distances.
+    gate: chi-square threshold.
+
+    Returns
+    -------
+    assignment: (k,) landmark index per observation, -1 when unpaired.
+    gated: (k,) True where the observation fell inside at least one landmark's gate (an unpaired
+        gated observation is ambiguous and should not start a new landmark).
+    """
+    k = d2.shape[0]
+    assignment = np.full(k, -1, dtype=np.int64)
+    inside = d2 < gate
+    gated = inside.any(axis=1) if d2.size else np.zeros(k, dtype=bool)
+    obs, lms = np.nonzero(inside)
+    order = np.argsort(d2[obs, lms], kind="stable")
+    taken: set[int] = set()
+    for i, j in zip(obs[order].tolist(), lms[order].tolist(), strict=True):
+        if assignment[i] < 0 and j not in taken:
+            assignment[i] = j
+            taken.add(j)
+    return assignment, gated
+
+
+def jcbb(
+    d2: FloatArray,
+    innovations: FloatArray,
+    covariance: FloatArray,
+    observation_cov: FloatArray,
+    probability: float = 0.99,
+    max_nodes: int = 10_000,
+) -> IntArray:
+    """Joint Compatibility Branch and Bound (Neira and Tardós, 2001).
+
+    Searches for the largest set of one-to-one pairings whose stacked innovation passes a
+    chi-square test with its joint covariance; among sets of equal size, the one with the smallest
+    joint Mahalanobis distance wins. Only individually compatible pairs (``d2`` inside the 3-DOF
+    gate) are considered. The joint distance is extended pair by pair through a growing Cholesky
+    factor, so each node costs O(pairs^2).
+
+    Parameters
+    ----------
+    d2: (k, n) individual squared Mahalanobis distances.
+    innovations: (k, n, 3) ``z_i - h_j``.
+    covariance: (3n, 3n) ``H P H^T`` over the n landmarks' predicted measurements (no noise).
+    observation_cov: (3, 3) measurement noise added to each paired observation.
+    probability: chi-square gate probability, individual and joint.
+    max_nodes: search budget; when exceeded, the best hypothesis found so far is returned.
+
+    Returns
+    -------
+    (k,) landmark index per observation, -1 when unpaired.
+    """
+    k = d2.shape[0]
+    assignment = np.full(k, -1, dtype=np.int64)
+    if d2.size == 0:
+        return assignment
+    compatible = d2 < chi2_gate(probability, 3)
+    order = [int(i) for i in np.argsort(d2.min(axis=1), kind="stable") if compatible[i].any()]
+    candidates = [np.flatnonzero(compatible[i])[np.argsort(d2[i, compatible[i]], kind="stable")] for i in order]
+    levels = len(order)
+    best_count, best_d2, best_assignment = 0, np.inf, assignment.copy()
+    current = assignment.copy()
+    used = np.zeros(d2.shape[1], dtype=bool)
+    nodes = 0
+
+    def cross_covariance(rows: list[int], col: int) -> FloatArray:
+        r = (3 * np.asarray(rows, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+        return covariance[r, 3 * col : 3 * col + 3]
+
+    def search(level: int, L: FloatArray, w: FloatArray, joint: float, paired: list[int]) -> None:
+        """Extend the hypothesis ``paired`` (Cholesky factor L of its S, ``w = L^-1 nu``) at ``level``."""
+        nonlocal nodes, best_count, best_d2, best_assignment
+        count = len(paired)
+        if level == levels:
+            if count > best_count or (count == best_count and joint < best_d2):
+                best_count, best_d2, best_assignment = count, joint, current.copy()
+            return
+        nodes += 1
+        if nodes > max_nodes:
+            return
+        remaining = levels - level
+        i = order[level]
+        if count + remaining >= best_count:
+            joint_gate = chi2_gate(probability, 3 * (count + 1))
+            for j in candidates[level].tolist():
+                if used[j]:
+                    continue
+                # x = L^-1 (cross-covariance of the paired measurements with landmark j's).
+                x = linalg.solve_triangular(L, cross_covariance(paired, j), lower=True) if paired else np.zeros((0, 3))
+                s = covariance[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] + observation_cov - x.T @ x
+                try:
+                    L22 = np.linalg.cholesky(s)
+                except np.linalg.LinAlgError:
+                    continue
+                w2 = linalg.solve_triangular(L22, innovations[i, j] - x.T @ w, lower=True)
+                extended = joint + float(w2 @ w2)
+                # The joint distance only grows as pairs are added: a tie in count must already win on it.
+                if extended >= joint_gate or (count + remaining == best_count and extended >= best_d2):
+                    continue
+                n = 3 * count
+                L_new = np.zeros((n + 3, n + 3))
+                L_new[:n, :n] = L
+                L_new[n:, :n] = x.T
+                L_new[n:, n:] = L22
+                used[j] = True
+                current[i] = j
+                search(level + 1, L_new, np.concatenate([w, w2]), extended, [*paired, j])
+                used[j] = False
+                current[i] = -1
+                if nodes > max_nodes:
+                    return
+        # Leave observation i unpaired.
+        if count + remaining - 1 > best_count or (count + remaining - 1 == best_count and joint < best_d2):
+            search(level + 1, L, w, joint, paired)
+
+    search(0, np.zeros((0, 0)), np.zeros(0), 0.0, [])
+    if nodes > max_nodes:
+        logger.debug("JCBB stopped after %d nodes; returning the best of %d pairings", max_nodes, best_count)
+    return best_assignment

@@ -1,0 +1,491 @@
+"""EKF-SLAM over 3D point landmarks: the paper's 6D EKF baseline.
+
+Implements the filter of Zhang, Milios and Gu, *General Concept of 3D SLAM*: the robot process model
+(section 2.1, eq. 3-7) driven by odometry, or a constant-position / constant-velocity model without
+it; static point landmarks (section 2.2, eq. 8-10); the measurement of a landmark's position in the
+sensor frame (section 2.3, eq. 11-13); innovation gating with a chi-square threshold (section 3.2,
+eq. 14-16) feeding nearest-neighbour or JCBB association; and the joint EKF over pose and map
+(section 4, eq. 17-18). It stands in for the MRPT 6D EKF that Kraut's *A Relative Point Algorithm*
+(section IV) compares against.
+
+State and parameterisation
+    The nominal sensor pose is a position ``p`` (world, metres) and a rotation ``R = R_world_sensor``;
+    the covariance is over an error state ``(dp, dtheta)`` with ``R_true = R Exp(dtheta)`` (dtheta in
+    the sensor frame), so orientation never leaves SO(3) and needs no normalisation. With
+    ``motion="constant_velocity"`` the body-frame twist ``(v, w)`` follows (12 vehicle states).
+    Landmarks ``m_j`` (world, metres) follow, three states each.
+
+Cost
+    Association computes every landmark's 3x3 innovation covariance from its 9x9 block (O(n)); the
+    update gathers only the pose and observed landmarks' columns of ``P`` (the only non-zero columns
+    of ``H``) and applies the Joseph form as two (N x 3m)(3m x N) products, O(N^2 m).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy import linalg
+
+from relpoint.errors import EstimatorError, UsageError
+from relpoint.estimators._association import (
+    chi2_gate,
+    jcbb,
+    mahalanobis_squared,
+    nearest_neighbour,
+    skew,
+    so3_exp,
+    twist_step,
+)
+from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.geometry import FloatArray
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+
+logger = logging.getLogger(__name__)
+
+MOTION_MODELS = ("constant_velocity", "constant_position")
+ASSOCIATIONS = ("nn", "jcbb", "known")
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
+
+    association: str = "nn"
+    """Data association: ``nn`` (nearest neighbour in Mahalanobis distance), ``jcbb`` (joint
+    compatibility branch and bound) or ``known`` (the log's ``id`` field; diagnosis only)."""
+    motion: str = "constant_velocity"
+    """Process model between observations when no odometry is held: ``constant_velocity`` (twist in
+    the state, driven by white acceleration noise) or ``constant_position`` (MRPT's default)."""
+    observation_sigma: float = 0.3
+    """Standard deviation of a point measurement, per axis (m)."""
+    gate_probability: float = 0.99
+    """Chi-square probability of the Mahalanobis validation gate (eq. 14-16)."""
+    new_landmark_probability: float = 0.9999
+    """A point starts a landmark only if it lies outside every landmark's gate of this probability;
+    points between the two gates are discarded (a true landmark's point falls outside the 0.99 gate
+    one time in a hundred, and would otherwise start a duplicate)."""
+    position_noise: float = 0.10
+    """Constant-position model: position noise per iteration, per axis (m; MRPT default 0.10)."""
+    quaternion_noise: float = 0.05
+    """Constant-position model: noise per quaternion component per iteration (MRPT default 0.05;
+    applied as 2 x this in radians per axis, since a small rotation d has quaternion part d/2)."""
+    linear_acceleration_noise: float = 2.0
+    """Constant-velocity model: white linear acceleration noise (m/s^2)."""
+    angular_acceleration_noise: float = 0.5
+    """Constant-velocity model: white angular acceleration noise (rad/s^2)."""
+    initial_speed_sigma: float = 10.0
+    """Constant-velocity model: prior standard deviation of the initial linear velocity (m/s)."""
+    initial_turn_rate_sigma: float = 0.3
+    """Constant-velocity model: prior standard deviation of the initial angular velocity (rad/s)."""
+    initial_orientation_sigma: float = 0.0
+    """Prior standard deviation of the initial orientation (rad per axis), used only when a position
+    fix places the start: 0 assumes the sensor starts with its axes along the fix frame's."""
+    jcbb_max_nodes: int = 5000
+    """JCBB search budget per iteration; the best hypothesis so far is used when it runs out."""
+
+    def __post_init__(self) -> None:
+        if self.association not in ASSOCIATIONS:
+            raise UsageError(f"unknown association {self.association!r}", f"choose one of {', '.join(ASSOCIATIONS)}")
+        if self.motion not in MOTION_MODELS:
+            raise UsageError(f"unknown motion model {self.motion!r}", f"choose one of {', '.join(MOTION_MODELS)}")
+        positive = {"observation_sigma": self.observation_sigma}
+        non_negative = {
+            "position_noise": self.position_noise, "quaternion_noise": self.quaternion_noise,
+            "linear_acceleration_noise": self.linear_acceleration_noise,
+            "angular_acceleration_noise": self.angular_acceleration_noise,
+            "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
+            "initial_orientation_sigma": self.initial_orientation_sigma,
+        }  # fmt: skip
+        for name, value in positive.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise UsageError(f"{name} must be a positive number, got {value!r}")
+        for name, value in non_negative.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        for name in ("gate_probability", "new_landmark_probability"):
+            value = getattr(self, name)
+            if not (isinstance(value, float) and 0.0 < value < 1.0):
+                raise UsageError(f"{name} must be strictly between 0 and 1, got {value!r}")
+        if self.new_landmark_probability < self.gate_probability:
+            raise UsageError(
+                f"new_landmark_probability ({self.new_landmark_probability}) must be at least "
+                f"gate_probability ({self.gate_probability})"
+            )
+        if not (isinstance(self.jcbb_max_nodes, int) and self.jcbb_max_nodes >= 1):
+            raise UsageError(f"jcbb_max_nodes must be a positive integer, got {self.jcbb_max_nodes!r}")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> EkfConfig:
+        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
+        unknown = sorted(set(normalised) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown ekf setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
+            )
+        return cls(**normalised)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+class EkfSlam(Estimator):
+    """Joint EKF over the sensor pose (error state) and every 3D point landmark.
+
+    Each :meth:`step` predicts to the observation's stamp, associates the points with the map,
+    updates the joint state with the paired points, and starts a landmark from every point outside
+    every landmark's (wider) new-landmark gate; unpaired points in between are discarded. The first
+    pose is the identity with zero covariance (it anchors ``world``) unless a position fix arrives
+    before the first observation; it then places the start, with ``initial_orientation_sigma`` as
+    the prior on the unknown initial orientation.
+    """
+
+    name: ClassVar[str] = "ekf"
+
+    def __init__(self, config: EkfConfig | None = None) -> None:
+        self.config = config or EkfConfig()
+        cv = self.config.motion == "constant_velocity"
+        self._nv = 12 if cv else 6
+        self._R_obs = np.eye(3) * self.config.observation_sigma**2
+        self._gate = chi2_gate(self.config.gate_probability, 3)
+        self._new_gate = chi2_gate(self.config.new_landmark_probability, 3)
+        self._position = np.zeros(3)
+        self._rotation = np.eye(3)
+        self._twist = np.zeros(6)
+        self._landmarks = np.zeros((0, 3))
+        self._P = np.zeros((self._nv, self._nv))
+        if cv:
+            self._P[6:9, 6:9] = np.eye(3) * self.config.initial_speed_sigma**2
+            self._P[9:12, 9:12] = np.eye(3) * self.config.initial_turn_rate_sigma**2
+        self._stamp_ns: int | None = None
+        self._odometry: OdometryMeasurement | None = None
+        self._observations: list[int] = []
+        self._id_votes: list[Counter[int]] = []
+        self._known: dict[int, int] = {}
+        self._stats = Counter[str]()
+
+    # ------------------------------------------------------------------------------------ interface
+
+    def step(self, observation: PointObservation) -> Pose:
+        """Predict to the observation's stamp, associate, update, add new landmarks; return the pose."""
+        if self._stamp_ns is None:
+            self._stamp_ns = observation.stamp_ns
+        self._predict_to(observation.stamp_ns)
+        points = np.asarray(observation.points)
+        if len(points):
+            assignment, may_start = self._associate(observation)
+            paired = np.flatnonzero(assignment >= 0)
+            if len(paired):
+                self._update_landmarks(points[paired], assignment[paired])
+            fresh = np.flatnonzero(may_start)
+            if len(fresh):
+                self._add_landmarks(points[fresh])
+            self._record(observation.ids, paired, assignment[paired], fresh)
+            self._stats["paired"] += len(paired)
+            self._stats["started"] += len(fresh)
+            self._stats["discarded"] += len(points) - len(paired) - len(fresh)
+        self._stats["iterations"] += 1
+        return self.pose()
+
+    def add_odometry(self, odometry: OdometryMeasurement) -> None:
+        """Hold a body-frame twist from its stamp until the next one (process model eq. 3-7)."""
+        if self._stamp_ns is not None:
+            self._predict_to(odometry.stamp_ns)
+        self._odometry = odometry
+
+    def add_fix(self, fix: PositionFix) -> None:
+        """Fuse an absolute position as a direct, covariance-weighted measurement of ``p``."""
+        if self._stamp_ns is None:
+            # Before the first observation a fix places the start instead of the identity.
+            self._stamp_ns = fix.stamp_ns
+            self._position = np.array(fix.position, dtype=np.float64)
+            self._P[:3, :3] = np.asarray(fix.covariance)
+            self._P[3:6, 3:6] = np.eye(3) * self.config.initial_orientation_sigma**2
+            return
+        self._predict_to(fix.stamp_ns)
+        innovation = np.asarray(fix.position) - self._position
+        self._kalman_update(np.arange(3), np.eye(3), innovation, np.asarray(fix.covariance))
+        self._stats["fixes"] += 1
+
+    def landmark_map(self) -> LandmarkMap:
+        n = len(self._landmarks)
+        gt_id = np.array([votes.most_common(1)[0][0] if votes else -1 for votes in self._id_votes], dtype=np.int64)
+        return LandmarkMap(
+            self._landmarks.copy(), np.array(self._observations, dtype=np.int64), np.zeros(n, bool), gt_id
+        )
+
+    @property
+    def map_size(self) -> int:
+        return len(self._landmarks)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "landmarks": self.map_size,
+            "association": self.config.association,
+            "motion": self.config.motion,
+            "state_size": int(self._P.shape[0]),
+            **{k: int(v) for k, v in sorted(self._stats.items())},
+        }
+
+    # ------------------------------------------------------------------------------------- accessors
+
+    def pose(self) -> Pose:
+        """The current sensor pose ``T_world_sensor`` at the last processed stamp."""
+        T = np.eye(4)
+        T[:3, :3] = self._rotation
+        T[:3, 3] = self._position
+        return Pose.from_matrix(self._stamp_ns or 0, T)
+
+    @property
+    def covariance(self) -> FloatArray:
+        """A copy of the joint covariance (N, N): pose error (6), twist (6, constant velocity), landmarks (3 each)."""
+        return self._P.copy()
+
+    # ------------------------------------------------------------------------------------ prediction
+
+    def _predict_to(self, stamp_ns: int) -> None:
+        assert self._stamp_ns is not None
+        dt = (stamp_ns - self._stamp_ns) * 1e-9
+        if dt <= 0.0:
+            if dt < 0.0:
+                logger.debug(
+                    "record at %d ns is older than the state (%d ns); not predicting", stamp_ns, self._stamp_ns
+                )
+            return
+        F, Q = self._motion(dt)
+        nv = self._nv
+        P = self._P
+        P[:nv, :nv] = F @ P[:nv, :nv] @ F.T + Q
+        P[:nv, nv:] = F @ P[:nv, nv:]
+        P[nv:, :nv] = P[:nv, nv:].T
+        self._stamp_ns = stamp_ns
+
+    def _motion(self, dt: float) -> tuple[FloatArray, FloatArray]:
+        """Propagate the nominal vehicle state by ``dt`` s; return its Jacobian F and process noise Q."""
+        cfg = self.config
+        nv = self._nv
+        F = np.eye(nv)
+        Q = np.zeros((nv, nv))
+        if self._odometry is not None:
+            # Eq. 7: X(k+1) = F(X(k), U(k) + noise); the held odometry twist is the input U.
+            u = np.concatenate([self._odometry.linear, self._odometry.angular])
+            Q_u = np.asarray(self._odometry.covariance)
+            p, R, F_pose, G = twist_step(self._position, self._rotation, u[:3], u[3:], dt)
+            F[:6, :6] = F_pose
+            if nv == 12:
+                # The new twist is the input itself: it forgets the old twist and shares the input noise.
+                F[6:, 6:] = 0.0
+                G = np.vstack([G, np.eye(6)])
+                self._twist = u.copy()
+            Q = G @ Q_u @ G.T
+        elif nv == 12:
+            p, R, F_pose, G = twist_step(self._position, self._rotation, self._twist[:3], self._twist[3:], dt)
+            F[:6, :6] = F_pose
+            F[:6, 6:] = G
+            q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            # Acceleration acts over the interval: it moves the twist and, through it, the pose.
+            G_full = np.vstack([G, np.eye(6)])
+            Q = G_full @ np.diag(q) @ G_full.T
+        else:
+            p, R = self._position, self._rotation
+            angle_sigma = 2.0 * cfg.quaternion_noise
+            Q = np.diag(np.r_[np.full(3, cfg.position_noise**2), np.full(3, angle_sigma**2)])
+        self._position, self._rotation = p, R
+        return F, Q
+
+    # ----------------------------------------------------------------------------------- measurement
+
+    def _predict_measurements(self, landmarks: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Predicted sensor-frame positions (n, 3) of landmarks (eq. 11) and their pose Jacobians (n, 3, 6).
+
+        ``z = R^T (m - p)``: ``dz/dp = -R^T``, ``dz/dtheta = [z]x``, ``dz/dm = R^T``.
+        """
+        z = (landmarks - self._position) @ self._rotation
+        H_pose = np.empty((len(z), 3, 6))
+        H_pose[:, :, :3] = -self._rotation.T
+        H_pose[:, :, 3:] = skew(z)
+        return z, H_pose
+
+    def _landmark_columns(self, indices: np.ndarray) -> np.ndarray:
+        return (self._nv + 3 * np.asarray(indices, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+
+    def _innovation_covariances(self, H_pose: FloatArray) -> FloatArray:
+        """Innovation covariance S_j (n, 3, 3) of every landmark's measurement (eq. 16), O(n)."""
+        n = len(H_pose)
+        nv = self._nv
+        P = self._P
+        Rt = self._rotation.T
+        P_pp = P[:6, :6]
+        P_pm = P[:6, nv:].reshape(6, n, 3).transpose(1, 0, 2)  # (n, 6, 3)
+        cols = self._landmark_columns(np.arange(n)).reshape(n, 3)
+        P_mm = P[cols[:, :, None], cols[:, None, :]]  # (n, 3, 3)
+        HPH = np.einsum("nai,ij,nbj->nab", H_pose, P_pp, H_pose)
+        cross = np.einsum("nai,nij,bj->nab", H_pose, P_pm, Rt)
+        S = HPH + cross + np.swapaxes(cross, 1, 2) + Rt @ P_mm @ Rt.T + self._R_obs
+        return 0.5 * (S + np.swapaxes(S, 1, 2))
+
+    def _associate(self, observation: PointObservation) -> tuple[np.ndarray, np.ndarray]:
+        """Pair points with landmarks; return (assignment (k,), may-start-a-landmark mask (k,))."""
+        points = np.asarray(observation.points)
+        k = len(points)
+        n = len(self._landmarks)
+        if self.config.association == "known":
+            if observation.ids is None:
+                raise EstimatorError("association 'known' needs the log's point ids", "use --association nn or jcbb")
+            ids = np.asarray(observation.ids)
+            assignment = np.array([self._known.get(int(i), -1) for i in ids], dtype=np.int64)
+            may_start = (assignment < 0) & (ids >= 0)
+            # Two points claiming one id in a frame: keep only the first.
+            _, first = np.unique(ids, return_index=True)
+            duplicate = np.ones(k, dtype=bool)
+            duplicate[first] = False
+            assignment[duplicate] = -1
+            may_start &= ~duplicate
+            return assignment, may_start
+        if n == 0:
+            return np.full(k, -1, dtype=np.int64), np.ones(k, dtype=bool)
+        z_hat, H_pose = self._predict_measurements(self._landmarks)
+        S = self._innovation_covariances(H_pose)
+        innovations = points[:, None, :] - z_hat[None, :, :]
+        d2 = mahalanobis_squared(innovations, np.linalg.inv(S))
+        assignment, _ = nearest_neighbour(d2, self._gate)
+        may_start = ~(d2 < self._new_gate).any(axis=1)
+        if self.config.association == "jcbb":
+            candidates = np.flatnonzero((d2 < self._gate).any(axis=0))
+            if len(candidates):
+                joint = self._joint_measurement_covariance(candidates, H_pose[candidates])
+                local = jcbb(
+                    d2[:, candidates],
+                    innovations[:, candidates],
+                    joint,
+                    self._R_obs,
+                    self.config.gate_probability,
+                    self.config.jcbb_max_nodes,
+                )
+                assignment = np.where(local >= 0, candidates[np.maximum(local, 0)], -1)
+        return assignment, may_start & (assignment < 0)
+
+    def _measurement_jacobian(self, indices: np.ndarray, H_pose: FloatArray) -> tuple[np.ndarray, FloatArray]:
+        """The stacked Jacobian of landmarks ``indices`` (c,) restricted to its non-zero columns.
+
+        Returns the state columns (6 + 3c,) (pose error, then each landmark) and H (3c, 6 + 3c).
+        """
+        c = len(indices)
+        cols = np.concatenate([np.arange(6), self._landmark_columns(indices)])
+        H = np.zeros((3 * c, 6 + 3 * c))
+        H[:, :6] = H_pose.reshape(3 * c, 6)
+        landmark_blocks = H[:, 6:].reshape(c, 3, c, 3)
+        landmark_blocks[np.arange(c), :, np.arange(c), :] = self._rotation.T
+        return cols, H
+
+    def _joint_measurement_covariance(self, indices: np.ndarray, H_pose: FloatArray) -> FloatArray:
+        """``H P H^T`` (3c, 3c) of the predicted measurements of landmarks ``indices`` (no noise)."""
+        cols, H = self._measurement_jacobian(indices, H_pose)
+        return H @ self._P[np.ix_(cols, cols)] @ H.T
+
+    # ---------------------------------------------------------------------------------------- update
+
+    def _update_landmarks(self, points: FloatArray, indices: np.ndarray) -> None:
+        """EKF update with points (m, 3) paired to landmarks ``indices`` (m,)."""
+        m = len(indices)
+        z_hat, H_pose = self._predict_measurements(self._landmarks[indices])
+        cols, H = self._measurement_jacobian(indices, H_pose)
+        R_meas = np.kron(np.eye(m), self._R_obs)
+        self._kalman_update(cols, H, (points - z_hat).ravel(), R_meas)
+
+    def _kalman_update(self, cols: np.ndarray, H: FloatArray, innovation: FloatArray, R_meas: FloatArray) -> None:
+        """Joseph-form update for a measurement whose Jacobian is non-zero only in columns ``cols``.
+
+        ``P' = (I-KH) P (I-KH)^T + K R K^T`` expanded as ``P - PH^T K^T - K (PH^T^T - S K^T)``,
+        which holds for any gain K and costs two (N x q)(q x N) products instead of O(N^3).
+        """
+        P = self._P
+        PHt = P[:, cols] @ H.T  # (N, q)
+        S = H @ PHt[cols] + R_meas
+        S = 0.5 * (S + S.T)
+        try:
+            factor = linalg.cho_factor(S, lower=True, check_finite=False)
+        except linalg.LinAlgError as error:
+            raise EstimatorError("EKF innovation covariance is not positive definite") from error
+        Kt = linalg.cho_solve(factor, PHt.T, check_finite=False)  # (q, N)
+        dx = Kt.T @ innovation
+        residual = PHt.T - S @ Kt  # ~0 for the optimal gain; kept so the form stays Joseph's
+        P -= PHt @ Kt
+        P -= Kt.T @ residual
+        P += P.T
+        P *= 0.5
+        self._inject(dx)
+
+    def _inject(self, dx: FloatArray) -> None:
+        """Move the nominal state by the error estimate ``dx`` and reset the rotation error to zero."""
+        nv = self._nv
+        self._position += dx[:3]
+        self._rotation = self._rotation @ so3_exp(dx[3:6])
+        if nv == 12:
+            self._twist += dx[6:12]
+        self._landmarks += dx[nv:].reshape(-1, 3)
+        # Re-centring dtheta: the error after the reset is G dtheta with G ~ I - [dtheta/2]x.
+        G = np.eye(3) - 0.5 * skew(dx[3:6])
+        P = self._P
+        P[3:6, :] = G @ P[3:6, :]
+        P[:, 3:6] = P[:, 3:6] @ G.T
+
+    # ------------------------------------------------------------------------------------- landmarks
+
+    def _add_landmarks(self, points: FloatArray) -> None:
+        """Augment the state with ``m = p + R z`` for each point (k, 3) and its joint covariance."""
+        k = len(points)
+        R = self._rotation
+        J = np.zeros((3 * k, 6))
+        J[:, :3] = np.tile(np.eye(3), (k, 1))
+        J[:, 3:] = (-R @ skew(points)).reshape(3 * k, 3)  # dm/dtheta = -R [z]x
+        P = self._P
+        N = P.shape[0]
+        P_new_all = J @ P[:6, :]  # (3k, N)
+        P_nn = P_new_all[:, :6] @ J.T + np.kron(np.eye(k), R @ self._R_obs @ R.T)
+        grown = np.empty((N + 3 * k, N + 3 * k))
+        grown[:N, :N] = P
+        grown[N:, :N] = P_new_all
+        grown[:N, N:] = P_new_all.T
+        grown[N:, N:] = 0.5 * (P_nn + P_nn.T)
+        self._P = grown
+        self._landmarks = np.vstack([self._landmarks, self._position + points @ R.T])
+
+    def _record(self, ids: np.ndarray | None, paired: np.ndarray, indices: np.ndarray, fresh: np.ndarray) -> None:
+        """Count observations per landmark and their ground-truth ids (for gt_id; never used to estimate)."""
+        first_new = len(self._observations)
+        self._observations.extend([1] * len(fresh))
+        self._id_votes.extend(Counter[int]() for _ in range(len(fresh)))
+        for j in indices.tolist():
+            self._observations[j] += 1
+        if ids is None:
+            return
+        for i, j in zip(paired.tolist(), indices.tolist(), strict=True):
+            self._id_votes[j][int(ids[i])] += 1
+        for offset, i in enumerate(fresh.tolist()):
+            self._id_votes[first_new + offset][int(ids[i])] += 1
+            if self.config.association == "known":
+                self._known[int(ids[i])] = first_new + offset
+
+
+def _build(config: EkfConfig, rng: np.random.Generator) -> EkfSlam:
+    del rng  # the EKF draws no random numbers
+    return EkfSlam(config)
+
+
+SPEC = EstimatorSpec(
+    name="ekf",
+    description="EKF-SLAM: joint EKF over the 6D sensor pose and 3D point landmarks (NN or JCBB association)",
+    config_class=EkfConfig,
+    factory=_build,
+    needs=frozenset({POINTS}),
+    uses=frozenset({ODOMETRY, FIX}),
+)

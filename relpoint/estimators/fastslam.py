@@ -1,0 +1,468 @@
+"""FastSLAM 1.0 and 2.0 over 3D point landmarks, vectorised across particles.
+
+Implements the Rao-Blackwellised particle filter of Zhang, Milios and Gu, *General Concept of 3D
+SLAM*, section 4.2 (Alg. 2, eq. 24-25): each particle carries a sensor pose and, conditioned on it,
+one independent 3x3 EKF per landmark. The motion models are those of the EKF (section 2.1, eq. 3-7:
+odometry held between records, or a constant-velocity model), the measurement is a landmark's
+position in the sensor frame (eq. 11-13), and each particle associates each point by maximum
+likelihood, starting a new landmark when no landmark explains the point better than a fixed
+new-landmark likelihood (Montemerlo et al., FastSLAM 2.0, 2003).
+
+Variants
+    ``1.0`` samples the pose from the motion model and weights by the landmarks' measurement
+    likelihood. ``2.0`` folds each associated point into a Gaussian proposal over the pose and twist
+    (an EKF update with the landmark's uncertainty as measurement noise), samples from it, and
+    weights by the sequential marginal likelihood of the points, which keeps far fewer particles
+    alive when the points are much more precise than the motion model.
+
+Layout
+    Particle ``p`` holds position ``positions[p]`` (world, m), ``rotations[p]`` (``R_world_sensor``),
+    body twist ``twists[p]`` (v m/s, w rad/s) and landmarks ``means[p, :counts[p]]`` (world, m) with
+    covariances ``covs[p, :counts[p]]``. Every array has the particle index first, so each step of the
+    algorithm is one numpy expression over all particles; points are taken one at a time, each against
+    only the landmark slots near it in some particle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+from scipy.special import logsumexp
+
+from relpoint.errors import UsageError
+from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
+from relpoint.estimators.base import ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.geometry import FloatArray
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose
+
+logger = logging.getLogger(__name__)
+
+VARIANTS = ("2.0", "1.0")
+_LOG_2PI = math.log(2.0 * math.pi)
+#: Attributes indexed by particle; resampling copies each of them.
+_PARTICLE_ARRAYS = (
+    "positions",
+    "rotations",
+    "twists",
+    "_Sigma",
+    "counts",
+    "means",
+    "covs",
+    "_seen",
+    "_vote_id",
+    "_vote_n",
+)
+
+
+@dataclass(frozen=True)
+class FastSlamConfig:
+    """Settings of the FastSLAM estimator. Metres, radians, seconds."""
+
+    variant: str = "2.0"
+    """``2.0`` (proposal includes the points) or ``1.0`` (proposal is the motion model)."""
+    particles: int = 50
+    """Number of particles."""
+    observation_sigma: float = 0.3
+    """Standard deviation of a point measurement, per axis (m)."""
+    new_landmark_probability: float = 0.999
+    """Sets the new-landmark likelihood: the density of a point at this chi-square quantile of a
+    fresh landmark's innovation. A point starts a landmark in a particle when no landmark there
+    explains it with a higher likelihood."""
+    linear_acceleration_noise: float = 2.0
+    """Constant-velocity proposal: white linear acceleration noise (m/s^2)."""
+    angular_acceleration_noise: float = 0.5
+    """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
+    initial_speed_sigma: float = 10.0
+    """Prior standard deviation of the initial linear velocity (m/s)."""
+    initial_turn_rate_sigma: float = 0.3
+    """Prior standard deviation of the initial angular velocity (rad/s)."""
+    pose_noise: float = 0.01
+    """Extra position noise per iteration, per axis (m), and the same in radians for orientation;
+    keeps the proposal full rank when odometry is perfect."""
+    resample_threshold: float = 0.5
+    """Resample when the effective sample size falls below this fraction of the particles."""
+    search_radius: float = 5.0
+    """Landmarks farther than this from a point (in every particle) are not considered for it (m)."""
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise UsageError(f"unknown FastSLAM variant {self.variant!r}", f"choose one of {', '.join(VARIANTS)}")
+        if not (isinstance(self.particles, int) and self.particles >= 1):
+            raise UsageError(f"particles must be a positive integer, got {self.particles!r}")
+        positive = {"observation_sigma": self.observation_sigma, "search_radius": self.search_radius}
+        non_negative = {
+            "linear_acceleration_noise": self.linear_acceleration_noise,
+            "angular_acceleration_noise": self.angular_acceleration_noise,
+            "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
+            "pose_noise": self.pose_noise,
+        }  # fmt: skip
+        for name, value in positive.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise UsageError(f"{name} must be a positive number, got {value!r}")
+        for name, value in non_negative.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        if not (isinstance(self.new_landmark_probability, float) and 0.0 < self.new_landmark_probability < 1.0):
+            raise UsageError(
+                f"new_landmark_probability must be strictly between 0 and 1, got {self.new_landmark_probability!r}"
+            )
+        if not (isinstance(self.resample_threshold, int | float) and 0.0 <= self.resample_threshold <= 1.0):
+            raise UsageError(f"resample_threshold must be between 0 and 1, got {self.resample_threshold!r}")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> FastSlamConfig:
+        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
+        unknown = sorted(set(normalised) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown fastslam setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
+            )
+        return cls(**normalised)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
+    """Low-variance (systematic) resampling: N indices drawn with one uniform number.
+
+    Parameters
+    ----------
+    weights: (N,) non-negative weights summing to 1.
+    rng: the only source of randomness.
+
+    Returns
+    -------
+    (N,) indices into the particles, sorted; particle ``i`` appears about ``N * weights[i]`` times.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    n = len(w)
+    pointers = (rng.uniform(0.0, 1.0 / n) + np.arange(n) / n).clip(max=1.0)
+    cumulative = np.cumsum(w)
+    cumulative[-1] = 1.0
+    return np.minimum(np.searchsorted(cumulative, pointers, side="left"), n - 1).astype(np.int64)
+
+
+class FastSlam(Estimator):
+    """FastSLAM 1.0 / 2.0 with per-particle maximum-likelihood association.
+
+    Parameters
+    ----------
+    config: settings.
+    rng: source of every random draw (proposal samples and resampling).
+    """
+
+    name: ClassVar[str] = "fastslam"
+
+    def __init__(self, config: FastSlamConfig | None, rng: np.random.Generator) -> None:
+        self.config = cfg = config or FastSlamConfig()
+        self._rng = rng
+        n = cfg.particles
+        self._Q = np.eye(3) * cfg.observation_sigma**2
+        # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.
+        gate = chi2_gate(cfg.new_landmark_probability, 3)
+        self._log_new = -0.5 * gate - 0.5 * (3 * _LOG_2PI + math.log(np.linalg.det(2.0 * self._Q)))
+        self.positions = np.zeros((n, 3))
+        self.rotations = np.tile(np.eye(3), (n, 1, 1))
+        self.twists = np.zeros((n, 6))
+        self.log_weights = np.full(n, -math.log(n))
+        self.counts = np.zeros(n, dtype=np.int64)
+        self._capacity = 64
+        self.means = np.zeros((n, self._capacity, 3))
+        self.covs = np.zeros((n, self._capacity, 3, 3))
+        self._seen = np.zeros((n, self._capacity), dtype=np.int64)
+        self._vote_id = np.full((n, self._capacity), -1, dtype=np.int64)
+        self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
+        self._stamp_ns: int | None = None
+        self._moved = False
+        self._Sigma = np.zeros((n, 12, 12))
+        self._odometry: OdometryMeasurement | None = None
+        self._stats = Counter[str]()
+
+    # ------------------------------------------------------------------------------------ interface
+
+    @property
+    def weights(self) -> FloatArray:
+        """Normalised particle weights (N,)."""
+        return np.exp(self.log_weights)
+
+    def step(self, observation: PointObservation) -> Pose:
+        """Propose poses, associate and weight, update landmarks, resample; return the mean pose."""
+        if self._stamp_ns is None:
+            self._stamp_ns = observation.stamp_ns
+        self._predict_to(observation.stamp_ns)
+        Sigma, self._Sigma = self._Sigma, np.zeros_like(self._Sigma)
+        if self.config.variant == "1.0":
+            self._apply_sample(Sigma)
+            Sigma = np.zeros_like(Sigma)
+        points = np.asarray(observation.points)
+        assoc, log_likelihood, Sigma = self._associate(points, Sigma)
+        if self.config.variant == "2.0":
+            self._apply_sample(Sigma)
+        self.log_weights = self.log_weights + log_likelihood
+        self.log_weights -= logsumexp(self.log_weights)
+        self._update_landmarks(points, assoc, observation.ids)
+        self._add_landmarks(points, assoc, observation.ids)
+        self._resample_if_degenerate()
+        self._stats["iterations"] += 1
+        return self.pose()
+
+    def add_odometry(self, odometry: OdometryMeasurement) -> None:
+        """Hold a body-frame twist as the proposal's input from its stamp until the next one."""
+        if self._stamp_ns is not None:
+            self._predict_to(odometry.stamp_ns)
+        self._odometry = odometry
+
+    def landmark_map(self) -> LandmarkMap:
+        """The map of the particle with the largest weight."""
+        best = int(np.argmax(self.log_weights))
+        n = int(self.counts[best])
+        return LandmarkMap(
+            self.means[best, :n].copy(),
+            self._seen[best, :n].copy(),
+            np.zeros(n, dtype=bool),
+            self._vote_id[best, :n].copy(),
+        )
+
+    @property
+    def map_size(self) -> int:
+        return int(self.counts[int(np.argmax(self.log_weights))])
+
+    def summary(self) -> dict[str, Any]:
+        w = self.weights
+        return {
+            "variant": self.config.variant,
+            "particles": self.config.particles,
+            "landmarks": self.map_size,
+            "effective_sample_size": float(1.0 / np.sum(w**2)),
+            **{k: int(v) for k, v in sorted(self._stats.items())},
+        }
+
+    def pose(self) -> Pose:
+        """Weighted mean pose: mean position and the chordal mean of the rotations."""
+        w = self.weights
+        position = w @ self.positions
+        U, _, Vt = np.linalg.svd(np.einsum("p,pij->ij", w, self.rotations))
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        T = np.eye(4)
+        T[:3, :3] = U @ D @ Vt
+        T[:3, 3] = position
+        return Pose.from_matrix(self._stamp_ns or 0, T)
+
+    # ------------------------------------------------------------------------------------ proposal
+
+    def _predict_to(self, stamp_ns: int) -> None:
+        """Move every particle's nominal state to ``stamp_ns`` and grow the pending prior covariance.
+
+        The prior (N, 12, 12) is over the error ``(dp, dtheta, dv, dw)`` with ``R_true = R Exp(dtheta)``;
+        it is sampled (1.0) or refined by the points and then sampled (2.0) at the next observation,
+        so odometry records between observations only accumulate it.
+        """
+        assert self._stamp_ns is not None
+        dt = (stamp_ns - self._stamp_ns) * 1e-9
+        if dt <= 0.0:
+            return
+        cfg = self.config
+        n = cfg.particles
+        F = np.zeros((n, 12, 12))
+        if self._odometry is not None:
+            u = np.concatenate([self._odometry.linear, self._odometry.angular])
+            twist = np.broadcast_to(u, (n, 6))
+            Q_twist = np.asarray(self._odometry.covariance)
+        else:
+            twist = self.twists
+            q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            if not self._moved:
+                q += np.repeat([cfg.initial_speed_sigma**2, cfg.initial_turn_rate_sigma**2], 3)
+            Q_twist = np.diag(q)
+            F[:, 6:, 6:] = np.eye(6)  # the twist persists; with odometry the input replaces it
+        positions, rotations, F_pose, G = twist_step(self.positions, self.rotations, twist[:, :3], twist[:, 3:], dt)
+        F[:, :6, :6] = F_pose
+        if self._odometry is None:
+            F[:, :6, 6:] = G
+        self.positions, self.rotations, self.twists = positions, rotations, np.array(twist)
+        self._moved = True
+        self._stamp_ns = stamp_ns
+        # The twist noise acts over the interval: it moves the pose through G and becomes the new twist error.
+        G_full = np.concatenate([G, np.broadcast_to(np.eye(6), (n, 6, 6))], axis=1)  # (n, 12, 6)
+        Sigma = F @ self._Sigma @ np.swapaxes(F, 1, 2) + G_full @ Q_twist @ np.swapaxes(G_full, 1, 2)
+        Sigma[:, :3, :3] += np.eye(3) * cfg.pose_noise**2
+        Sigma[:, 3:6, 3:6] += np.eye(3) * cfg.pose_noise**2
+        self._Sigma = Sigma
+
+    def _apply_sample(self, Sigma: FloatArray) -> None:
+        """Draw one error per particle from N(0, Sigma) (N, 12, 12) and move the nominal state by it."""
+        values, vectors = np.linalg.eigh(0.5 * (Sigma + np.swapaxes(Sigma, 1, 2)))
+        scale = np.sqrt(np.clip(values, 0.0, None))
+        draw = self._rng.standard_normal((self.config.particles, 12))
+        self._inject(np.einsum("pij,pj->pi", vectors, scale * draw))
+
+    def _inject(self, delta: FloatArray, mask: npt.NDArray[np.bool_] | None = None) -> None:
+        """Move particles' nominal pose and twist by errors ``delta`` (N, 12) (only ``mask`` if given)."""
+        if mask is not None:
+            delta = np.where(mask[:, None], delta, 0.0)
+        self.positions = self.positions + delta[:, :3]
+        self.rotations = self.rotations @ so3_exp(delta[:, 3:6])
+        self.twists = self.twists + delta[:, 6:]
+
+    # --------------------------------------------------------------------------------- association
+
+    def _candidates(self, points: FloatArray) -> list[np.ndarray]:
+        """Per point, the landmark slots within ``search_radius`` of it in at least one particle."""
+        cap = int(self.counts.max()) if self.counts.size else 0
+        if cap == 0 or len(points) == 0:
+            return [np.zeros(0, dtype=np.int64)] * len(points)
+        predicted = np.einsum("pji,pmj->pmi", self.rotations, self.means[:, :cap] - self.positions[:, None, :])
+        valid = np.arange(cap)[None, :] < self.counts[:, None]
+        near = np.zeros((len(points), cap), dtype=bool)
+        r2 = self.config.search_radius**2
+        for i, z in enumerate(points):
+            close = np.sum((predicted - z) ** 2, axis=2) < r2
+            near[i] = (close & valid).any(axis=0)
+        return [np.flatnonzero(row) for row in near]
+
+    def _associate(self, points: FloatArray, Sigma: FloatArray) -> tuple[np.ndarray, FloatArray, FloatArray]:
+        """Maximum-likelihood association of each point in each particle, one point at a time.
+
+        Returns the association (N, k) (landmark slot, or -1 for a new landmark), each particle's
+        log-likelihood of the points (N,), and the proposal covariance after the points (2.0).
+        """
+        cfg = self.config
+        n = cfg.particles
+        k = len(points)
+        assoc = np.full((n, k), -1, dtype=np.int64)
+        log_likelihood = np.zeros(n)
+        used = np.zeros((n, max(int(self.counts.max()), 1)), dtype=bool)
+        rows = np.arange(n)
+        proposal = cfg.variant == "2.0"
+        for i, candidates in enumerate(self._candidates(points)):
+            c = len(candidates)
+            if c == 0:
+                log_likelihood += self._log_new
+                continue
+            z = points[i]
+            Rt = np.swapaxes(self.rotations, 1, 2)  # (n, 3, 3)
+            z_hat = np.einsum("pij,pcj->pci", Rt, self.means[:, candidates] - self.positions[:, None, :])
+            S_m = Rt[:, None] @ self.covs[:, candidates] @ self.rotations[:, None] + self._Q  # (n, c, 3, 3)
+            H = np.zeros((n, c, 3, 12))
+            H[:, :, :, :3] = -Rt[:, None]
+            H[:, :, :, 3:6] = skew(z_hat)
+            L = S_m + H @ Sigma[:, None] @ np.swapaxes(H, 2, 3) if proposal else S_m
+            nu = z - z_hat
+            L_inv = np.linalg.inv(L)
+            _, logdet = np.linalg.slogdet(L)
+            logl = -0.5 * (np.einsum("pci,pcij,pcj->pc", nu, L_inv, nu) + logdet + 3 * _LOG_2PI)
+            invalid = (candidates[None, :] >= self.counts[:, None]) | used[:, candidates]
+            logl = np.where(invalid, -np.inf, logl)
+            best = np.argmax(logl, axis=1)
+            best_logl = logl[rows, best]
+            matched = best_logl >= self._log_new
+            slot = candidates[best]
+            assoc[matched, i] = slot[matched]
+            used[rows[matched], slot[matched]] = True
+            log_likelihood += np.where(matched, best_logl, self._log_new)
+            if proposal and matched.any():
+                H_b = H[rows, best]  # (n, 3, 12)
+                K = Sigma @ np.swapaxes(H_b, 1, 2) @ L_inv[rows, best]  # (n, 12, 3)
+                self._inject(np.einsum("pij,pj->pi", K, nu[rows, best]), matched)
+                I_KH = np.eye(12) - K @ H_b
+                joseph = I_KH @ Sigma @ np.swapaxes(I_KH, 1, 2) + K @ S_m[rows, best] @ np.swapaxes(K, 1, 2)
+                Sigma = np.where(matched[:, None, None], joseph, Sigma)
+        self._stats["paired"] += int((assoc >= 0).sum())
+        return assoc, log_likelihood, Sigma
+
+    # ---------------------------------------------------------------------------------- landmarks
+
+    def _update_landmarks(self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None) -> None:
+        """3x3 EKF update of every associated landmark with the particle's (sampled) pose, all at once."""
+        p, i = np.nonzero(assoc >= 0)
+        if len(p) == 0:
+            return
+        j = assoc[p, i]
+        R = self.rotations[p]
+        Rt = np.swapaxes(R, 1, 2)
+        cov = self.covs[p, j]
+        z_hat = np.einsum("pij,pj->pi", Rt, self.means[p, j] - self.positions[p])
+        S = Rt @ cov @ R + self._Q
+        K = cov @ R @ np.linalg.inv(S)  # dz/dm = R^T, so P H^T = cov R
+        self.means[p, j] += np.einsum("pij,pj->pi", K, points[i] - z_hat)
+        I_KH = np.eye(3) - K @ Rt
+        new_cov = I_KH @ cov @ np.swapaxes(I_KH, 1, 2) + K @ self._Q @ np.swapaxes(K, 1, 2)
+        self.covs[p, j] = 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
+        self._seen[p, j] += 1
+        if ids is not None:
+            self._vote(p, j, np.asarray(ids)[i])
+
+    def _vote(self, p: np.ndarray, j: np.ndarray, ids: np.ndarray) -> None:
+        """Boyer-Moore majority vote of the ground-truth ids fused into each landmark (diagnosis only)."""
+        same = self._vote_id[p, j] == ids
+        empty = self._vote_n[p, j] == 0
+        self._vote_n[p, j] += np.where(same | empty, 1, -1)
+        self._vote_id[p, j] = np.where(empty, ids, self._vote_id[p, j])
+
+    def _add_landmarks(self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None) -> None:
+        """Start a landmark ``m = p + R z`` with covariance ``R Q R^T`` for every unexplained point."""
+        p, i = np.nonzero(assoc < 0)
+        if len(p) == 0:
+            return
+        # Slot of each new landmark: the particle's count plus its rank among the particle's new points.
+        rank = np.arange(len(p)) - np.searchsorted(p, p, side="left")
+        slots = self.counts[p] + rank
+        self._ensure_capacity(int(slots.max()) + 1)
+        R = self.rotations[p]
+        self.means[p, slots] = self.positions[p] + np.einsum("pij,pj->pi", R, points[i])
+        self.covs[p, slots] = R @ self._Q @ np.swapaxes(R, 1, 2)
+        self._seen[p, slots] = 1
+        self._vote_id[p, slots] = -1 if ids is None else np.asarray(ids)[i]
+        self._vote_n[p, slots] = 0 if ids is None else 1
+        self.counts += np.bincount(p, minlength=self.config.particles)
+        self._stats["started"] += len(p)
+
+    def _ensure_capacity(self, size: int) -> None:
+        if size <= self._capacity:
+            return
+        capacity = max(size, 2 * self._capacity)
+        extra = capacity - self._capacity
+        n = self.config.particles
+        self.means = np.concatenate([self.means, np.zeros((n, extra, 3))], axis=1)
+        self.covs = np.concatenate([self.covs, np.zeros((n, extra, 3, 3))], axis=1)
+        self._seen = np.concatenate([self._seen, np.zeros((n, extra), dtype=np.int64)], axis=1)
+        self._vote_id = np.concatenate([self._vote_id, np.full((n, extra), -1, dtype=np.int64)], axis=1)
+        self._vote_n = np.concatenate([self._vote_n, np.zeros((n, extra), dtype=np.int64)], axis=1)
+        self._capacity = capacity
+
+    # ---------------------------------------------------------------------------------- resampling
+
+    def _resample_if_degenerate(self) -> None:
+        w = self.weights
+        n = self.config.particles
+        if 1.0 / np.sum(w**2) >= self.config.resample_threshold * n:
+            return
+        index = low_variance_resample(w, self._rng)
+        for attr in _PARTICLE_ARRAYS:
+            setattr(self, attr, getattr(self, attr)[index])
+        self.log_weights = np.full(n, -math.log(n))
+        self._stats["resamples"] += 1
+
+
+def _build(config: FastSlamConfig, rng: np.random.Generator) -> FastSlam:
+    return FastSlam(config, rng)
+
+
+SPEC = EstimatorSpec(
+    name="fastslam",
+    description="FastSLAM 1.0/2.0: particles over the sensor pose with per-particle 3x3 landmark EKFs",
+    config_class=FastSlamConfig,
+    factory=_build,
+    needs=frozenset({POINTS}),
+    uses=frozenset({ODOMETRY}),
+)

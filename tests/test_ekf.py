@@ -1,0 +1,307 @@
+"""EKF-SLAM: covariance properties, a hand-derived update, gating, JCBB vs nearest neighbour, fix
+fusion, and short simulated runs with error bounds a regression would break."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from relpoint.errors import EstimatorError, UsageError
+from relpoint.estimators._association import (
+    chi2_gate,
+    jcbb,
+    mahalanobis_squared,
+    nearest_neighbour,
+    so3_exp,
+    twist_step,
+)
+from relpoint.estimators.ekf import SPEC, EkfConfig, EkfSlam
+from relpoint.geometry import invert_pose, transform_points
+from relpoint.simulation import SimulationConfig, simulate
+from relpoint.types import PointObservation, PositionFix
+
+DT_NS = 100_000_000
+
+
+def _observe(stamp_ns: int, *points: tuple[float, float, float], ids: list[int] | None = None) -> PointObservation:
+    return PointObservation(stamp_ns, np.array(points, dtype=np.float64), None if ids is None else np.array(ids))
+
+
+def _run(config: EkfConfig, iterations: int, **sim_options: object) -> dict[str, float]:
+    """Run the EKF on the figure eight; errors in the frame of the first true pose (where the EKF starts)."""
+    sim = simulate(SimulationConfig(density=25, noise=0.3, iterations=iterations, seed=0, **sim_options))  # type: ignore[arg-type]
+    ekf = EkfSlam(config)
+    T_first_world = invert_pose(sim.ground_truth.matrices()[0])
+    errors = []
+    for step in sim.steps():
+        if step.odometry is not None:
+            ekf.add_odometry(step.odometry)
+        pose = ekf.step(step.observation)
+        truth = (T_first_world @ step.T_world_sensor)[:3, 3]
+        errors.append(np.linalg.norm(np.array(pose.position) - truth))
+    landmarks = ekf.landmark_map()
+    truth = transform_points(T_first_world, sim.landmarks.positions)
+    known = landmarks.gt_id >= 0
+    residual = landmarks.positions[known] - truth[landmarks.gt_id[known]]
+    return {
+        "position_rmse": float(np.sqrt(np.mean(np.square(errors)))),
+        "final_error": float(errors[-1]),
+        "landmark_rmse": float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
+        "landmarks": len(landmarks),
+        "distinct": len(set(landmarks.gt_id.tolist())),
+    }
+
+
+# ----------------------------------------------------------------------------------------- config
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"association": "greedy"},
+        {"motion": "teleport"},
+        {"observation_sigma": 0.0},
+        {"gate_probability": 1.0},
+        {"gate_probability": 0.999, "new_landmark_probability": 0.99},
+        {"linear_acceleration_noise": -1.0},
+        {"jcbb_max_nodes": 0},
+    ],
+)
+def test_config_rejects_bad_values(options: dict[str, object]) -> None:
+    with pytest.raises(UsageError):
+        EkfConfig(**options)  # type: ignore[arg-type]
+
+
+def test_config_from_mapping_rejects_unknown_keys_and_round_trips() -> None:
+    config = EkfConfig.from_mapping({"association": "jcbb", "observation-sigma": 0.5})
+    assert config == EkfConfig(association="jcbb", observation_sigma=0.5)
+    assert EkfConfig.from_mapping(config.to_dict()) == config
+    with pytest.raises(UsageError, match="gate"):
+        EkfConfig.from_mapping({"gate": 0.9})
+
+
+def test_spec_builds_an_ekf() -> None:
+    ekf = SPEC.factory(EkfConfig(), np.random.default_rng(0))
+    assert isinstance(ekf, EkfSlam)
+    assert SPEC.name == "ekf" and SPEC.needs == frozenset({"points"}) and SPEC.uses == frozenset({"odometry", "fix"})
+
+
+# ----------------------------------------------------------------------------------- covariance
+
+
+def test_covariance_stays_symmetric_positive_semidefinite() -> None:
+    sim = simulate(SimulationConfig(density=25, noise=0.3, iterations=60, clutter=0.5, seed=3))
+    ekf = EkfSlam(EkfConfig())
+    for step in sim.steps():
+        ekf.step(step.observation)
+        P = ekf.covariance
+        scale = np.abs(P).max()
+        assert np.abs(P - P.T).max() <= 1e-12 * scale
+        if step.index % 10 == 9:
+            assert np.linalg.eigvalsh(P).min() >= -1e-9 * scale
+    assert ekf.map_size > 20
+
+
+# ---------------------------------------------------------------------------------- motion model
+
+
+def test_motion_jacobians_match_finite_differences() -> None:
+    rng = np.random.default_rng(0)
+    p, R = rng.normal(size=3), Rotation.random(random_state=1).as_matrix()
+    v, w, dt = np.array([12.0, 0.3, -0.2]), np.array([0.1, -0.2, 0.5]), 0.1
+    p1, R1, F_pose, G = twist_step(p, R, v, w, dt)
+    analytic = np.hstack([F_pose, G])  # d(dp', dtheta') / d(dp, dtheta, dv, dw)
+    numeric = np.zeros((6, 12))
+    eps = 1e-6
+    for k in range(12):
+        e = np.zeros(12)
+        e[k] = eps
+        p2, R2, _, _ = twist_step(p + e[:3], R @ so3_exp(e[3:6]), v + e[6:9], w + e[9:], dt)
+        numeric[:3, k] = (p2 - p1) / eps
+        numeric[3:, k] = Rotation.from_matrix(R1.T @ R2).as_rotvec() / eps
+    np.testing.assert_allclose(analytic, numeric, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------ hand-derived update
+
+
+def test_single_landmark_update_matches_hand_derivation() -> None:
+    sigma, sigma_p, sigma_theta = 0.3, 0.5, 0.02
+    ekf = EkfSlam(
+        EkfConfig(
+            motion="constant_position",
+            observation_sigma=sigma,
+            position_noise=sigma_p,
+            quaternion_noise=sigma_theta / 2,
+        )
+    )
+    ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+    # The first pose anchors the world: the landmark is the point, with covariance sigma^2 I.
+    np.testing.assert_allclose(ekf.landmark_map().positions, [[10.0, 0.0, 0.0]])
+    np.testing.assert_allclose(ekf.covariance[6:9, 6:9], sigma**2 * np.eye(3))
+
+    pose = ekf.step(_observe(DT_NS, (10.2, 0.1, 0.0)))
+    # Prior: pose error diag(sp^2 I, st^2 I), landmark sigma^2 I, no cross terms. With R = I and
+    # z_hat = (10, 0, 0): H = [-I, [z_hat]x, I], so S = diag(sp^2 + 2s^2, sp^2 + 100 st^2 + 2s^2, same).
+    S = np.diag([sigma_p**2 + 2 * sigma**2] + [sigma_p**2 + 100 * sigma_theta**2 + 2 * sigma**2] * 2)
+    nu = np.array([0.2, 0.1, 0.0])
+    S_inv_nu = np.linalg.solve(S, nu)
+    expected_position = -(sigma_p**2) * S_inv_nu  # dp = P_pp (-I) S^-1 nu
+    expected_yaw = sigma_theta**2 * -10.0 * S_inv_nu[1]  # dtheta = P_tt [z]x^T S^-1 nu: z-component
+    expected_landmark = np.array([10.0, 0.0, 0.0]) + sigma**2 * S_inv_nu
+    np.testing.assert_allclose(pose.position, expected_position, atol=1e-12)
+    yaw = 2.0 * np.arctan2(pose.quat_xyzw[2], pose.quat_xyzw[3])
+    assert yaw == pytest.approx(expected_yaw, rel=1e-6)
+    assert yaw < 0  # the landmark appeared further left: the sensor turned right
+    np.testing.assert_allclose(ekf.landmark_map().positions[0], expected_landmark, atol=1e-12)
+    expected_landmark_cov = sigma**2 * np.eye(3) - sigma**4 * np.linalg.inv(S)
+    np.testing.assert_allclose(ekf.covariance[6:9, 6:9], expected_landmark_cov, atol=1e-12)
+    assert ekf.landmark_map().observations.tolist() == [2]
+
+
+# ---------------------------------------------------------------------------------------- gating
+
+
+@pytest.mark.parametrize(
+    ("offset", "paired", "started", "discarded"),
+    [
+        (0.5, 1, 0, 0),  # inside the 0.99 gate: updates the landmark
+        (1.7, 0, 0, 1),  # between the 0.99 and 0.9999 gates: too doubtful for either
+        (5.0, 0, 1, 0),  # an outlier: rejected by the gate, starts its own landmark
+    ],
+)
+def test_gate_accepts_inlier_and_rejects_outlier(offset: float, paired: int, started: int, discarded: int) -> None:
+    ekf = EkfSlam(EkfConfig(motion="constant_position"))
+    ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+    # S_xx = 0.10^2 (position noise) + 2 * 0.3^2 = 0.19: the 0.99 gate is |dx| < 1.47 m, the 0.9999 one 2.0 m.
+    assert np.sqrt(chi2_gate(0.99, 3) * 0.19) == pytest.approx(1.468, abs=1e-3)
+    ekf.step(_observe(DT_NS, (10.0 + offset, 0.0, 0.0)))
+    summary = ekf.summary()
+    assert (summary["paired"], summary["started"] - 1, summary.get("discarded", 0)) == (paired, started, discarded)
+    assert ekf.map_size == 1 + started
+
+
+# ------------------------------------------------------------------------------------ JCBB vs NN
+
+
+def _shifted_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two landmarks 2 m apart seen through a shared 1 m pose uncertainty, both shifted 1.1 m along y."""
+    predicted = np.array([[10.0, 0.0, 0.0], [10.0, 2.0, 0.0]])
+    points = predicted + np.array([0.0, 1.1, 0.0])
+    covariance = np.kron(np.ones((2, 2)), np.eye(3))  # perfectly correlated translation, landmarks exact
+    observation_cov = 0.01 * np.eye(3)
+    innovations = points[:, None, :] - predicted[None, :, :]
+    S = np.stack([covariance[:3, :3], covariance[3:, 3:]]) + observation_cov
+    d2 = mahalanobis_squared(innovations, np.linalg.inv(S))
+    return d2, innovations, covariance, observation_cov
+
+
+def test_jcbb_resolves_ambiguous_pair_that_nearest_neighbour_gets_wrong() -> None:
+    d2, innovations, covariance, observation_cov = _shifted_pair()
+    gate = chi2_gate(0.99, 3)
+    assert (d2 < gate).all()  # every pairing is individually compatible: a genuine ambiguity
+    nn, gated = nearest_neighbour(d2, gate)
+    assert gated.all()
+    assert nn.tolist() == [1, 0]  # the first point is nearest to the second landmark: both pairings wrong
+    assert jcbb(d2, innovations, covariance, observation_cov).tolist() == [0, 1]
+
+
+def test_jcbb_drops_a_pairing_that_breaks_joint_compatibility() -> None:
+    d2, innovations, covariance, observation_cov = _shifted_pair()
+    # Move the second point against the common shift: each point still gates on its own, together they cannot.
+    innovations = innovations.copy()
+    innovations[1] -= [0.0, 2.0, 0.0]
+    S_inv = np.linalg.inv(np.stack([covariance[:3, :3], covariance[3:, 3:]]) + observation_cov)
+    d2 = mahalanobis_squared(innovations, S_inv)
+    assignment = jcbb(d2, innovations, covariance, observation_cov)
+    assert (assignment >= 0).sum() == 1
+
+
+@pytest.mark.parametrize(("association", "expected_y"), [("jcbb", -1.1), ("nn", None)])
+def test_ekf_association_on_ambiguous_pair(association: str, expected_y: float | None) -> None:
+    ekf = EkfSlam(
+        EkfConfig(
+            association=association,
+            motion="constant_position",
+            observation_sigma=0.1,
+            position_noise=1.0,
+            quaternion_noise=1e-5,
+        )
+    )
+    ekf.step(_observe(0, (10.0, 0.0, 0.0), (10.0, 2.0, 0.0), ids=[0, 1]))
+    pose = ekf.step(_observe(DT_NS, (10.0, 1.1, 0.0), (10.0, 3.1, 0.0), ids=[0, 1]))
+    landmarks = ekf.landmark_map()
+    if expected_y is not None:
+        # Right pairing: the shared shift is the sensor's motion; the landmarks stay where they were.
+        assert pose.position[1] == pytest.approx(expected_y, abs=0.05)
+        np.testing.assert_allclose(landmarks.positions, [[10.0, 0.0, 0.0], [10.0, 2.0, 0.0]], atol=0.05)
+        assert landmarks.gt_id.tolist() == [0, 1]
+    else:
+        # Crossed pairing: the mean shift still moves the sensor, but the landmarks are dragged about
+        # 0.4 m towards each other's points.
+        assert np.abs(landmarks.positions - [[10.0, 0.0, 0.0], [10.0, 2.0, 0.0]]).max() > 0.3
+
+
+def test_known_association_needs_ids() -> None:
+    ekf = EkfSlam(EkfConfig(association="known"))
+    with pytest.raises(EstimatorError):
+        ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+
+
+# ----------------------------------------------------------------------------------------- fixes
+
+
+def test_fix_is_fused_weighted_by_covariances() -> None:
+    ekf = EkfSlam(EkfConfig(motion="constant_position", position_noise=0.2))
+    ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+    # Predicting to the fix's stamp gives the position variance 0.2^2; the fix has variance 0.1^2.
+    ekf.add_fix(PositionFix(DT_NS, np.array([1.0, 0.0, 0.0]), np.eye(3) * 0.1**2))
+    gain = 0.2**2 / (0.2**2 + 0.1**2)
+    assert ekf.pose().position[0] == pytest.approx(gain * 1.0, rel=1e-9)
+    assert ekf.covariance[0, 0] == pytest.approx(0.2**2 * (1 - gain), rel=1e-9)
+    assert ekf.summary()["fixes"] == 1
+
+
+def test_fix_before_first_observation_places_the_start() -> None:
+    ekf = EkfSlam(EkfConfig())
+    ekf.add_fix(PositionFix(0, np.array([5.0, -2.0, 1.0]), np.eye(3)))
+    pose = ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+    np.testing.assert_allclose(pose.position, [5.0, -2.0, 1.0])
+
+
+# ------------------------------------------------------------------------------- simulated runs
+
+
+@pytest.mark.parametrize(
+    ("association", "iterations", "bound"),
+    [
+        ("nn", 300, 0.8),  # measured: 0.51 m position and 0.56 m landmark RMSE, final error 1.08 m
+        ("jcbb", 200, 0.45),  # measured: 0.29 m and 0.33 m, final error 0.36 m (the same as nn)
+    ],
+)
+def test_figure_eight_run_stays_accurate(association: str, iterations: int, bound: float) -> None:
+    result = _run(EkfConfig(association=association), iterations)
+    assert result["position_rmse"] < bound
+    assert result["landmark_rmse"] < bound
+    assert result["final_error"] < 2 * bound
+    assert result["landmarks"] == result["distinct"]  # no duplicate landmark
+
+
+def test_figure_eight_run_with_odometry() -> None:
+    result = _run(EkfConfig(), 150, odometry_noise=0.5)
+    # Measured: 0.27 m position and 0.30 m landmark RMSE.
+    assert result["position_rmse"] < 0.45
+    assert result["landmark_rmse"] < 0.45
+    assert result["landmarks"] == result["distinct"]
+
+
+@pytest.mark.parametrize("association", ["known", "nn"])
+def test_run_with_clutter(association: str) -> None:
+    result = _run(EkfConfig(association=association), 100, clutter=2.0)
+    # Measured: 0.18 m position and 0.19-0.20 m landmark RMSE. Known association ignores clutter
+    # (id -1); nearest neighbour maps each clutter point as a landmark of its own.
+    assert result["position_rmse"] < 0.3
+    assert result["landmark_rmse"] < 0.3
+    if association == "known":
+        assert result["landmarks"] == result["distinct"] == 66
