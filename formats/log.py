@@ -132,7 +132,7 @@ def _corrupt(path: Path, error: BaseException) -> InputError:
 #: Errors the MCAP reader and its decompressors raise on damaged files.
 _READ_ERRORS: tuple[type[BaseException], ...] = (
     AnyReaderError, ReaderError, struct.error, zlib.error, ValueError, EOFError, KeyError, IndexError,
-    OverflowError, MemoryError, RuntimeError, AssertionError,
+    OverflowError, MemoryError, RuntimeError, AssertionError, TypeError, AttributeError, UnicodeDecodeError,
 )  # fmt: skip
 
 
@@ -303,6 +303,10 @@ class LogReader:
                     record = self._convert(role, _deserialize(reader, raw, ROLE_TYPES[role]))
                 except InputError as error:
                     self._skip(f"{topic}: malformed messages", str(error))
+                    continue
+                except (AttributeError, TypeError, ValueError, IndexError, KeyError, OverflowError) as error:
+                    # The bytes decoded under the file's own schema but are not the message they claim.
+                    self._skip(f"{topic}: malformed messages", f"{type(error).__name__}: {error}")
                     continue
                 before = previous.get(topic)
                 if before is not None and record.stamp_ns <= before:

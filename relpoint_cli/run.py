@@ -15,7 +15,7 @@ from formats.config_files import load_settings
 from formats.log import LogReader, Record
 from formats.run_output import file_sha256, write_run_directory
 from relpoint import pipeline
-from relpoint.errors import UsageError
+from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
@@ -120,7 +120,16 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     estimator = spec.factory(config, np.random.default_rng(seed))
     total = reader.topic_infos[reader.topics.roles()[needed[0]]].count
     with progress_bar(total, f"{estimator_name}", unit="iter") as bar:
-        result = pipeline.run(estimator_inputs(reader.records(roles)), estimator, on_iteration=lambda *_: bar.update(1))
+        try:
+            result = pipeline.run(
+                estimator_inputs(reader.records(roles)), estimator, on_iteration=lambda *_: bar.update(1)
+            )
+        except EstimatorError as error:
+            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
+            if malformed and "no observation" in str(error):
+                counts = ", ".join(f"{n} {kind}" for kind, n in malformed.items())
+                raise InputError(f"{log}: no usable message ({counts})", "check the topic's message type") from None
+            raise
     run_info = {
         "estimator": spec.name,
         "parameters": dataclasses.asdict(config),
