@@ -183,3 +183,17 @@ def test_input_log_is_never_modified(tmp_path: Path, tiny_log: Path) -> None:
     for command in (["info", str(tiny_log)], ["run", str(tiny_log), "-e", "ekf", "-o", str(tmp_path / "o")]):
         assert CliRunner().invoke(cli, ["-q", *command]).exit_code == 0
     assert sha256(tiny_log) == before and os.stat(tiny_log).st_mtime_ns == mtime
+
+
+CORPUS = Path(__file__).resolve().parent / "corpus"
+
+
+@pytest.mark.parametrize("path", sorted(CORPUS.glob("*.mcap")), ids=lambda p: p.name)
+def test_corpus_of_damaged_logs(path: Path) -> None:
+    """Damaged files that once broke a reader: each ends in a RelpointError or in skipped data."""
+    try:
+        reader = LogReader(path)
+        list(reader.records(sorted(reader.available_roles())))
+    except RelpointError:
+        return
+    assert sum(reader.skipped.values()) > 0
