@@ -1,0 +1,350 @@
+"""Trajectories to evaluate, from any of the inputs ``relpoint evaluate`` accepts (issue 3).
+
+:func:`load_trajectory` reads a :class:`relpoint.types.Trajectory` from
+
+* a TUM file (8 values per line) or KITTI poses (12 values per line, stamps from a times file);
+* a ``relpoint run`` output directory (its ``trajectory.tum``);
+* an MCAP file: a relpoint log's ``/ground_truth/pose``, or any topic of any ROS 2 bag carrying
+  ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
+  ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
+  composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).
+
+Messages with a stamp equal to or older than the previous one are dropped (rosbag2 recordings
+repeat stamps now and then); the count is logged. Every problem is an :class:`InputError` naming the file.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from formats import ros2
+from formats.log import LogReader
+from formats.tables import read_map_csv
+from formats.trajectory_files import read_kitti, read_tum
+from relpoint.errors import InputError
+from relpoint.geometry import FloatArray, invert_pose
+from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
+
+log = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+POSE_TYPES = (ros2.POSE_STAMPED, ros2.POSE_WITH_COVARIANCE_STAMPED, ros2.ODOMETRY)
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+#: Topics tried, in order, when an MCAP input is given without a topic.
+DEFAULT_POSE_TOPICS = ("/ground_truth/pose", "/relpoint/pose")
+
+
+def is_mcap(path: Path) -> bool:
+    """Whether ``path`` is a file starting with the MCAP magic bytes."""
+    try:
+        with path.open("rb") as stream:
+            return stream.read(8) == MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def _values_per_line(path: Path) -> int | None:
+    """Number of values on the first data line of a text file (None if it has none or is binary)."""
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(1 << 16)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+    try:
+        text = head.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped and not stripped.startswith("#"):
+            return len([f for f in stripped.replace(",", " ").split() if f])
+    return None
+
+
+def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[FloatArray], source: str) -> Trajectory:
+    """A trajectory from possibly unordered poses: sorted by stamp, repeated or older stamps dropped."""
+    if not stamps:
+        raise InputError(f"{source}: no poses")
+    stamps_arr = np.asarray(stamps, dtype=np.int64)
+    order = np.argsort(stamps_arr, kind="stable")
+    stamps_arr = stamps_arr[order]
+    keep = np.ones(len(stamps_arr), dtype=bool)
+    keep[1:] = np.diff(stamps_arr) > 0
+    dropped = int((~keep).sum())
+    if dropped:
+        log.info("%s: dropped %d poses with repeated stamps", source, dropped)
+    index = order[keep]
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)[index]
+    quat = np.asarray(quats, dtype=np.float64).reshape(-1, 4)[index]
+    finite = np.isfinite(pos).all(axis=1) & np.isfinite(quat).all(axis=1) & (np.linalg.norm(quat, axis=1) > 1e-9)
+    if not finite.all():
+        log.warning("%s: dropped %d poses with non-finite values or zero quaternions", source, int((~finite).sum()))
+    if not finite.any():
+        raise InputError(f"{source}: no valid poses")
+    return Trajectory(stamps_arr[finite], pos[finite], quat[finite])
+
+
+def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
+    """The trajectory of a PoseStamped, PoseWithCovarianceStamped or Odometry topic (``header.stamp``)."""
+    info = reader.topic_infos.get(topic)
+    source = f"{reader.path} {topic}"
+    if info is None or info.count == 0:
+        raise InputError(f"{reader.path}: no messages on {topic}", _topics_hint(reader))
+    if info.typename == ros2.TF_MESSAGE:
+        raise InputError(f"{source} is a TF topic", "give the frames with --parent and --child")
+    if info.typename not in POSE_TYPES:
+        raise InputError(f"{source} carries {info.typename}, not a pose type", _topics_hint(reader))
+    stamps: list[int] = []
+    positions: list[FloatArray] = []
+    quats: list[FloatArray] = []
+    for _, _, _, message in reader.messages([topic]):
+        pose = ros2.msg_to_pose(message)
+        stamps.append(pose.stamp_ns)
+        positions.append(np.asarray(pose.position))
+        quats.append(np.asarray(pose.quat_xyzw))
+    return _from_poses(stamps, positions, quats, source)
+
+
+def _topics_hint(reader: LogReader) -> str:
+    poses = [t for t, i in reader.topic_infos.items() if i.typename in POSE_TYPES and i.count]
+    tf = [t for t, i in reader.topic_infos.items() if i.typename == ros2.TF_MESSAGE and i.count]
+    hints = []
+    if poses:
+        hints.append(f"pose topics here: {', '.join(sorted(poses))}")
+    if tf:
+        hints.append(f"TF topics here: {', '.join(sorted(tf))} (use --parent/--child)")
+    return "; ".join(hints) or "the file has no pose or TF topic"
+
+
+# --- TF chains -------------------------------------------------------------------------------------
+
+
+def _frame(name: str) -> str:
+    return name.strip().lstrip("/")
+
+
+@dataclass
+class _Edge:
+    """All transforms ``T_parent_child`` seen for one child frame."""
+
+    parent: str
+    static: bool
+    stamps: list[int] = field(default_factory=list)
+    positions: list[tuple[float, float, float]] = field(default_factory=list)
+    quats: list[tuple[float, float, float, float]] = field(default_factory=list)
+
+    def arrays(self) -> tuple[np.ndarray, FloatArray]:
+        """(stamps sorted, (n, 4, 4) matrices in that order)."""
+        stamps = np.asarray(self.stamps, dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        T = np.tile(np.eye(4), (len(stamps), 1, 1))
+        T[:, :3, :3] = Rotation.from_quat(np.asarray(self.quats)[order]).as_matrix()
+        T[:, :3, 3] = np.asarray(self.positions)[order]
+        return stamps[order], T
+
+
+def _collect_tf(reader: LogReader, topics: Iterable[str]) -> dict[str, _Edge]:
+    edges: dict[str, _Edge] = {}
+    conflicts = 0
+    for topic, typename, _, message in reader.messages(topics):
+        if typename != ros2.TF_MESSAGE:
+            raise InputError(f"{reader.path} {topic} carries {typename}, not {ros2.TF_MESSAGE}")
+        static = topic == TF_STATIC_TOPIC
+        for transform in message.transforms:
+            parent, child = _frame(transform.header.frame_id), _frame(transform.child_frame_id)
+            edge = edges.get(child)
+            if edge is None:
+                edge = edges[child] = _Edge(parent, static)
+            elif edge.parent != parent:
+                conflicts += 1
+                continue
+            t, q = transform.transform.translation, transform.transform.rotation
+            quat = (float(q.x), float(q.y), float(q.z), float(q.w))
+            if not np.isfinite(quat).all() or np.linalg.norm(quat) < 1e-9:
+                continue
+            edge.stamps.append(ros2.stamp_ns_of(transform))
+            edge.positions.append((float(t.x), float(t.y), float(t.z)))
+            edge.quats.append(quat)
+    if conflicts:
+        log.warning("%s: ignored %d transforms giving a frame a second parent", reader.path, conflicts)
+    return edges
+
+
+def _ancestors(frame: str, edges: dict[str, _Edge]) -> list[str]:
+    """``frame``, its parent, grandparent, ... up to the root of its TF tree."""
+    chain = [frame]
+    while chain[-1] in edges:
+        parent = edges[chain[-1]].parent
+        if parent in chain:
+            break  # a cycle in a malformed tree
+        chain.append(parent)
+    return chain
+
+
+def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: str = TF_TOPIC) -> Trajectory:
+    """Poses ``T_parent_child`` composed from the TF tree of ``tf_topic`` and ``/tf_static``.
+
+    The chain may pass through any number of frames, up and down the tree (``parent`` need not be an
+    ancestor of ``child``). The dynamic edge of the chain with the most transforms drives the output:
+    one pose per transform of it, at its ``header.stamp``, composed with the latest transform of every
+    other dynamic edge whose stamp is not after it (poses before every edge has one are dropped) and
+    with the last value of every static edge (``/tf_static``).
+
+    Raises
+    ------
+    InputError
+        Unknown frames, frames in different trees, a chain of static transforms only, or no poses.
+    """
+    parent, child = _frame(parent), _frame(child)
+    topics = [tf_topic] + ([TF_STATIC_TOPIC] if TF_STATIC_TOPIC in reader.topic_infos else [])
+    if tf_topic not in reader.topic_infos:
+        raise InputError(f"{reader.path}: no {tf_topic} topic", _topics_hint(reader))
+    edges = _collect_tf(reader, topics)
+    frames = set(edges) | {e.parent for e in edges.values()}
+    for name, option in ((parent, "--parent"), (child, "--child")):
+        if name not in frames:
+            raise InputError(
+                f"{reader.path}: frame {name!r} ({option}) is not in the TF tree",
+                f"frames here: {', '.join(sorted(frames)) or 'none'}",
+            )
+    up_child, up_parent = _ancestors(child, edges), _ancestors(parent, edges)
+    common = next((f for f in up_child if f in up_parent), None)
+    if common is None:
+        raise InputError(f"{reader.path}: frames {parent!r} and {child!r} are not connected in the TF tree")
+    down = up_child[: up_child.index(common)]  # child, ..., below common: T_common_child = prod over reversed
+    up = up_parent[: up_parent.index(common)]
+    chain = down + up
+    if not chain:
+        raise InputError(f"{reader.path}: --parent and --child name the same frame {parent!r}")
+    arrays = {frame: edges[frame].arrays() for frame in chain}
+    dynamic = [f for f in chain if not edges[f].static]
+    if not dynamic:
+        raise InputError(f"{reader.path}: the chain {parent} -> {child} has only static transforms")
+    driver = max(dynamic, key=lambda f: len(arrays[f][0]))
+    stamps = arrays[driver][0]
+    valid = np.ones(len(stamps), dtype=bool)
+    selected: dict[str, FloatArray] = {}
+    for frame in chain:
+        edge_stamps, T = arrays[frame]
+        if frame == driver:
+            selected[frame] = T
+        elif edges[frame].static:
+            selected[frame] = np.broadcast_to(T[-1], (len(stamps), 4, 4))
+        else:
+            index = np.searchsorted(edge_stamps, stamps, side="right") - 1
+            valid &= index >= 0
+            selected[frame] = T[np.maximum(index, 0)]
+    T_common_child = np.tile(np.eye(4), (len(stamps), 1, 1))
+    for frame in down:  # child first: T_common_child = T_common_a @ ... @ T_b_child
+        T_common_child = selected[frame] @ T_common_child
+    T_common_parent = np.tile(np.eye(4), (len(stamps), 1, 1))
+    for frame in up:
+        T_common_parent = selected[frame] @ T_common_parent
+    T = np.einsum("nij,njk->nik", np.asarray([invert_pose(m) for m in T_common_parent]), T_common_child)
+    T = T[valid]
+    source = f"{reader.path} TF {parent} -> {child}"
+    if len(T) == 0:
+        raise InputError(f"{source}: no time at which every transform of the chain is known")
+    quats = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    log.debug("%s: %d poses driven by the %s edge", source, len(T), driver)
+    return _from_poses(list(stamps[valid]), list(T[:, :3, 3]), list(quats), source)
+
+
+# --- any input ----------------------------------------------------------------------------------------
+
+
+def mcap_trajectory(
+    path: Path, topic: str | None = None, parent: str | None = None, child: str | None = None
+) -> Trajectory:
+    """A trajectory from an MCAP file: a pose topic, a TF chain, or the first of :data:`DEFAULT_POSE_TOPICS`."""
+    reader = LogReader(path)
+    if parent is not None or child is not None:
+        if parent is None or child is None:
+            raise InputError(f"{path}: a TF chain needs both --parent and --child")
+        return tf_chain_trajectory(reader, parent, child, topic or TF_TOPIC)
+    if topic is None:
+        topic = next(
+            (t for t in DEFAULT_POSE_TOPICS if reader.topic_infos.get(t) and reader.topic_infos[t].count), None
+        )
+        if topic is None:
+            raise InputError(f"{path}: no /ground_truth/pose or /relpoint/pose; name a topic", _topics_hint(reader))
+    return pose_topic_trajectory(reader, topic)
+
+
+def load_trajectory(
+    path: str | os.PathLike[str],
+    *,
+    topic: str | None = None,
+    parent: str | None = None,
+    child: str | None = None,
+    times: str | os.PathLike[str] | None = None,
+) -> Trajectory:
+    """Read a trajectory from a run directory, TUM or KITTI file, or MCAP file (see the module docstring).
+
+    Parameters
+    ----------
+    path:
+        The input. Directories must hold ``trajectory.tum``; text files are told apart by the number of
+        values on their first data line (8 TUM, 12 KITTI); MCAP files by their magic bytes.
+    topic:
+        MCAP only: the pose topic, or the TF topic of a chain (default ``/tf``).
+    parent, child:
+        MCAP only: frames of a TF chain; the result is ``T_parent_child`` over time.
+    times:
+        KITTI only: the times file (seconds per line); without it pose ``i`` is stamped ``i`` s.
+
+    Raises
+    ------
+    InputError
+        Missing files, unknown formats, missing topics or frames, no poses.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or directory")
+    if path.is_dir():
+        tum = path / "trajectory.tum"
+        if not tum.is_file():
+            raise InputError(f"{path}: a directory without trajectory.tum", "give a relpoint run output directory")
+        return read_tum(tum)
+    if is_mcap(path):
+        return mcap_trajectory(path, topic, parent, child)
+    if topic is not None or parent is not None or child is not None:
+        raise InputError(f"{path} is not an MCAP file; topics and TF frames apply only to MCAP inputs")
+    values = _values_per_line(path)
+    if values == 8:
+        return read_tum(path)
+    if values == 12:
+        return read_kitti(path, times)
+    raise InputError(
+        f"{path}: unknown trajectory format"
+        + (f" ({values} values per line)" if values is not None else " (not a text file with poses)"),
+        "give a TUM file (8 values per line), KITTI poses (12), a relpoint run directory or an MCAP file",
+    )
+
+
+def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
+    """The ``map.csv`` of a run directory, or None when ``path`` is not a directory holding one."""
+    map_csv = Path(path) / "map.csv"
+    return read_map_csv(map_csv) if Path(path).is_dir() and map_csv.is_file() else None
+
+
+def load_ground_truth_landmarks(path: str | os.PathLike[str]) -> GroundTruthLandmarks | None:
+    """The last ``/ground_truth/landmarks`` message of a relpoint log, or None for other inputs."""
+    path = Path(path)
+    if not path.is_file() or not is_mcap(path):
+        return None
+    reader = LogReader(path)
+    if not reader.role_present("ground_truth_landmarks"):
+        return None
+    last = None
+    for record in reader.records(["ground_truth_landmarks"]):
+        last = record.value
+    return last

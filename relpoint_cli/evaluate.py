@@ -1,0 +1,309 @@
+"""``relpoint evaluate``: trajectory (and landmark) errors of an estimate against a reference (issue 3).
+
+A thin command over :func:`relpoint.evaluation.evaluate_trajectory` and
+:func:`relpoint.evaluation.landmark_metrics`; inputs are read by :mod:`formats.reference_trajectories`.
+Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--plot`` PNGs, and
+``--fail-above`` gates (exit code 5).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from formats.atomic import atomic_path, write_text
+from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from relpoint.errors import GateExceeded, UsageError
+from relpoint.evaluation import (
+    STATISTICS,
+    AlignMode,
+    DeltaUnit,
+    EvaluationResult,
+    EvaluationSettings,
+    PoseRelation,
+    evaluate_trajectory,
+    landmark_metrics,
+)
+from relpoint.types import Trajectory
+from relpoint_cli.errors import handle_errors
+
+EXAMPLES = """\b
+Examples:
+  relpoint evaluate est.txt --reference groundtruth.txt --align se3
+  relpoint evaluate out/fig8 --reference sample_logs/figure8.mcap --json eval.json --plot plots/
+  relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --reference-topic /amcl_pose
+  relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --parent map --child base_footprint
+  relpoint evaluate out/run --reference run.mcap --fail-above ate_rmse=0.5 --fail-above lm_err_rmse=1
+"""
+
+#: Rows of the statistics table: summary prefix -> label.
+_STAT_ROWS = {
+    "ate": "APE translation (m)",
+    "ape_rot_deg": "APE rotation (deg)",
+    "rpe_trans": "RPE translation (m)",
+    "rpe_rot_deg": "RPE rotation (deg)",
+}
+
+
+def parse_gates(items: tuple[str, ...]) -> dict[str, float]:
+    """``KEY=VALUE`` bounds of ``--fail-above``; raises :class:`UsageError` on malformed items."""
+    gates: dict[str, float] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise UsageError(f"--fail-above {item!r} is not KEY=VALUE")
+        try:
+            bound = float(value)
+        except ValueError:
+            raise UsageError(f"--fail-above {item!r}: {value!r} is not a number") from None
+        if math.isnan(bound):
+            raise UsageError(f"--fail-above {item!r}: the bound is NaN")
+        gates[key] = bound
+    return gates
+
+
+def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]:
+    """Descriptions of the exceeded bounds (NaN values fail); raises :class:`UsageError` for unknown keys."""
+    unknown = sorted(k for k in gates if k not in summary)
+    if unknown:
+        raise UsageError(
+            f"--fail-above: unknown summary key(s) {', '.join(unknown)}",
+            f"known keys: {', '.join(sorted(summary))}",
+        )
+    return [
+        f"{key}={summary[key]:.6g} > {bound:g}"
+        for key, bound in gates.items()
+        if math.isnan(summary[key]) or summary[key] > bound
+    ]
+
+
+def _fmt(value: float) -> str:
+    if math.isnan(value):
+        return "nan"
+    if float(value).is_integer() and abs(value) < 1e15:
+        return str(int(value))
+    return f"{value:.6f}"
+
+
+def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelation.TRANS_PART) -> str:
+    """The summary as text: a statistics table for APE/RPE, then the other figures one per line.
+
+    The ``ape_*`` / ``rpe_*`` figures of ``relation`` get their own rows unless they repeat the translation
+    or rotation rows (``trans_part``, ``angle_deg``), in which case they are left out of the text.
+    """
+    lines = []
+    stat_rows = dict(_STAT_ROWS)
+    shown: set[str] = set()
+    if relation in (PoseRelation.TRANS_PART, PoseRelation.ANGLE_DEG):
+        shown.update(f"{p}_{name}" for p in ("ape", "rpe") for name in STATISTICS)
+    else:
+        stat_rows |= {"ape": f"APE {relation.value}", "rpe": f"RPE {relation.value}"}
+    rows = [(p, label) for p, label in stat_rows.items() if f"{p}_rmse" in summary]
+    if rows:
+        width = max(len(label) for _, label in rows)
+        lines.append(f"{'':<{width}}  " + "  ".join(f"{name:>10}" for name in STATISTICS))
+        for prefix, label in rows:
+            keys = [f"{prefix}_{name}" for name in STATISTICS]
+            shown.update(keys)
+            lines.append(f"{label:<{width}}  " + "  ".join(f"{summary[k]:>10.6f}" for k in keys))
+        lines.append("")
+    rest = [k for k in summary if k not in shown]
+    width = max((len(k) for k in rest), default=0)
+    lines.extend(f"{key:<{width}}  {_fmt(summary[key])}" for key in rest)
+    return "\n".join(lines)
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_value(v) for v in value]
+    return value
+
+
+def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
+    """The summary (NaN/inf written as null), settings and inputs as JSON, atomically."""
+    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs}
+    write_text(path, json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n")
+
+
+def write_errors_csv(path: Path, result: EvaluationResult) -> None:
+    """Per matched pose: stamp, APE translation/rotation/relation, and the RPE of the pair ending there.
+
+    RPE columns are empty for poses that end no pair (with ``--all-pairs`` or deltas in metres or degrees
+    several pairs can share a last pose; the last such pair is written).
+    """
+    n = len(result.stamps_ns)
+    rpe_t = np.full(n, np.nan)
+    rpe_r = np.full(n, np.nan)
+    if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
+        rpe_t[result.rpe_translation.second] = result.rpe_translation.errors
+        rpe_r[result.rpe_rotation_deg.second] = result.rpe_rotation_deg.errors
+    header = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg\n"
+    body = []
+    for i, stamp in enumerate(result.stamps_ns.tolist()):
+        seconds, nanos = divmod(int(stamp), 1_000_000_000)
+        values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i])
+        body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
+    write_text(path, header + "\n".join(body) + ("\n" if body else ""))
+
+
+def write_plots(directory: Path, reference: Trajectory, result: EvaluationResult) -> list[Path]:
+    """``trajectory_top.png`` (x-y), ``trajectory_side.png`` (x-z) and ``errors.png``, headless, atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    matched = result.matched
+    est = matched.estimate_positions
+    t0 = int(result.stamps_ns[0])
+    written = []
+    for name, (a, b), title in (
+        ("trajectory_top.png", (0, 1), "top view (x-y)"),
+        ("trajectory_side.png", (0, 2), "side view (x-z)"),
+    ):
+        fig, ax = plt.subplots(figsize=(7, 6))
+        ax.plot(reference.positions[:, a], reference.positions[:, b], color="0.5", lw=1.2, label="reference")
+        ax.plot(est[:, a], est[:, b], color="tab:blue", lw=1.0, label=f"estimate ({result.settings.align.value})")
+        ax.set_xlabel("xyz"[a] + " (m)")
+        ax.set_ylabel("xyz"[b] + " (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(title)
+        ax.legend(loc="best")
+        ax.grid(alpha=0.3)
+        written.append(_save(fig, directory / name))
+    seconds = (result.stamps_ns - t0) * 1e-9
+    fig, (ax_t, ax_r) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    ax_t.plot(seconds, result.ape_translation, color="tab:red", lw=1.0, label="APE")
+    ax_r.plot(seconds, result.ape_rotation_deg, color="tab:red", lw=1.0, label="APE")
+    if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
+        second = result.rpe_translation.second
+        ax_t.plot(seconds[second], result.rpe_translation.errors, color="tab:green", lw=0.8, label="RPE")
+        ax_r.plot(seconds[second], result.rpe_rotation_deg.errors, color="tab:green", lw=0.8, label="RPE")
+    ax_t.set_ylabel("translation error (m)")
+    ax_r.set_ylabel("rotation error (deg)")
+    ax_r.set_xlabel("time since first matched pose (s)")
+    for ax in (ax_t, ax_r):
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left")
+    written.append(_save(fig, directory / "errors.png"))
+    return written
+
+
+def _save(fig: Any, path: Path) -> Path:
+    from matplotlib import pyplot as plt
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return path
+
+
+@click.command(epilog=EXAMPLES)
+@click.argument("estimate", type=click.Path(path_type=Path))
+@click.option(
+    "-r",
+    "--reference",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Reference: relpoint log (/ground_truth/pose), TUM/KITTI file, run directory or any MCAP bag.",
+)
+@click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
+@click.option("--estimate-topic", help="Pose topic of an MCAP estimate (default /relpoint/pose or /ground_truth/pose).")
+@click.option("--parent", help="Reference from a TF chain: parent frame (e.g. map).")
+@click.option("--child", help="Reference from a TF chain: child frame (e.g. base_footprint).")
+@click.option(
+    "--reference-times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI reference poses."
+)
+@click.option("--times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI estimate poses.")
+@click.option(
+    "--align", type=click.Choice([m.value for m in AlignMode]), default="none", show_default=True,
+    help="Alignment of the estimate: Umeyama SE(3) (evo -a), Sim(3) (-as), scale only (-s), origin.",
+)  # fmt: skip
+@click.option(
+    "--n-to-align", type=int, default=-1, show_default=True, help="Fit the alignment on the first N poses (-1 all)."
+)
+@click.option(
+    "--t-max-diff", type=float, default=0.01, show_default=True, help="Largest stamp difference of a match, s."
+)
+@click.option("--t-offset", type=float, default=0.0, show_default=True, help="Added to the estimate's stamps, s.")
+@click.option(
+    "--interpolate", is_flag=True, help="Interpolate the denser trajectory (linear + slerp) instead of nearest."
+)
+@click.option(
+    "--pose-relation", type=click.Choice([r.value for r in PoseRelation]), default="trans_part", show_default=True,
+    help="Relation of the ape_*/rpe_* figures (evo -r).",
+)  # fmt: skip
+@click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair separation.")
+@click.option(
+    "--delta-unit", type=click.Choice([u.value for u in DeltaUnit]), default="f", show_default=True,
+    help="RPE delta unit: frames, metres, degrees, radians.",
+)  # fmt: skip
+@click.option(
+    "--delta-tol", type=float, default=0.1, show_default=True, help="Relative tolerance of --all-pairs (m|d|r)."
+)
+@click.option("--all-pairs", is_flag=True, help="Every pose starts an RPE pair.")
+@click.option("--pairs-from-reference", is_flag=True, help="Choose RPE pairs on the reference.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the summary as JSON.")
+@click.option(
+    "--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), help="Write per-pose errors as CSV."
+)
+@click.option("--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path), help="Write PNG plots here.")
+@click.option(
+    "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",
+    help="Exit 5 if summary KEY exceeds VALUE or is NaN (repeatable).",
+)  # fmt: skip
+@click.pass_context
+@handle_errors
+def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
+             estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
+             times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
+             fail_above: tuple[str, ...], **options: Any) -> None:  # fmt: skip
+    """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
+
+    ESTIMATE is a `relpoint run` output directory, a TUM file, KITTI poses (--times) or an MCAP file
+    (--estimate-topic). When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
+    with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary.
+    """
+    gates = parse_gates(fail_above)
+    settings = EvaluationSettings(**options)
+    ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
+    est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    result = evaluate_trajectory(ref, est, settings)
+    summary = dict(result.summary)
+
+    landmarks = load_landmark_map(estimate)
+    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
+    if landmarks is not None and truth is not None:
+        alignment = result.alignment if settings.align is not AlignMode.NONE else None
+        summary |= landmark_metrics(landmarks, truth, alignment=alignment).summary
+
+    exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
+    inputs = {
+        "estimate": str(estimate),
+        "reference": str(reference),
+        "reference_topic": reference_topic,
+        "estimate_topic": estimate_topic,
+        "parent": parent,
+        "child": child,
+    }
+    if json_path is not None:
+        write_json(json_path, summary, settings, inputs)
+    if csv_path is not None:
+        write_errors_csv(csv_path, result)
+    if plot_dir is not None:
+        write_plots(plot_dir, ref, result)
+    click.echo(format_table(summary, settings.pose_relation))
+    if exceeded:
+        raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

@@ -1,0 +1,209 @@
+"""``relpoint evaluate``: evo parity through the CLI, ROS 2 bag and TF inputs, landmarks, outputs, gates, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from formats.log import LogReader
+from formats.reference_trajectories import load_trajectory
+from formats.tables import write_map_csv
+from formats.trajectory_files import write_tum
+from relpoint.types import LandmarkMap, Trajectory
+from relpoint_cli.main import cli
+from tests.conftest import shared_data
+
+FR1 = ("evo-fr1xyz",)
+BAG = ("ros2-bags", "nav2_turtlebot.mcap")
+
+
+def invoke(*args: str | Path) -> tuple[int, str, str]:
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    return result.exit_code, result.stdout, result.stderr
+
+
+def summary_of(tmp_path: Path, *args: str | Path) -> dict[str, float]:
+    out = tmp_path / "summary.json"
+    code, _, err = invoke("evaluate", *args, "--json", out)
+    assert code == 0, err
+    return json.loads(out.read_text())["summary"]
+
+
+def assert_one_error_line(err: str, fragment: str) -> None:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("relpoint: error: ") and fragment in lines[0], err
+
+
+# --- evo parity (../shared/data/evo-fr1xyz/REFERENCE.md, evo 1.38.1) ------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("estimate", "args", "expected"),
+    [
+        ("rgbdslam", ["--align", "se3"], {"ate_rmse": 0.013470, "ate_mean": 0.012024, "ate_median": 0.011183,
+                                          "ate_max": 0.034760, "ate_std": 0.006071}),
+        ("rgbdslam", [], {"ate_rmse": 0.020079, "ate_mean": 0.018063, "ate_max": 0.043289,
+                          "rpe_trans_rmse": 0.005764, "rpe_trans_mean": 0.004816, "rpe_trans_max": 0.020866,
+                          "rpe_rot_deg_rmse": 0.353613, "rpe_rot_deg_mean": 0.300307}),
+        ("ORB_kf_mono", ["--align", "sim3"], {"ate_rmse": 0.009755, "ate_mean": 0.008219, "ate_max": 0.027924}),
+    ],
+)  # fmt: skip
+def test_tum_pair_matches_reference_md(
+    tmp_path: Path, estimate: str, args: list[str], expected: dict[str, float]
+) -> None:
+    data = shared_data(*FR1)
+    summary = summary_of(
+        tmp_path, data / f"freiburg1_xyz-{estimate}.txt", "--reference", data / "freiburg1_xyz-groundtruth.txt", *args
+    )
+    for key, value in expected.items():
+        assert summary[key] == pytest.approx(value, abs=1e-6), key
+
+
+def test_table_on_stdout(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    code, out, err = invoke(
+        "evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt", "--align", "se3"
+    )
+    assert code == 0, err
+    ate_row = next(line for line in out.splitlines() if line.startswith("APE translation (m)"))
+    assert ate_row.split()[3:5] == ["0.013470", "0.012024"]  # rmse, mean
+    assert "matched_poses    785" in out
+
+
+# --- ROS 2 bag written by rosbag2 -------------------------------------------------------------------------
+
+
+def test_bag_odom_against_amcl_pose(tmp_path: Path) -> None:
+    bag = shared_data(*BAG)
+    summary = summary_of(
+        tmp_path, bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose",
+        "--align", "se3",
+    )  # fmt: skip
+    assert summary["reference_poses"] == 135 and summary["estimate_poses"] == 2639
+    assert summary["matched_poses"] == 83
+    assert all(np.isfinite(v) for k, v in summary.items() if not k.startswith("kitti_"))
+    # Odometry drifts against AMCL by decimetres over the 34 m run, not metres.
+    assert 0.1 < summary["ate_rmse"] < 1.0 and summary["path_length_m"] == pytest.approx(34.1, abs=0.5)
+    # evo 1.38.1: `evo_ape bag2 nav2_turtlebot.mcap /amcl_pose /odom -a` prints rmse 0.512301, max 0.852349.
+    assert summary["ate_rmse"] == pytest.approx(0.512301, abs=1e-6)
+    assert summary["ate_max"] == pytest.approx(0.852349, abs=1e-6)
+
+
+def test_tf_chain_reference(tmp_path: Path) -> None:
+    bag = shared_data(*BAG)
+    # odom -> base_footprint is the transform the odometry node publishes beside /odom: identical poses.
+    odom_tf = load_trajectory(bag, parent="odom", child="base_footprint")
+    odom = load_trajectory(bag, topic="/odom")
+    np.testing.assert_array_equal(odom_tf.stamps_ns, odom.stamps_ns)
+    np.testing.assert_allclose(odom_tf.positions, odom.positions, atol=1e-9)
+    # map -> odom -> base_footprint: AMCL's localisation, so /amcl_pose agrees within centimetres unaligned.
+    summary = summary_of(
+        tmp_path, bag, "--estimate-topic", "/amcl_pose", "--reference", bag, "--parent", "map", "--child",
+        "base_footprint",
+    )  # fmt: skip
+    assert summary["matched_poses"] == 83 and summary["reference_poses"] > 2500
+    assert summary["ate_rmse"] < 0.1 and summary["ape_rot_deg_rmse"] < 2.0
+    code, _, err = invoke("evaluate", bag, "--estimate-topic", "/odom", "-r", bag, "--parent", "map", "--child", "nope")
+    assert code == 3
+    assert_one_error_line(err, "frame 'nope' (--child) is not in the TF tree")
+
+
+# --- run directory against a relpoint log: landmarks, CSV, plots, gates ----------------------------------
+
+
+@pytest.fixture()
+def run_dir(tmp_path: Path, small_log: Path) -> Path:
+    """A fake run output: the true trajectory shifted by 0.1 m in x, and the true landmarks with noise."""
+    reader = LogReader(small_log)
+    poses = [r.value for r in reader.records(["ground_truth_pose"])]
+    truth = [r.value for r in reader.records(["ground_truth_landmarks"])][-1]
+    rng = np.random.default_rng(7)
+    out = tmp_path / "run"
+    out.mkdir()
+    positions = np.array([p.position for p in poses]) + np.array([0.1, 0.0, 0.0])
+    write_tum(
+        out / "trajectory.tum",
+        Trajectory(np.array([p.stamp_ns for p in poses]), positions, np.array([p.quat_xyzw for p in poses])),
+    )
+    n = len(truth.ids)
+    write_map_csv(
+        out / "map.csv",
+        LandmarkMap(truth.positions + rng.normal(0, 0.05, (n, 3)), np.full(n, 3), truth.dynamic.copy(), truth.ids),
+    )
+    return out
+
+
+def test_run_directory_with_landmarks_csv_and_plots(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
+    csv_path, plots = tmp_path / "errors.csv", tmp_path / "plots"
+    summary = summary_of(tmp_path, run_dir, "--reference", small_log, "--csv", csv_path, "--plot", plots)
+    assert summary["matched_poses"] == 120
+    assert summary["ate_rmse"] == pytest.approx(0.1, abs=1e-6)
+    assert summary["lm_matched"] > 20 and summary["lm_duplicates"] == 0 and summary["lm_false"] == 0
+    assert 0.03 < summary["lm_err_rmse"] < 0.15  # 3-D noise of 0.05 m per axis: rmse ~0.087 m
+    with csv_path.open() as stream:
+        rows = list(csv.DictReader(stream))
+    assert len(rows) == 120 and float(rows[5]["ape_translation_m"]) == pytest.approx(0.1, abs=1e-6)
+    assert rows[0]["rpe_translation_m"] == "" and float(rows[1]["rpe_translation_m"]) < 1e-6
+    assert sorted(p.name for p in plots.iterdir()) == ["errors.png", "trajectory_side.png", "trajectory_top.png"]
+    assert all((plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("errors.png",))
+
+
+def test_fail_above_gates(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
+    json_path = tmp_path / "gate.json"
+    base = ("evaluate", run_dir, "-r", small_log, "--json", json_path)
+    code, out, err = invoke(*base, "--fail-above", "ate_rmse=0.05", "--fail-above", "lm_err_rmse=1")
+    assert code == 5
+    assert_one_error_line(err, "ate_rmse=0.1 > 0.05")
+    assert "APE translation" in out and json_path.exists()  # outputs are still written
+    code, _, err = invoke(*base, "--fail-above", "ate_rmse=0.5", "--fail-above", "lm_err_rmse=1")
+    assert code == 0, err
+    # Undefined ratios are NaN and count as failing (no dynamic landmarks here: precision is undefined).
+    assert json.loads(json_path.read_text())["summary"]["dyn_precision"] is None
+    code, _, err = invoke(*base, "--fail-above", "dyn_precision=1")
+    assert code == 5 and "dyn_precision=nan" in err
+    code, _, err = invoke(*base, "--fail-above", "no_such_key=1")
+    assert code == 2
+    assert_one_error_line(err, "unknown summary key(s) no_such_key")
+    code, _, err = invoke(*base, "--fail-above", "ate_rmse")
+    assert code == 2
+
+
+# --- bad input: one line, exit code 3 --------------------------------------------------------------------
+
+
+def _tum(path: Path, stamps: list[float]) -> Path:
+    path.write_text("".join(f"{t} {t} {0.5 * t} 0 0 0 0 1\n" for t in stamps))
+    return path
+
+
+def test_bad_inputs_exit_3_with_one_line(tmp_path: Path) -> None:
+    ref = _tum(tmp_path / "ref.txt", [0.0, 1.0, 2.0, 3.0, 4.0])
+    unknown = tmp_path / "poses.txt"
+    unknown.write_text("1 2 3 4 5\n")
+    code, _, err = invoke("evaluate", unknown, "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "unknown trajectory format (5 values per line)")
+
+    late = _tum(tmp_path / "late.txt", [100.0, 101.0, 102.0])
+    code, _, err = invoke("evaluate", late, "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "no matching timestamps")
+
+    two = _tum(tmp_path / "two.txt", [0.0, 1.0])
+    code, _, err = invoke("evaluate", two, "-r", ref, "--align", "se3")
+    assert code == 3
+    assert_one_error_line(err, "at least 3 matched poses, got 2")
+
+    code, _, err = invoke("evaluate", tmp_path / "missing.txt", "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "no such file")
+
+    bag = shared_data(*BAG)
+    code, _, err = invoke("evaluate", bag, "--estimate-topic", "/nothing", "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "no messages on /nothing")
