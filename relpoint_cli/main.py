@@ -75,13 +75,14 @@ def cli(ctx: click.Context, quiet: bool, verbose: bool) -> None:
 
 
 def _register() -> None:
-    from relpoint_cli import evaluate, info, run, simulate
+    from relpoint_cli import evaluate, export, info, run, simulate
 
     cli.add_command(simulate.simulate)
     cli.add_command(info.info)
     cli.add_command(run.run)
     cli.add_command(run.config_command)
     cli.add_command(evaluate.evaluate)
+    cli.add_command(export.export)
 
 
 _register()
