@@ -58,6 +58,10 @@ def parse_stamp_ns(text: str) -> int:
 
     Raises ``ValueError`` for text that is not a finite number.
     """
+    whole, dot, fraction = text.partition(".")
+    if whole.isdigit() and (not dot or fraction.isdigit()) and len(fraction) <= 9:
+        # The common case, plain decimal seconds: exact integer arithmetic without Decimal.
+        return int(whole) * _NS_PER_S + int(fraction.ljust(9, "0") or 0)
     try:
         value = Decimal(text)
     except InvalidOperation:
@@ -111,23 +115,27 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
     """
     path = Path(path)
     stamps: list[int] = []
-    positions: list[list[float]] = []
-    quats: list[list[float]] = []
+    rows: list[list[str]] = []
     lines: list[int] = []
     for number, fields in _data_lines(path):
         if len(fields) != 8:
             raise InputError(f"{path}:{number}: expected 8 values (timestamp tx ty tz qx qy qz qw), got {len(fields)}")
         try:
-            stamp = parse_stamp_ns(fields[0])
+            stamps.append(parse_stamp_ns(fields[0]))
         except ValueError:
             raise InputError(f"{path}:{number}: bad timestamp {fields[0]!r}") from None
-        values = _floats(fields[1:], path, number)
-        stamps.append(stamp)
-        positions.append(values[:3])
-        quats.append(values[3:])
+        rows.append(fields[1:])
         lines.append(number)
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
+        finite = bool(np.isfinite(values).all())
+    except ValueError:
+        finite = False
+    if not finite:  # find the offending line for the message
+        for number, fields in zip(lines, rows, strict=True):
+            _floats(fields, path, number)
     logger.debug("read %d poses from %s", len(stamps), path)
-    return _build(path, stamps, positions, np.array(quats, dtype=np.float64).reshape(-1, 4), lines)
+    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
 
 
 def read_kitti(path: str | os.PathLike[str], times_path: str | os.PathLike[str] | None = None) -> Trajectory:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 from typing import Any
@@ -25,7 +26,21 @@ Exit codes: 0 ok, 1 internal error, 2 usage error, 3 input error,
 
 
 class RelpointGroup(click.Group):
-    """A click group whose usage errors are one line on stderr (exit 2), like every other error."""
+    """A click group whose usage errors are one line on stderr (exit 2), like every other error.
+
+    Subcommands are listed in :data:`COMMANDS` and imported on first use.
+    """
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module_name, attribute = COMMANDS[name].split(":")
+        command = getattr(importlib.import_module(module_name), attribute)
+        command.name = name
+        return command
 
     def main(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
         kwargs["standalone_mode"] = False
@@ -74,18 +89,15 @@ def cli(ctx: click.Context, quiet: bool, verbose: bool) -> None:
         logging.getLogger(name).setLevel(logging.WARNING if verbose else logging.ERROR)
 
 
-def _register() -> None:
-    from relpoint_cli import evaluate, export, info, run, simulate
-
-    cli.add_command(simulate.simulate)
-    cli.add_command(info.info)
-    cli.add_command(run.run)
-    cli.add_command(run.config_command)
-    cli.add_command(evaluate.evaluate)
-    cli.add_command(export.export)
-
-
-_register()
+#: Every subcommand, imported only when used so that each command starts quickly.
+COMMANDS: dict[str, str] = {
+    "simulate": "relpoint_cli.simulate:simulate",
+    "info": "relpoint_cli.info:info",
+    "run": "relpoint_cli.run:run",
+    "config": "relpoint_cli.run:config_command",
+    "evaluate": "relpoint_cli.evaluate:evaluate",
+    "export": "relpoint_cli.export:export",
+}
 
 
 def main() -> None:
