@@ -97,6 +97,7 @@ COMMANDS: dict[str, str] = {
     "config": "relpoint_cli.run:config_command",
     "evaluate": "relpoint_cli.evaluate:evaluate",
     "export": "relpoint_cli.export:export",
+    "fuse": "relpoint_cli.fuse:fuse_command",
 }
 
 

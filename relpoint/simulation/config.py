@@ -9,7 +9,7 @@ from typing import Any
 
 from relpoint.errors import UsageError
 
-SCENARIOS = ("figure8", "stationary", "corridor")
+SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps")
 
 
 def setting(default: Any, help: str) -> Any:
@@ -26,7 +26,7 @@ class SimulationConfig:
 
     scenario: str = setting(
         "figure8",
-        "Path: ``figure8`` (the paper's), ``stationary`` (viewpoint fixed, paper Fig. 10) or ``corridor`` (a long gently swaying run, for speed tests).",
+        "Path: ``figure8`` (the paper's), ``stationary`` (viewpoint fixed, paper Fig. 10), ``corridor`` (a long gently swaying run, for speed tests) or ``figure8-gaps`` (the figure eight with feature-poor stretches, placed in a survey frame that the fixes define; General Concept of 3D SLAM, Fig. 10).",
     )
     passes: int = setting(1, "Figure-eight passes (the paper's long-term test runs 40).")
     step: float = setting(1.2, "Metres travelled per iteration (about 1000 iterations per 1200 m pass).")

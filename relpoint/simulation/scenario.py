@@ -28,6 +28,16 @@ from relpoint.types import (
 )
 
 STATIONARY_ITERATIONS = 900
+#: ``figure8-gaps``: stretches of the pass (phase intervals, cycles) with no landmarks, where a local
+#: SLAM loses its features and breaks into segments (General Concept of 3D SLAM, section 6, Fig. 10).
+#: Each is 10 % of a pass (120 m by default); with the default 70 m range about 50 m of it has no
+#: landmark in view. They lie on the far ends of the two loops, away from the middle crossing.
+GAP_PHASES = ((0.20, 0.30), (0.70, 0.80))
+#: ``figure8-gaps``: pose of the run's start in the survey frame (``world``) that the fixes define:
+#: a local SLAM starting at the identity is offset and turned from it, as a robot launched at an
+#: unknown place is (position in metres, heading in degrees about z).
+GAPS_START_POSITION = (60.0, -40.0, -15.0)
+GAPS_START_HEADING = 35.0
 _STREAMS = ("landmarks", "dynamics", "noise", "clutter", "odometry", "fixes")
 
 
@@ -152,7 +162,7 @@ def _stamps_ns(config: SimulationConfig, n: int) -> np.ndarray:
 def _iteration_count(config: SimulationConfig) -> int:
     if config.iterations is not None:
         return config.iterations
-    if config.scenario == "figure8":
+    if config.scenario in ("figure8", "figure8-gaps"):
         per_pass = paths.figure8_length(config.radius, config.climb) / config.step
         return max(1, int(round(per_pass * config.passes)))
     if config.scenario == "corridor":
@@ -165,7 +175,7 @@ def _sensor_poses(config: SimulationConfig, extra: int = 0) -> FloatArray:
     n = _iteration_count(config) + extra
     if config.scenario == "stationary":
         return np.repeat(np.eye(4)[None], n, axis=0)
-    if config.scenario == "figure8":
+    if config.scenario in ("figure8", "figure8-gaps"):
         pass_length = paths.figure8_length(config.radius, config.climb)
         positions, tangents = paths.figure8(np.arange(n) * config.step / pass_length, config.radius, config.climb)
     else:
@@ -174,7 +184,18 @@ def _sensor_poses(config: SimulationConfig, extra: int = 0) -> FloatArray:
     poses[:, :3, :3] = paths.orientations_from_tangents(tangents)
     poses[:, :3, 3] = positions
     poses[:, 3, 3] = 1.0
+    if config.scenario == "figure8-gaps":
+        poses = _T_survey_start() @ poses
     return poses
+
+
+def _T_survey_start() -> FloatArray:
+    """``figure8-gaps``: the start pose in the survey frame (4, 4), see :data:`GAPS_START_POSITION`."""
+    heading = np.deg2rad(GAPS_START_HEADING)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(heading), -np.sin(heading)], [np.sin(heading), np.cos(heading)]]
+    T[:3, 3] = GAPS_START_POSITION
+    return T
 
 
 def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> FloatArray:
@@ -185,10 +206,11 @@ def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> Fl
         half_h = np.deg2rad(config.fov_horizontal) / 2.0
         half_v = np.deg2rad(config.fov_vertical) / 2.0
         return _sample_frustum(rng, count, max(config.min_range, 0.1 * config.range), config.range, half_h, half_v)
-    if config.scenario == "figure8":
+    if config.scenario in ("figure8", "figure8-gaps"):
         pass_length = paths.figure8_length(config.radius, config.climb)
         count = max(3, int(round(config.density * pass_length / 100.0)))
-        base, tangents = paths.figure8(rng.uniform(0.0, 1.0, count), config.radius, config.climb)
+        phase = rng.uniform(0.0, 1.0, count)
+        base, tangents = paths.figure8(phase, config.radius, config.climb)
     else:
         length = config.length + config.range  # landmarks ahead of the end stay in view to the last step
         count = max(3, int(round(config.density * length / 100.0)))
@@ -196,7 +218,15 @@ def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> Fl
     frames = paths.orientations_from_tangents(tangents)
     lateral = rng.uniform(-config.spread_lateral, config.spread_lateral, count)
     vertical = rng.uniform(-config.spread_vertical, config.spread_vertical, count)
-    return base + frames[:, :, 1] * lateral[:, None] + frames[:, :, 2] * vertical[:, None]
+    centres = base + frames[:, :, 1] * lateral[:, None] + frames[:, :, 2] * vertical[:, None]
+    if config.scenario == "figure8-gaps":
+        # Same draws as the figure eight, then the gap stretches emptied (at least three landmarks kept).
+        in_gap = np.zeros(count, dtype=bool)
+        for start, end in GAP_PHASES:
+            in_gap |= (phase >= start) & (phase < end)
+        keep = ~in_gap if np.count_nonzero(~in_gap) >= 3 else np.ones(count, dtype=bool)
+        centres = centres[keep] @ _T_survey_start()[:3, :3].T + _T_survey_start()[:3, 3]
+    return centres
 
 
 def _in_frustum(points: FloatArray, near: float, far: float, half_h: float, half_v: float) -> np.ndarray:

@@ -1,0 +1,219 @@
+"""``relpoint fuse``: place a run's local SLAM segments in the fixes' frame (Algorithm 3 post-step).
+
+Reads a run's output directory (``trajectory.tum``, ``map.csv``, ``timing.csv``, ``run.json``) and the
+log's position fixes, calls :func:`relpoint.fusion.fuse`, and writes a new output directory like every
+run (the global path and map) plus ``segments/`` with each segment's path and map.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+import relpoint
+from formats.atomic import atomic_directory
+from formats.log import LogReader
+from formats.run_output import file_sha256, write_run_directory
+from formats.tables import read_map_csv, write_map_csv
+from formats.trajectory_files import read_tum, write_tum
+from relpoint.errors import InputError
+from relpoint.estimators import ESTIMATORS
+from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
+from relpoint.fusion.segmented import run_segmented
+from relpoint.pipeline import RunResult
+from relpoint_cli.errors import handle_errors
+from relpoint_cli.info import NEED_ROLES
+from relpoint_cli.run import estimator_inputs, parse_value
+from relpoint_cli.topics import topic_options, topics_from
+
+EXAMPLES = """\b
+Examples:
+  relpoint simulate -o gaps.mcap --scenario figure8-gaps --fix-every 10 --seed 1
+  relpoint run gaps.mcap --estimator ekf --no-fixes -o out/local
+  relpoint fuse out/local --log gaps.mcap -o out/global
+  relpoint fuse out/local --log gaps.mcap --restart -o out/global   # fresh local map per segment
+  relpoint fuse out/local --log gaps.mcap --param min_matches=8 --param min_spread=2 -o out/global
+  relpoint evaluate out/global -r gaps.mcap --align none
+"""
+
+
+def read_timing(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``observed``, ``map_size`` and ``seconds`` columns of a run's ``timing.csv``."""
+    try:
+        with path.open(newline="", encoding="utf-8") as stream:
+            rows = list(csv.DictReader(stream))
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+    try:
+        observed = np.array([int(r["observed"]) for r in rows], dtype=np.int64)
+        map_size = np.array([int(r["map_size"]) for r in rows], dtype=np.int64)
+        seconds = np.array([float(r["seconds"]) for r in rows], dtype=np.float64)
+    except (KeyError, ValueError, TypeError) as error:
+        raise InputError(f"{path}: not a relpoint timing.csv ({error})") from None
+    return observed, map_size, seconds
+
+
+def fusion_config(params: tuple[str, ...]) -> FusionConfig:
+    """:class:`FusionConfig` from ``--param KEY=VALUE`` items."""
+    values: dict[str, Any] = {}
+    for item in params:
+        if "=" not in item:
+            raise click.UsageError(f"--param {item!r} is not KEY=VALUE")
+        key, value = item.split("=", 1)
+        values[key.strip()] = parse_value(value)
+    return FusionConfig.from_mapping(values)
+
+
+@click.command(epilog=EXAMPLES)
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="The log the run was made from (its position fixes are read).")  # fmt: skip
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output directory (replaced atomically).")  # fmt: skip
+@click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
+              help="Fusion setting (repeatable): " + ", ".join(f.name for f in dataclasses.fields(FusionConfig)) + ".")  # fmt: skip
+@click.option("--restart", is_flag=True,
+              help="Re-run the run's estimator (name, parameters and seed from run.json) over LOG, starting a "
+              "fresh local map at every break (Algorithm 3), instead of splitting the finished run.")  # fmt: skip
+@topic_options
+@click.pass_context
+@handle_errors
+def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path, params: tuple[str, ...],
+                 restart: bool, **topic_names: str) -> None:  # fmt: skip
+    """Fuse RUN_DIR (a `relpoint run` output) with the fixes of LOG into a global path and map.
+
+    By default the finished run is split into local maps where matched features fail (matched =
+    observed points that did not start a landmark, from timing.csv); with --restart the estimator is
+    run again and restarted at each break, so every local map stays rigid (see docs/fusion.md). Each
+    local map is fitted to the fixes and mapped into their frame.
+    """
+    config = fusion_config(params)
+    previous = _read_run(run_dir, need_outputs=not restart)
+    reader = LogReader(log_path, topics_from(topic_names))
+    reader.require("fix")
+    start = time.perf_counter()
+    if restart:
+        result, observed, map_size, seconds, roles = _restarted(previous, reader, config)
+    else:
+        trajectory = read_tum(run_dir / "trajectory.tum")
+        landmarks = read_map_csv(run_dir / "map.csv")
+        observed, map_size, seconds = read_timing(run_dir / "timing.csv")
+        if len(observed) != len(trajectory):
+            raise InputError(f"{run_dir}: timing.csv has {len(observed)} rows for {len(trajectory)} poses")
+        fixes = [record.value for record in reader.records(["fix"])]
+        matched = matched_counts_from_map_growth(observed, map_size)
+        result = fuse(trajectory, landmarks, matched, fixes, config, map_size=map_size)
+        roles = ["fix"]
+    elapsed = time.perf_counter() - start
+
+    segments = [
+        {
+            "segment": s.index,
+            "first_iteration": int(s.iterations[0]),
+            "last_iteration": int(s.iterations[-1]),
+            "iterations": len(s.iterations),
+            "landmarks": len(s.landmark_rows),
+            "placed": s.transform is not None,
+            **(
+                {"fix_pairs": s.transform.pairs, "fit_rms_m": s.transform.rms,
+                 "T_world_local": s.transform.matrix.tolist()}
+                if s.transform is not None else {"refused": s.refused}
+            ),
+        }
+        for s in result.segments
+    ]  # fmt: skip
+    run_result = RunResult(
+        trajectory=result.trajectory,
+        landmarks=result.landmarks,
+        observed=observed,
+        map_size=map_size,
+        seconds=seconds,
+        summary={**result.summary, "fusion_seconds": elapsed, "restart": restart},
+    )
+    fusion_settings = {k: (v if np.isfinite(v) else str(v)) if isinstance(v, float) else v
+                       for k, v in config.to_dict().items()}  # fmt: skip
+    run_info = {
+        "estimator": f"fuse({previous.get('estimator', 'unknown')})",
+        "fusion": fusion_settings,
+        "segments": segments,
+        "source_run": {"path": str(run_dir), "estimator": previous.get("estimator"),
+                       "parameters": previous.get("parameters"), "seed": previous.get("seed")},
+        "relpoint_version": relpoint.__version__,
+        "input": {"path": str(log_path), "sha256": file_sha256(log_path), "roles": sorted(roles),
+                  "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
+    }  # fmt: skip
+    with atomic_directory(output) as tmp:
+        write_run_directory(tmp, run_result, run_info)
+        folder = tmp / "segments"
+        folder.mkdir()
+        for s in result.segments:
+            if s.global_trajectory is not None and s.global_landmarks is not None:
+                write_tum(folder / f"segment-{s.index}.tum", s.global_trajectory)
+                write_map_csv(folder / f"segment-{s.index}-map.csv", s.global_landmarks)
+            else:  # left out: kept in its local frame, named so
+                write_tum(folder / f"segment-{s.index}-local.tum", s.local_trajectory)
+                write_map_csv(folder / f"segment-{s.index}-local-map.csv", s.local_landmarks)
+    if not ctx.find_root().obj.get("quiet"):
+        summary = result.summary
+        click.echo(
+            f"fuse: {summary['segments_placed']} of {summary['segments']} segments placed, "
+            f"{summary['iterations_fused']} iterations fused, {summary['iterations_fixes_only']} from fixes alone, "
+            f"{summary['landmarks_placed']} landmarks -> {output}",
+            err=True,
+        )
+
+
+def _read_run(run_dir: Path, *, need_outputs: bool) -> dict[str, Any]:
+    """The run's run.json (empty if absent and not needed); checks the files the post-step reads."""
+    names = ("trajectory.tum", "map.csv", "timing.csv") if need_outputs else ("run.json",)
+    for name in names:
+        if not (run_dir / name).is_file():
+            raise InputError(f"{run_dir}: no {name}", "give the output directory of `relpoint run`")
+    if not (run_dir / "run.json").is_file():
+        return {}
+    try:
+        document = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise InputError(f"{run_dir / 'run.json'}: not readable JSON ({error})") from None
+    return document if isinstance(document, dict) else {}
+
+
+def _restarted(
+    previous: dict[str, Any], reader: LogReader, config: FusionConfig
+) -> tuple[FusionResult, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Re-run the estimator of ``previous`` (run.json) restarting per segment, then fuse."""
+    name = previous.get("estimator")
+    if name not in ESTIMATORS:
+        raise InputError(f"run.json names estimator {name!r}, which --restart cannot re-run",
+                         f"known estimators: {', '.join(sorted(ESTIMATORS))}")  # fmt: skip
+    spec = ESTIMATORS[name]
+    try:
+        estimator_config = spec.config_class(**(previous.get("parameters") or {}))
+    except (TypeError, ValueError) as error:
+        raise InputError(f"run.json parameters do not fit {name}: {error}") from None
+    seed = int(previous.get("seed", 0))
+    needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
+    reader.require(*needed)
+    used = set((previous.get("input") or {}).get("roles") or [])
+    optional = [role for role in ("odometry",) if role in used and reader.role_present(role)]
+    roles = [*needed, *optional, "fix"]
+    run = run_segmented(
+        estimator_inputs(reader.records(roles)),
+        lambda: spec.factory(estimator_config, np.random.default_rng(seed)),
+        min_matches=config.min_matches,
+        min_length=config.min_segment_length,
+        max_position_error=config.max_position_error,
+        local_sigma=config.local_sigma,
+        drift_fraction=config.drift_fraction,
+    )
+    result = fuse(
+        run.trajectory, run.landmarks, None, run.fixes, config, labels=run.labels, landmark_labels=run.landmark_labels
+    )
+    return result, run.observed, run.map_size, run.seconds, roles
