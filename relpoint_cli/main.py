@@ -98,6 +98,7 @@ COMMANDS: dict[str, str] = {
     "evaluate": "relpoint_cli.evaluate:evaluate",
     "export": "relpoint_cli.export:export",
     "fuse": "relpoint_cli.fuse:fuse_command",
+    "batch": "relpoint_cli.batch:batch",
 }
 
 

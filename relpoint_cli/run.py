@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import click
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
@@ -77,6 +78,62 @@ def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
             yield record.value
 
 
+def input_roles(
+    reader: LogReader, spec: EstimatorSpec, *, use_odometry: bool = True, use_fixes: bool = True
+) -> list[str]:
+    """The log roles an estimator reads: the ones it needs (checked present) and the optional ones the log has."""
+    needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
+    reader.require(*needed)
+    wanted = [
+        need for need in sorted(spec.uses) if (need != "odometry" or use_odometry) and (need != "fix" or use_fixes)
+    ]
+    return needed + [role for need in wanted for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
+
+
+def execute_run(
+    reader: LogReader,
+    spec: EstimatorSpec,
+    config: Any,
+    output: Path,
+    *,
+    seed: int = 0,
+    use_odometry: bool = True,
+    use_fixes: bool = True,
+    extra_info: dict[str, Any] | None = None,
+    on_iteration: Callable[[int, Any], None] | None = None,
+) -> pipeline.RunResult:
+    """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
+
+    BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
+    spinning worker threads made the EKF about 20 times slower.
+    """
+    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
+    estimator = spec.factory(config, np.random.default_rng(seed))
+    with threadpool_limits(limits=1, user_api="blas"):
+        try:
+            result = pipeline.run(estimator_inputs(reader.records(roles)), estimator, on_iteration=on_iteration)
+        except EstimatorError as error:
+            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
+            if malformed and "no observation" in str(error):
+                counts = ", ".join(f"{n} {kind}" for kind, n in malformed.items())
+                raise InputError(
+                    f"{reader.path}: no usable message ({counts})", "check the topic's message type"
+                ) from None
+            raise
+    run_info = {
+        "estimator": spec.name,
+        "parameters": dataclasses.asdict(config),
+        "seed": seed,
+        "relpoint_version": relpoint.__version__,
+        "input": {"path": str(reader.path), "sha256": file_sha256(reader.path), "roles": sorted(roles),
+                  "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
+        "skipped": dict(sorted(reader.skipped.items())),
+        **(extra_info or {}),
+    }  # fmt: skip
+    write_run_directory(output, result, run_info)
+    return result
+
+
 @click.command(epilog=EXAMPLES)
 @click.argument("log", type=click.Path(path_type=Path))
 @click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator to run (see `relpoint info LOG`).")
@@ -109,37 +166,12 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     spec = ESTIMATORS[estimator_name]
     config = build_config(spec, config_file, params)
     reader = LogReader(log, topics_from(topic_names))
-    needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
-    reader.require(*needed)
-    optional = [
-        need
-        for need in sorted(spec.uses)
-        if not (need == "odometry" and no_odometry) and not (need == "fix" and no_fixes)
-    ]
-    roles = needed + [role for need in optional for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
-    estimator = spec.factory(config, np.random.default_rng(seed))
-    total = reader.topic_infos[reader.topics.roles()[needed[0]]].count
-    with progress_bar(total, f"{estimator_name}", unit="iter") as bar:
-        try:
-            result = pipeline.run(
-                estimator_inputs(reader.records(roles)), estimator, on_iteration=lambda *_: bar.update(1)
-            )
-        except EstimatorError as error:
-            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
-            if malformed and "no observation" in str(error):
-                counts = ", ".join(f"{n} {kind}" for kind, n in malformed.items())
-                raise InputError(f"{log}: no usable message ({counts})", "check the topic's message type") from None
-            raise
-    run_info = {
-        "estimator": spec.name,
-        "parameters": dataclasses.asdict(config),
-        "seed": seed,
-        "relpoint_version": relpoint.__version__,
-        "input": {"path": str(log), "sha256": file_sha256(log), "roles": sorted(roles),
-                  "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
-        "skipped": dict(sorted(reader.skipped.items())),
-    }  # fmt: skip
-    write_run_directory(output, result, run_info)
+    total = reader.topic_infos.get(reader.topics.points)
+    with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
+        result = execute_run(
+            reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,
+            on_iteration=lambda *_: bar.update(1),
+        )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()
         skipped = sum(reader.skipped.values())

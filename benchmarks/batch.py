@@ -1,0 +1,113 @@
+"""Wall-time speed-up of ``relpoint batch --jobs 2`` over ``--jobs 1`` for an 8-job plan (issue 9).
+
+Simulates two figure-eight logs once (not timed), then runs the same plan of 8 jobs
+(2 logs x ekf, fastslam x a 2-value grid; each job runs, writes its directory and evaluates) as
+``relpoint batch PLAN --jobs N`` in a fresh process, alternating N = 1 and 2, each into a fresh
+results root. Prints every time, the medians and their ratio, and the load average: on a busy shared
+machine the wall-time ratio falls short of the core count, so it also prints the jobs' CPU seconds
+divided by the batch's wall time ("cores used"), and, as a yardstick of what the machine allows right
+now, the speed-up of a pure-Python CPU burn on process pools of 1 and 2 workers.
+
+Usage::
+
+    python benchmarks/batch.py [--iterations 200] [--density 25] [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PLAN = """\
+logs = ["logs/*.mcap"]
+
+[estimators.ekf.grid]
+observation_sigma = [0.3, 0.5]
+
+[estimators.fastslam]
+particles = {particles}
+[estimators.fastslam.grid]
+seed = [0, 1]
+
+[evaluation]
+align = "se3"
+"""
+
+
+def run_batch(plan: Path, jobs: int, results: Path) -> tuple[float, float]:
+    """Wall seconds of one ``relpoint batch`` process and the CPU seconds its jobs report."""
+    command = [sys.executable, "-m", "relpoint_cli.main", "-q", "batch", str(plan), "--jobs", str(jobs),
+               "--results", str(results)]  # fmt: skip
+    start = time.perf_counter()
+    completed = subprocess.run(command, capture_output=True, text=True, check=False)
+    seconds = time.perf_counter() - start
+    if completed.returncode != 0:
+        raise SystemExit(f"batch --jobs {jobs} failed ({completed.returncode}):\n{completed.stdout}{completed.stderr}")
+    rows = json.loads((results / "results.json").read_text())["jobs"]
+    return seconds, sum(row["cpu_seconds"] for row in rows)
+
+
+def _burn(n: int) -> float:
+    start = time.process_time()
+    total = 0
+    for i in range(n):
+        total += i * i
+    return time.process_time() - start
+
+
+def burn_speedup(n: int = 10_000_000, tasks: int = 4) -> float:
+    """Wall-time ratio of ``tasks`` CPU-bound tasks on 1 worker over 2 workers (2.0 on two idle cores)."""
+    walls = []
+    for workers in (1, 2):
+        start = time.perf_counter()
+        with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+            list(pool.map(_burn, [n] * tasks))
+        walls.append(time.perf_counter() - start)
+    return walls[0] / walls[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--iterations", type=int, default=200, help="iterations per simulated log")
+    parser.add_argument("--density", type=float, default=25.0)
+    parser.add_argument("--particles", type=int, default=20, help="FastSLAM particles")
+    parser.add_argument("--repeats", type=int, default=2, help="timed runs per --jobs value")
+    args = parser.parse_args(argv)
+
+    from formats.simulation_log import write_simulation
+    from relpoint.simulation import SimulationConfig, simulate
+
+    with tempfile.TemporaryDirectory(prefix="relpoint-batch-bench-") as tmp:
+        root = Path(tmp)
+        for seed in (1, 2):
+            config = SimulationConfig(iterations=args.iterations, density=args.density, seed=seed)
+            write_simulation(simulate(config), root / "logs" / f"fig8-{seed}.mcap")
+        plan = root / "plan.toml"
+        plan.write_text(PLAN.format(particles=args.particles))
+        print(f"plan: 2 logs x {args.iterations} iterations (density {args.density:g}) x ekf, fastslam "
+              f"({args.particles} particles) x 2 grid values = 8 jobs; {os.cpu_count()} cores")  # fmt: skip
+        times: dict[int, list[float]] = {1: [], 2: []}
+        for repeat in range(args.repeats):
+            for jobs in (1, 2):
+                seconds, cpu = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}")
+                times[jobs].append(seconds)
+                print(
+                    f"  --jobs {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
+                    f"   (load average {os.getloadavg()[0]:.1f})"
+                )
+        one, two = statistics.median(times[1]), statistics.median(times[2])
+        print(f"median wall time --jobs 1: {one:.2f} s, --jobs 2: {two:.2f} s, speed-up {one / two:.2f}x")
+        print(f"yardstick: a pure-Python CPU burn runs {burn_speedup():.2f}x faster on 2 workers than on 1 just now")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

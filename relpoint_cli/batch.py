@@ -1,0 +1,127 @@
+"""``relpoint batch``: run a plan of simulate/run/evaluate jobs on a process pool or a Dask cluster.
+
+The plan is parsed by :mod:`formats.batch_plan`; the jobs and executors are in
+:mod:`relpoint_cli.batch_jobs`. This command picks the executor, shows a progress bar over jobs, writes
+``results.csv`` and ``results.json`` and prints a summary table (``docs/batch.md``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from formats.batch_plan import BatchPlan, load_plan, write_results
+from relpoint.errors import UsageError
+from relpoint_cli.batch_jobs import BatchOutcome, DaskExecutor, Executor, JobFailed, LocalPool, run_plan
+from relpoint_cli.errors import handle_errors
+from relpoint_cli.progress import progress_bar
+
+EXAMPLES = """\b
+Examples:
+  relpoint batch plan.toml                          # local process pool, one worker per core
+  relpoint batch plan.toml --jobs 2 --results out/  # two workers, results root out/
+  relpoint batch plan.yaml --scheduler tcp://10.0.0.5:8786   # an existing Dask cluster
+  relpoint batch plan.toml --fail-fast              # CI: stop at the first failed job (exit 4)
+
+\b
+A job whose complete output exists is skipped, so rerunning a plan resumes it.
+Exit codes: 0 every job ok, 2 a bad plan, 3 no scheduler, 4 a job failed.
+See docs/batch.md for the plan format.
+"""
+
+
+def default_workers() -> int:
+    """Cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _number(value: Any, scale: float = 1.0, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value * scale:.{digits}f}"
+
+
+def format_summary(plan: BatchPlan, outcome: BatchOutcome) -> str:
+    """The summary table: one line per job, then counts and the failures' errors."""
+    header = ("job", "status", "ATE rmse m", "LM rmse m", "ms/iter")
+    lines = [
+        (row["job"], row["status"], _number(row["ate_rmse"]), _number(row["landmark_rmse"]),
+         _number(row["seconds_per_iteration"], 1e3, 2))
+        for row in outcome.rows
+    ]  # fmt: skip
+    widths = [max(len(header[c]), *(len(line[c]) for line in lines)) for c in range(len(header))]
+
+    def render(cells: tuple[str, ...]) -> str:
+        return "  ".join(
+            cell.ljust(width) if c < 2 else cell.rjust(width)
+            for c, (cell, width) in enumerate(zip(cells, widths, strict=True))
+        )
+
+    text = [render(header), *(render(line) for line in lines)]
+    counts = f"{len(outcome.rows)} jobs: {outcome.count('ok')} ok ({outcome.resumed} resumed), {outcome.count('failed')} failed"
+    if outcome.count("cancelled"):
+        counts += f", {outcome.count('cancelled')} cancelled"
+    text += ["", counts]
+    text += [f"failed {row['job']}: {row['error']}" for row in outcome.rows if row["status"] == "failed"]
+    return "\n".join(text)
+
+
+@click.command(epilog=EXAMPLES)
+@click.argument("plan_file", metavar="PLAN", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "-j", "--jobs", type=click.IntRange(min=1), default=None,
+    help="Worker processes of the local pool [default: the usable cores].",
+)  # fmt: skip
+@click.option("--scheduler", metavar="tcp://HOST:PORT", help="Run on this Dask distributed scheduler instead.")
+@click.option("--fail-fast", is_flag=True, help="Stop at the first failed job (what has not started is cancelled).")
+@click.option(
+    "--results", "results_dir", type=click.Path(file_okay=False, path_type=Path),
+    help="Results root (overrides the plan's `results`).",
+)  # fmt: skip
+@click.pass_context
+@handle_errors
+def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str | None, fail_fast: bool,
+          results_dir: Path | None) -> None:  # fmt: skip
+    """Run every job of PLAN (logs x estimators x parameter grid), evaluate each, and tabulate the results.
+
+    Writes one directory per job (run files, evaluation.json, job.log) and results.csv / results.json
+    under the results root, then prints a summary table. A failed job is recorded and the others go on.
+    """
+    if scheduler is not None and jobs is not None:
+        raise UsageError("--jobs sets the local pool's size; the Dask cluster's workers decide with --scheduler")
+    plan = load_plan(plan_file, results=results_dir)
+    quiet = bool(ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
+    executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalPool(jobs or default_workers())
+    with (
+        executor,
+        progress_bar(len(plan.simulations), "simulate", unit="log") as sim_bar,
+        progress_bar(len(plan.jobs), "batch", unit="job") as bar,
+    ):
+
+        def on_simulated(row: dict[str, Any]) -> None:
+            sim_bar.update(1)
+            if row["status"] != "ok" and not quiet:
+                sim_bar.write(f"relpoint: warning: simulating {row['name']} failed: {row['error']}", file=sys.stderr)
+
+        def on_job(row: dict[str, Any], resumed: bool) -> None:
+            bar.update(1)
+            if row["status"] == "failed" and not quiet:
+                bar.write(f"relpoint: warning: job {row['job']} failed: {row['error']}", file=sys.stderr)
+
+        outcome = run_plan(plan, executor, fail_fast=fail_fast, on_simulated=on_simulated, on_job=on_job)
+    csv_path, _ = write_results(plan, outcome.rows)
+    click.echo(format_summary(plan, outcome))
+    if not quiet:
+        click.echo(f"results: {csv_path} and {csv_path.with_suffix('.json')}", err=True)
+    failed = outcome.count("failed")
+    if failed:
+        stopped = " (--fail-fast stopped the batch)" if outcome.stopped_early else ""
+        raise JobFailed(f"{failed} of {len(plan.jobs)} job(s) failed{stopped}", f"see {plan.results}/JOB/job.log")

@@ -1,0 +1,234 @@
+"""``relpoint batch``: plans, the local pool against a Dask cluster, resuming, failures and --fail-fast."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner, Result
+from distributed import LocalCluster
+
+from formats.batch_plan import RESULT_COLUMNS, TIMING_COLUMNS, load_plan, read_results
+from relpoint.errors import UsageError
+from relpoint_cli.batch_jobs import JOB_FILES, completed_row
+from relpoint_cli.main import cli
+
+#: 2 simulated logs x (ekf, fastslam) x a 2-value grid = 8 jobs of 60 iterations.
+PLAN = """\
+results = "results"
+
+[[simulate]]
+name = "fig8"
+iterations = 60
+density = 10
+[simulate.grid]
+seed = [1, 2]
+
+[estimators.ekf.grid]
+observation_sigma = [0.3, 0.5]
+
+[estimators.fastslam]
+particles = 5
+[estimators.fastslam.grid]
+seed = [0, 1]
+
+[evaluation]
+align = "se3"
+kitti = false
+"""
+
+PLAN_YAML = """\
+results: results
+simulate:
+  - name: fig8
+    iterations: 60
+    density: 10
+    grid: {seed: [1, 2]}
+estimators:
+  ekf:
+    grid: {observation_sigma: [0.3, 0.5]}
+  fastslam:
+    particles: 5
+    grid: {seed: [0, 1]}
+evaluation: {align: se3, kitti: false}
+"""
+
+
+def invoke(*args: str) -> Result:
+    return CliRunner().invoke(cli, ["batch", *args])
+
+
+def comparable(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows without timing columns, logs by file name (each batch simulates its own)."""
+    return [
+        {key: (Path(value).name if key == "log" else value) for key, value in row.items() if key not in TIMING_COLUMNS}
+        for row in rows
+    ]
+
+
+@pytest.fixture(scope="module")
+def plan_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("plan") / "plan.toml"
+    path.write_text(PLAN)
+    return path
+
+
+@pytest.fixture(scope="module")
+def local_run(plan_file: Path) -> tuple[Path, list[dict[str, Any]]]:
+    """The plan run once on a local pool of two processes: (results root, rows)."""
+    results = plan_file.parent / "local"
+    outcome = invoke(str(plan_file), "--jobs", "2", "--results", str(results))
+    assert outcome.exit_code == 0, outcome.output
+    return results, read_results(results / "results.json")
+
+
+@pytest.fixture()
+def bad_log(tmp_path: Path) -> Path:
+    path = tmp_path / "bad" / "broken.mcap"
+    path.parent.mkdir()
+    path.write_bytes(b"\x89MCAP0\r\n" + b"not really a log" * 8)
+    return path
+
+
+def test_plan_expands_logs_estimators_and_grids(plan_file: Path, tmp_path: Path) -> None:
+    plan = load_plan(plan_file)
+    assert [step.name for step in plan.simulations] == ["fig8-seed=1", "fig8-seed=2"]
+    assert [step.config.seed for step in plan.simulations] == [1, 2]
+    assert [job.job_id for job in plan.jobs] == [
+        f"fig8-seed={s}/{e}" for s in (1, 2)
+        for e in ("ekf/observation_sigma=0.3", "ekf/observation_sigma=0.5", "fastslam/seed=0", "fastslam/seed=1")
+    ]  # fmt: skip
+    assert plan.jobs[2].parameters == (("particles", 5),) and plan.jobs[3].seed == 1
+    assert plan.results == plan_file.parent / "results"
+    yaml_file = plan_file.parent / "plan.yaml"
+    yaml_file.write_text(PLAN_YAML)
+    assert [job.describe() for job in load_plan(yaml_file).jobs] == [job.describe() for job in plan.jobs]
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('logs = "*.mcap"\nestimators = ["ekf"]\n', "matches no file"),
+        ('[[simulate]]\nname = "a"\n[estimators.magic]\n', "unknown estimator 'magic'"),
+        ('[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n', "unknown ekf parameter(s): no_such"),
+        ('[[simulate]]\nname = "a"\n[estimators.ekf.grid]\nobservation_sigma = 0.3\n', "must be a non-empty list"),
+        ('estimators = ["ekf"]\n[[simulate]]\nname = "a"\n[evaluation]\nalign = "banana"\n', "align"),
+        ('[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n', "simulate[0]: density must be a positive"),
+        ('estimators = ["ekf"]\n', "names no logs"),
+        ("jobs = 3\n", "unknown key(s) jobs"),
+    ],
+)
+def test_bad_plans_are_usage_errors(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "plan.toml"
+    path.write_text(text)
+    with pytest.raises(UsageError) as caught:
+        load_plan(path)
+    assert message in str(caught.value)
+    outcome = invoke(str(path))
+    assert outcome.exit_code == 2 and message in outcome.stderr
+
+
+def test_local_pool_runs_evaluates_and_writes_every_job(local_run: tuple[Path, list[dict[str, Any]]]) -> None:
+    results, rows = local_run
+    assert len(rows) == 8 and all(row["status"] == "ok" for row in rows)
+    assert (results / "results.csv").read_text().splitlines()[0] == ",".join(RESULT_COLUMNS)
+    assert len((results / "results.csv").read_text().splitlines()) == 9
+    for row in rows:
+        job_dir = results / row["job"]
+        assert all((job_dir / name).is_file() for name in JOB_FILES), row["job"]
+        evaluation = json.loads((job_dir / "evaluation.json").read_text())
+        assert evaluation["summary"]["ate_rmse"] == row["ate_rmse"]
+        assert evaluation["summary"]["lm_err_rmse"] == row["landmark_rmse"]
+        assert row["iterations"] == 60 and row["seconds_per_iteration"] > 0 and row["landmarks"] > 5
+        assert math.isfinite(row["ate_rmse"]) and math.isfinite(row["landmark_rmse"])
+        assert "job done" in (job_dir / "job.log").read_text()
+    # The EKF tracks these short loops to within decimetres; a broken hand-over of settings would not.
+    assert max(row["ate_rmse"] for row in rows if row["estimator"] == "ekf") < 1.0
+    sigmas = {
+        json.loads((results / r["job"] / "run.json").read_text())["parameters"]["observation_sigma"] for r in rows[:2]
+    }
+    assert sigmas == {0.3, 0.5}
+    # The job's evaluation is the one `relpoint evaluate` gives for its directory.
+    first = rows[0]
+    cli_json = results / "cli_evaluation.json"
+    outcome = CliRunner().invoke(
+        cli, ["-q", "evaluate", str(results / first["job"]), "--reference", first["log"], "--align", "se3",
+              "--json", str(cli_json)],
+    )  # fmt: skip
+    assert outcome.exit_code == 0, outcome.output
+    assert json.loads(cli_json.read_text())["summary"]["ate_rmse"] == first["ate_rmse"]
+
+
+def test_dask_cluster_gives_the_local_pool_results(
+    plan_file: Path, local_run: tuple[Path, list[dict[str, Any]]]
+) -> None:
+    results = plan_file.parent / "dask"
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        outcome = invoke(str(plan_file), "--scheduler", cluster.scheduler_address, "--results", str(results))
+    assert outcome.exit_code == 0, outcome.output
+    rows = read_results(results / "results.json")
+    assert comparable(rows) == comparable(local_run[1])
+    assert all((results / "logs" / f"fig8-seed={s}.mcap").is_file() for s in (1, 2))
+
+
+def test_rerun_skips_completed_jobs_and_redoes_missing_ones(
+    plan_file: Path, local_run: tuple[Path, list[dict[str, Any]]]
+) -> None:
+    results, rows = local_run
+    stamps = {row["job"]: (results / row["job"] / "job.json").stat().st_mtime_ns for row in rows}
+    outcome = invoke(str(plan_file), "--jobs", "2", "--results", str(results))
+    assert outcome.exit_code == 0 and "8 ok (8 resumed)" in outcome.stdout
+    assert {job: (results / job / "job.json").stat().st_mtime_ns for job in stamps} == stamps
+    (results / rows[5]["job"] / "evaluation.json").unlink()  # an incomplete output is redone
+    outcome = invoke(str(plan_file), "--jobs", "1", "--results", str(results))
+    assert outcome.exit_code == 0 and "8 ok (7 resumed)" in outcome.stdout
+    assert comparable(read_results(results / "results.json")) == comparable(rows)
+    # Changed evaluation settings make every stored output stale.
+    changed = plan_file.parent / "changed.toml"
+    changed.write_text(PLAN.replace('align = "se3"', 'align = "sim3"'))
+    assert all(completed_row(job) is None for job in load_plan(changed, results=results).jobs)
+    assert all(completed_row(job) is not None for job in load_plan(plan_file, results=results).jobs)
+
+
+def test_failed_job_is_recorded_and_the_others_complete(
+    tmp_path: Path, bad_log: Path, local_run: tuple[Path, list[dict[str, Any]]]
+) -> None:
+    logs = local_run[0] / "logs"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'logs = ["{bad_log}", "{logs}/*1.mcap"]\nestimators = ["ekf"]\n[evaluation]\nkitti = false\n')
+    outcome = invoke(str(plan), "--jobs", "2")
+    assert outcome.exit_code == 4, outcome.output
+    assert "1 of 2 job(s) failed" in outcome.stderr
+    rows = read_results(tmp_path / "results" / "results.json")
+    assert [(row["job"], row["status"]) for row in rows] == [
+        ("broken/ekf/default", "failed"),
+        ("fig8-seed=1/ekf/default", "ok"),
+    ]
+    assert rows[0]["error"].startswith("InputError") and rows[1]["error"] is None
+    job_log = (tmp_path / "results" / "broken" / "ekf" / "default" / "job.log").read_text()
+    assert "FAILED: InputError" in job_log and "Traceback" in job_log
+    assert "failed broken/ekf/default: InputError" in outcome.stdout
+
+
+def test_fail_fast_stops_at_the_first_failure(
+    tmp_path: Path, bad_log: Path, local_run: tuple[Path, list[dict[str, Any]]]
+) -> None:
+    logs = local_run[0] / "logs"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        f'logs = ["{bad_log}", "{logs}/*.mcap"]\n[estimators.ekf.grid]\nobservation_sigma = [0.3, 0.4, 0.5]\n'
+    )
+    outcome = invoke(str(plan), "--jobs", "1", "--fail-fast")
+    assert outcome.exit_code == 4, outcome.output
+    assert "--fail-fast stopped the batch" in outcome.stderr
+    rows = read_results(tmp_path / "results" / "results.json")
+    assert len(rows) == 9 and rows[0]["status"] == "failed"
+    statuses = [row["status"] for row in rows]
+    # One worker holds at most two queued jobs when the first failure arrives; the rest never start.
+    assert statuses.count("cancelled") >= 4 and statuses.count("ok") <= 2
+    assert all(not (tmp_path / "results" / r["job"]).exists() for r in rows if r["status"] == "cancelled")
