@@ -19,8 +19,9 @@ __all__ = ["DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "Estimator", "Est
 
 def _register_builtin() -> None:
     from relpoint.estimators import ekf, fastslam
+    from relpoint.estimators.relative_point import estimator as relative_point
 
-    for spec in (ekf.SPEC, fastslam.SPEC):
+    for spec in (relative_point.SPEC, ekf.SPEC, fastslam.SPEC):
         register(spec)
 
 

@@ -1,0 +1,235 @@
+"""Dynamic point detection before a group is final (Kraut, section II-C).
+
+Two points that are both static keep their distance in every untransformed observation, whatever
+the sensor does, so the standard deviation of their distance over the group's interval is at the
+noise level; a moving point breaks that with every other point. The paper's binning makes the
+search O(n log n):
+
+* each point starts in its own bin; each round, every bin is compared with one bin it has not been
+  compared with, through one representative point per bin; a standard deviation below the
+  threshold merges the two bins, otherwise each remembers the other (the paper's per-bin hash
+  table) so the pair is never compared again;
+* the threshold comes from the first round: its deviations are sorted and enumerated until the next
+  one is much larger (by ``gap_ratio``) than the previous, the gap rule;
+* bins merged in the previous round are paired first (positive comparisons are prioritised);
+* once one bin holds a majority of the points, one last round compares it with every bin it has not
+  been compared with and merges the positive ones; everything outside it is dynamic.
+
+Each round compares at most n/2 pairs of L-iteration tracks in one vectorised step.
+
+Between detections the majority bin persists as the points verified static;
+:func:`deviation_to_references` judges further points against several of its members, as the last
+round judges a bin against the majority bin (used by the estimator's periodic sweep).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.geometry import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
+
+_PAIRING_SCAN = 8
+
+
+@dataclass(frozen=True)
+class DynamicResult:
+    """Outcome of :func:`detect_dynamic`.
+
+    static: (M,) True for members of the majority bin (all True when undecided).
+    decided: a bin reached a majority (or the largest bin was accepted at the end).
+    threshold: standard deviation threshold from the gap rule (m).
+    comparisons: pairwise track comparisons made.
+    rounds: comparison rounds run.
+    """
+
+    static: BoolArray
+    decided: bool
+    threshold: float
+    comparisons: int
+    rounds: int
+
+
+def distance_deviation(observations: FloatArray, a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
+    """Standard deviation (P,) over iterations of the distance between tracks ``a`` and ``b`` (P,).
+
+    ``observations`` is (M, L, 3): untransformed points of M tracks over L iterations.
+    """
+    distance = np.linalg.norm(observations[np.asarray(a)] - observations[np.asarray(b)], axis=2)
+    return distance.std(axis=1, ddof=1)
+
+
+def gap_threshold(deviations: FloatArray, gap_ratio: float, noise_factor: float = 1.6) -> float:
+    """The paper's gap rule over the first round's deviations (P,).
+
+    Sorted ascending, the threshold sits between the first consecutive pair whose ratio exceeds
+    ``1 + gap_ratio`` (geometric mean of the two); with no such gap every deviation is below it.
+    Moving points rarely leave a clean gap (their deviations spread from the noise level upwards), so
+    the threshold is also capped at ``noise_factor`` times the lower quartile, which is a static
+    pair's deviation while fewer than half of the points move (0.5^2 of the pairs are static-static).
+    """
+    s = np.sort(np.maximum(deviations[np.isfinite(deviations)], 1e-6))
+    if len(s) == 0:
+        return np.inf
+    ratio = s[1:] / s[:-1]
+    gaps = np.flatnonzero(ratio > 1.0 + gap_ratio)
+    threshold = float(s[-1] * (1.0 + gap_ratio)) if len(gaps) == 0 else float(np.sqrt(s[gaps[0]] * s[gaps[0] + 1]))
+    if noise_factor > 0 and len(s) >= 8:
+        threshold = min(threshold, noise_factor * float(s[len(s) // 4]))
+    return threshold
+
+
+def detect_dynamic(
+    observations: FloatArray, *, gap_ratio: float = 0.5, noise_factor: float = 1.6, min_static: int = 3
+) -> DynamicResult:
+    """Find the points that do not move rigidly with the majority.
+
+    Parameters
+    ----------
+    observations:
+        (M, L, 3) untransformed observations of the M candidate members over the group's L
+        iterations (each iteration in its own sensor frame), metres; L >= 2.
+    gap_ratio:
+        Relative jump in sorted first-round deviations that sets the threshold.
+    noise_factor:
+        Cap of the threshold as a multiple of the first round's lower-quartile deviation (0: none).
+    min_static:
+        Smallest bin accepted as the static set when no bin reaches a majority.
+
+    Returns
+    -------
+    DynamicResult
+    """
+    m = len(observations)
+    if m < 4 or observations.shape[1] < 2:
+        return DynamicResult(np.ones(m, bool), False, np.inf, 0, 0)
+    bins: dict[int, list[int]] = {i: [i] for i in range(m)}  # bin id = its representative's row
+    compared: dict[int, set[int]] = {i: set() for i in range(m)}
+    comparisons = 0
+    rounds = 0
+
+    def was_compared(a: int, b: int) -> bool:
+        return b in compared[a] or a in compared[b]
+
+    def merge(a: int, b: int) -> None:
+        bins[a].extend(bins.pop(b))
+        compared[a] |= compared.pop(b)
+
+    # First round: neighbours in row order; its deviations set the threshold (gap rule).
+    first_a = np.arange(0, m - 1, 2)
+    first_b = first_a + 1
+    deviation = distance_deviation(observations, first_a, first_b)
+    comparisons += len(first_a)
+    rounds += 1
+    threshold = gap_threshold(deviation, gap_ratio, noise_factor)
+    positive: set[int] = set()
+    for a, b, dev in zip(first_a.tolist(), first_b.tolist(), deviation.tolist(), strict=True):
+        if dev < threshold:
+            merge(a, b)
+            positive.add(a)
+        else:
+            compared[a].add(b)
+            compared[b].add(a)
+
+    majority = None
+    while True:
+        largest = max(bins, key=lambda k: len(bins[k]))
+        if 2 * len(bins[largest]) > m:
+            majority = largest
+            break
+        # Pair bins: those with a positive comparison last round first, then larger bins first.
+        order = sorted(bins, key=lambda k: (k not in positive, -len(bins[k]), k))
+        waiting: list[int] = []  # bins still looking for a partner this round, in priority order
+        pairs_a: list[int] = []
+        pairs_b: list[int] = []
+        for b in order:
+            # Looking at only the first few waiting bins keeps a round O(n) when many bins have
+            # already met each other; a missed pairing is found in a later round.
+            for index, a in enumerate(waiting[:_PAIRING_SCAN]):
+                if not was_compared(a, b):
+                    del waiting[index]
+                    pairs_a.append(a)
+                    pairs_b.append(b)
+                    break
+            else:
+                waiting.append(b)
+        if not pairs_a:
+            break
+        deviation = distance_deviation(observations, pairs_a, pairs_b)
+        comparisons += len(pairs_a)
+        rounds += 1
+        positive = set()
+        for a, b, dev in zip(pairs_a, pairs_b, deviation.tolist(), strict=True):
+            if dev < threshold:
+                merge(a, b)
+                positive.add(a)
+            else:
+                compared[a].add(b)
+                compared[b].add(a)
+
+    if majority is not None:
+        # Last round: the majority bin against every bin it has not met; positives join it.
+        others = [k for k in bins if k != majority and not was_compared(majority, k)]
+        if others:
+            deviation = distance_deviation(observations, [majority] * len(others), others)
+            comparisons += len(others)
+            rounds += 1
+            for k, dev in zip(others, deviation.tolist(), strict=True):
+                if dev < threshold:
+                    merge(majority, k)
+        static_bin = majority
+    else:
+        static_bin = max(bins, key=lambda k: len(bins[k]))
+        if len(bins[static_bin]) < min_static:
+            return DynamicResult(np.ones(m, bool), False, threshold, comparisons, rounds)
+    static = np.zeros(m, bool)
+    static[bins[static_bin]] = True
+    return DynamicResult(static, True, threshold, comparisons, rounds)
+
+
+def deviation_to_references(
+    tracks: FloatArray, valid: BoolArray, references: npt.ArrayLike, min_common: int
+) -> FloatArray:
+    """Median distance deviation of every track against a set of static reference tracks.
+
+    The majority bin of earlier detections persists between iterations as the set of points verified
+    static; a new point is judged the way the paper's last round judges a bin against the majority
+    bin, against several of its members (median, so one unlucky reference does not decide).
+
+    Parameters
+    ----------
+    tracks:
+        (N, L, 3) untransformed observations of N points over the last L iterations.
+    valid:
+        (N, L) where each track has an observation.
+    references:
+        Rows of ``tracks`` that are verified static (R,).
+    min_common:
+        Pairs observed together in fewer iterations are not compared.
+
+    Returns
+    -------
+    (N,) median over references (excluding the track itself) of the standard deviation of the
+    distance over the iterations both were observed; NaN where no reference qualifies.
+    """
+    references = np.asarray(references, dtype=np.int64)
+    if len(references) == 0 or len(tracks) == 0:
+        return np.full(len(tracks), np.nan)
+    both = valid[:, None, :] & valid[references][None, :, :]  # (N, R, L)
+    distance = np.linalg.norm(tracks[:, None, :, :] - tracks[references][None, :, :, :], axis=3)
+    count = both.sum(axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(both, distance, 0.0).sum(axis=2) / count
+        variance = np.where(both, (distance - mean[..., None]) ** 2, 0.0).sum(axis=2) / (count - 1)
+    deviation = np.sqrt(variance)
+    usable = (count >= min_common) & (np.arange(len(tracks))[:, None] != references[None, :])
+    deviation = np.where(usable, deviation, np.nan)
+    out = np.full(len(tracks), np.nan)
+    any_usable = usable.any(axis=1)
+    if any_usable.any():
+        out[any_usable] = np.nanmedian(deviation[any_usable], axis=1)
+    return out

@@ -1,0 +1,371 @@
+"""Groups: basis frames, relative maps and their least-squares combination (Kraut, section II-B).
+
+Paper name -> Python name
+    *RltGroup*     :class:`RelativeGroup`: the member *RltPoints*, three basis members, the running sum
+                   of each member's relative position and the group's fit to the global map.
+    *RltGroupRef*  :attr:`GroupMap.refs`: per point, the ids of the groups it is in.
+    *RltLSF*       :func:`relpoint.estimators.relative_point.lsf.fit_transform`.
+
+Basis frame (:func:`basis_rotation`): the first basis point is the origin, the second lies on the
+negative x axis and the third in the xz plane (positive z). Relative coordinates of an iteration's
+untransformed points are therefore invariant to the sensor's pose, and their average over the
+iterations in which every member is observed is the group's *relative map*.
+
+Placement: the first (root) group is fitted to the first observations of its members (the world
+frame is the sensor frame of the first iteration); every later group is fitted to the global
+positions its previously mapped members already have *from other groups*, and the fit gives the
+global positions of its new members. A point in several groups gets the least-squares combination of
+the positions its groups give it, weighted by the number of iterations each group averaged:
+``pos_sum / pos_weight`` in :class:`~relpoint.estimators.relative_point.points.PointStore`.
+Anchors are weighted by the inverse variance of their global position (iterations averaged over
+the squared disagreement between their groups) and gross outliers are trimmed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.estimators.relative_point.lsf import apply, fit_transform
+from relpoint.estimators.relative_point.points import PointStore
+from relpoint.geometry import FloatArray
+
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+ROOT = "root"
+"""A group anchored to observations mapped by a known pose (the first group: the first observations)."""
+FIRST = "first"
+"""A point's first grouping, created a few iterations after the point is first seen."""
+LATER = "later"
+"""A regrouping over a longer calculation interval (the paper's second grouping)."""
+
+
+def basis_rotation(b0: FloatArray, b1: FloatArray, b2: FloatArray, min_spread: float) -> tuple[FloatArray, BoolArray]:
+    """Rotation ``R_sensor_basis`` (..., 3, 3) of the basis frame of three points (..., 3).
+
+    Columns are the basis axes in the sensor frame: x points from ``b1`` to ``b0`` (so ``b1`` sits on
+    the negative x axis), z is the part of ``b2 - b0`` orthogonal to x (so ``b2`` lies in the xz
+    plane) and y = z x x. ``valid`` (...) is False where ``b0 b1`` is shorter than ``min_spread`` or
+    ``b2`` lies within ``min_spread`` of that line (collinear basis: no unique rotation).
+    """
+    x = b0 - b1
+    x_norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    x = x / np.maximum(x_norm, 1e-12)
+    v = b2 - b0
+    z = v - np.sum(v * x, axis=-1, keepdims=True) * x
+    z_norm = np.linalg.norm(z, axis=-1, keepdims=True)
+    z = z / np.maximum(z_norm, 1e-12)
+    y = np.cross(z, x)
+    valid = (x_norm[..., 0] >= min_spread) & (z_norm[..., 0] >= min_spread)
+    return np.stack([x, y, z], axis=-1), valid
+
+
+def relative_coordinates(
+    observations: FloatArray, basis: tuple[int, int, int], min_spread: float
+) -> tuple[FloatArray, BoolArray]:
+    """Members' coordinates in the basis frame of each iteration.
+
+    Parameters
+    ----------
+    observations:
+        (M, L, 3) untransformed observations of M members over L iterations (sensor frame of each).
+    basis:
+        Rows of the three basis members.
+
+    Returns
+    -------
+    relative, valid:
+        (M, L, 3) coordinates in the basis frame (m) and (L,) whether the basis was usable.
+    """
+    b0, b1, b2 = (observations[i] for i in basis)
+    R, valid = basis_rotation(b0, b1, b2, min_spread)
+    # Row vectors: p_basis = (p - b0) @ R_sensor_basis, batched over iterations.
+    relative = np.matmul((observations - b0[None]).transpose(1, 0, 2), R).transpose(1, 0, 2)
+    return relative, valid
+
+
+def choose_basis(points: FloatArray, min_spread: float) -> tuple[int, int, int] | None:
+    """Three well-spread, non-collinear rows of ``points`` (M, 3) for a basis, or ``None``.
+
+    The first is the point farthest from the centroid, the second the point farthest from the first,
+    the third the point farthest from the line through both.
+    """
+    if len(points) < 3:
+        return None
+    i0 = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
+    i1 = int(np.argmax(np.sum((points - points[i0]) ** 2, axis=1)))
+    axis = points[i1] - points[i0]
+    length = float(np.linalg.norm(axis))
+    if length < min_spread:
+        return None
+    axis /= length
+    d = points - points[i0]
+    off_line = np.linalg.norm(d - np.outer(d @ axis, axis), axis=1)
+    i2 = int(np.argmax(off_line))
+    if off_line[i2] < min_spread:
+        return None
+    return i0, i1, i2
+
+
+@dataclass(eq=False)
+class RelativeGroup:
+    """One *RltGroup*: members, basis and relative map.
+
+    Attributes
+    ----------
+    gid: group id.
+    kind: :data:`ROOT`, :data:`FIRST` or :data:`LATER`.
+    members: (M,) point ids.
+    basis: rows of ``members`` used as basis points.
+    rel_sum: (M, 3) sum of relative positions over ``count`` iterations (basis frame, m).
+    count: iterations averaged.
+    last_iteration: last iteration averaged.
+    is_open: still averaging (every member was observed in every iteration since creation).
+    anchor_targets: (M, 3) world positions a root group is fitted to, else ``None``.
+    T_world_group: (4, 4) fit of the relative map into ``world``.
+    placed: (M, 3) world positions this group gives its members (its contribution).
+    weight: weight of the contribution (``count`` when placed, 0 before).
+    """
+
+    gid: int
+    kind: str
+    members: IntArray
+    basis: tuple[int, int, int]
+    rel_sum: FloatArray
+    count: int
+    last_iteration: int
+    is_open: bool
+    anchor_targets: FloatArray | None = None
+    T_world_group: FloatArray = field(default_factory=lambda: np.eye(4))
+    placed: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    weight: float = 0.0
+
+    @property
+    def relative_map(self) -> FloatArray:
+        """Average relative position (M, 3) of each member in the basis frame, metres."""
+        return self.rel_sum / max(self.count, 1)
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+
+class GroupMap:
+    """Every group, the per-point group references, and the combination of their placements.
+
+    Parameters
+    ----------
+    store:
+        The points; its ``pos_sum``/``pos_weight`` accumulators hold the combination.
+    trim, floor, collinear_tolerance, rounds:
+        Passed to the least-squares fits (see :func:`fit_transform`).
+    min_basis_spread:
+        Smallest basis spread (m) for an iteration to be averaged.
+    weighted:
+        Weight anchors by the iterations averaged into their global positions over the squared
+        spread of those positions between groups (floored at ``spread_floor``, m).
+    unverified_weight:
+        Factor on the weight of anchors not (yet) verified static by dynamic detection.
+    """
+
+    def __init__(
+        self,
+        store: PointStore,
+        *,
+        trim: float,
+        floor: float,
+        collinear_tolerance: float,
+        min_basis_spread: float,
+        weighted: bool = True,
+        unverified_weight: float = 0.5,
+        spread_floor: float = 0.2,
+        rounds: int = 1,
+    ) -> None:
+        self.store = store
+        self.trim = trim
+        self.floor = floor
+        self.collinear_tolerance = collinear_tolerance
+        self.min_basis_spread = min_basis_spread
+        self.weighted = weighted
+        self.unverified_weight = unverified_weight
+        self.rounds = rounds
+        self.spread_floor = spread_floor
+        self.groups: dict[int, RelativeGroup] = {}
+        self.refs: dict[int, list[int]] = {}
+        self.open: list[int] = []
+        self._next_gid = 0
+        self._changed: list[IntArray] = []
+        self.created = 0
+        self.removed = 0
+        self.failed_fits = 0
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def new_gid(self) -> int:
+        gid = self._next_gid
+        self._next_gid += 1
+        return gid
+
+    def refs_of(self, point: int) -> list[int]:
+        """Ids of the groups point ``point`` is in (the paper's *RltGroupRef* list)."""
+        return self.refs.get(point, [])
+
+    # -- placement -------------------------------------------------------------------------------
+
+    def place(self, group: RelativeGroup) -> bool:
+        """Fit the group's relative map into ``world`` and update its members' combined positions.
+
+        Returns False (leaving the group as it was) when the fit is degenerate: fewer than three
+        non-collinear anchors, i.e. previously mapped members for a later group.
+        """
+        store = self.store
+        members = group.members
+        relative = group.relative_map
+        static = ~store.dynamic[members]
+        weights = None
+        if group.anchor_targets is not None:
+            anchors = static
+            target = group.anchor_targets[anchors]
+        else:
+            other_weight = store.pos_weight[members] - group.weight
+            anchors = static & (other_weight > 1e-9)
+            verified = store.verified[members[anchors]] >= 0
+            own = group.weight * group.placed[anchors] if group.weight > 0 else 0.0
+            target = (store.pos_sum[members[anchors]] - own) / other_weight[anchors, None]
+            # Inverse-variance weights: an anchor's global position is as good as the iterations
+            # averaged into it, and as bad as its groups disagree about it (a slowly moving point).
+            # Points not yet verified static by dynamic detection count for less.
+            if self.weighted:
+                spread = store.spread(members[anchors])
+                weights = other_weight[anchors] / (spread**2 + self.spread_floor**2)
+                weights *= np.where(verified, 1.0, self.unverified_weight)
+        fit = fit_transform(
+            relative[anchors],
+            target,
+            trim=self.trim,
+            floor=self.floor,
+            collinear_tolerance=self.collinear_tolerance,
+            weights=weights,
+            rounds=self.rounds,
+        )
+        if fit is None:
+            self.failed_fits += 1
+            return False
+        group.T_world_group = fit.T
+        self._contribute(group, apply(fit.T, relative), float(group.count))
+        return True
+
+    def _contribute(self, group: RelativeGroup, placed: FloatArray, weight: float) -> None:
+        store = self.store
+        members = group.members
+        if group.weight > 0:
+            store.pos_sum[members] -= group.weight * group.placed
+            store.pos_weight[members] -= group.weight
+            store.pos_sq[members] -= group.weight * np.sum(group.placed**2, axis=1)
+        if weight > 0:
+            store.pos_sum[members] += weight * placed
+            store.pos_weight[members] += weight
+            store.pos_sq[members] += weight * np.sum(placed**2, axis=1)
+        # Guard against round-off leaving a ghost weight on points no group places any more.
+        empty = store.pos_weight[members] < 1e-9
+        if empty.any():
+            store.pos_weight[members[empty]] = 0.0
+            store.pos_sum[members[empty]] = 0.0
+            store.pos_sq[members[empty]] = 0.0
+        group.placed = placed
+        group.weight = weight
+        self._changed.append(members)
+
+    # -- life cycle ------------------------------------------------------------------------------
+
+    def add(self, group: RelativeGroup) -> bool:
+        """Place a new group and register it with its members; False if it cannot be placed."""
+        if not self.place(group):
+            return False
+        self.groups[group.gid] = group
+        for point in group.members.tolist():
+            self.refs.setdefault(point, []).append(group.gid)
+        self.store.n_groups[group.members] += 1
+        if group.kind == LATER:
+            self.store.n_later_groups[group.members] += 1
+        if group.is_open:
+            self.open.append(group.gid)
+        self.created += 1
+        return True
+
+    def remove(self, gid: int) -> None:
+        """Delete a group and withdraw its contribution from its members' positions."""
+        group = self.groups.pop(gid)
+        self._contribute(group, group.placed, 0.0)
+        for point in group.members.tolist():
+            refs = self.refs.get(point)
+            if refs is not None:
+                refs.remove(gid)
+                if not refs:
+                    del self.refs[point]
+        self.store.n_groups[group.members] -= 1
+        if group.kind == LATER:
+            self.store.n_later_groups[group.members] -= 1
+        if gid in self.open:
+            self.open.remove(gid)
+        self.removed += 1
+
+    def update_open(self, iteration: int) -> int:
+        """Average this iteration into every open group whose members were all observed; close the rest.
+
+        This is the paper's notification: a group recomputes only when every member has a new
+        observation in the iteration. Returns the number of groups recomputed.
+        """
+        store = self.store
+        slot = iteration % store.ring_size
+        still_open: list[int] = []
+        updated = 0
+        for gid in self.open:
+            group = self.groups[gid]
+            members = group.members
+            basis_members = members[list(group.basis)]
+            if np.any(store.last_iter[members] != iteration) or np.any(store.dynamic[basis_members]):
+                group.is_open = False
+                continue
+            relative, valid = relative_coordinates(
+                store.obs[members, slot][:, None], group.basis, self.min_basis_spread
+            )
+            if valid[0]:
+                group.rel_sum += relative[:, 0]
+                group.count += 1
+                group.last_iteration = iteration
+                self.place(group)
+                updated += 1
+            still_open.append(gid)
+        self.open = still_open
+        return updated
+
+    def transfer(self, newer: int, older: int) -> None:
+        """Make ``older`` take ``newer``'s place in every group of ``newer`` (point merging)."""
+        store = self.store
+        for gid in self.refs.pop(newer, []):
+            group = self.groups[gid]
+            group.members = np.where(group.members == newer, older, group.members)
+            self.refs.setdefault(older, []).append(gid)
+        store.pos_sum[older] += store.pos_sum[newer]
+        store.pos_weight[older] += store.pos_weight[newer]
+        store.pos_sq[older] += store.pos_sq[newer]
+        store.n_groups[older] += store.n_groups[newer]
+        store.n_later_groups[older] += store.n_later_groups[newer]
+        store.pos_sum[newer] = 0.0
+        store.pos_weight[newer] = 0.0
+        store.pos_sq[newer] = 0.0
+        store.n_groups[newer] = 0
+        store.n_later_groups[newer] = 0
+        self._changed.append(np.array([older], np.int64))
+
+    def take_changed(self) -> IntArray:
+        """Distinct ids whose combined position changed since the last call."""
+        if not self._changed:
+            return np.zeros(0, np.int64)
+        changed = np.unique(np.concatenate(self._changed))
+        self._changed = []
+        return changed

@@ -1,0 +1,212 @@
+"""The Relative Point estimator end to end on short simulated runs (Kraut, section II)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relpoint.errors import UsageError
+from relpoint.estimators.base import POINTS, Estimator
+from relpoint.estimators.relative_point import SPEC, RelativePointConfig, RelativePointEstimator
+from relpoint.simulation import Simulation, SimulationConfig, simulate
+from relpoint.types import PointObservation, Pose
+
+NOISE = 0.3
+
+
+def run(
+    config: SimulationConfig,
+    estimator_config: RelativePointConfig | None = None,
+    *,
+    hide: tuple[int, int, int] | None = None,
+    drop_ids: bool = False,
+) -> tuple[Simulation, RelativePointEstimator, list[Pose]]:
+    """Run the estimator over a simulation; ``hide=(landmark, first, stop)`` removes one landmark."""
+    simulation = simulate(config)
+    estimator = RelativePointEstimator(estimator_config)
+    poses = []
+    for step in simulation.steps():
+        observation = step.observation
+        assert observation.ids is not None
+        if hide is not None and hide[1] <= step.index < hide[2]:
+            keep = observation.ids != hide[0]
+            observation = PointObservation(observation.stamp_ns, observation.points[keep], observation.ids[keep])
+        if drop_ids:
+            observation = PointObservation(observation.stamp_ns, observation.points, None)
+        poses.append(estimator.step(observation))
+    return simulation, estimator, poses
+
+
+def in_world(simulation: Simulation, positions: np.ndarray) -> np.ndarray:
+    """Estimates live in the first sensor frame: map them to world through the true first pose."""
+    T0 = simulation.ground_truth.matrices()[0]
+    return positions @ T0[:3, :3].T + T0[:3, 3]
+
+
+def static_landmark_errors(simulation: Simulation, estimator: RelativePointEstimator) -> np.ndarray:
+    landmarks = estimator.landmark_map()
+    known = landmarks.gt_id >= 0
+    static = known & ~landmarks.dynamic & ~simulation.landmarks.dynamic[np.where(known, landmarks.gt_id, 0)]
+    estimated = in_world(simulation, landmarks.positions[static])
+    return np.linalg.norm(estimated - simulation.landmarks.positions[landmarks.gt_id[static]], axis=1)
+
+
+def trajectory_errors(simulation: Simulation, poses: list[Pose]) -> np.ndarray:
+    estimated = in_world(simulation, np.array([p.position for p in poses]))
+    return np.linalg.norm(estimated - simulation.ground_truth.positions, axis=1)
+
+
+@pytest.fixture(scope="module")
+def figure8_run() -> tuple[Simulation, RelativePointEstimator, list[Pose]]:
+    return run(SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=150, seed=4))
+
+
+def test_spec_and_interface() -> None:
+    assert SPEC.name == "relpoint" and SPEC.needs == frozenset({POINTS})
+    assert SPEC.config_class is RelativePointConfig
+    estimator = SPEC.factory(RelativePointConfig(), np.random.default_rng(0))
+    assert isinstance(estimator, Estimator) and estimator.name == "relpoint"
+    assert len(estimator.landmark_map()) == 0 and estimator.map_size == 0
+
+
+def test_first_pose_is_identity_and_stamps_pass_through(figure8_run) -> None:
+    simulation, _, poses = figure8_run
+    assert poses[0].position == (0.0, 0.0, 0.0)
+    assert np.allclose(poses[0].quat_xyzw, (0.0, 0.0, 0.0, 1.0))
+    assert [p.stamp_ns for p in poses] == simulation.stamps_ns.tolist()
+
+
+def test_short_run_error_is_bounded_by_the_noise(figure8_run) -> None:
+    simulation, estimator, poses = figure8_run
+    errors = static_landmark_errors(simulation, estimator)
+    # A single observation is off by NOISE * sqrt(3) ~ 0.52 m; the relative maps average at least
+    # five of them (creation delay) and groups add up along 180 m of path, each fit adding
+    # ~NOISE / sqrt(anchors): the map must stay within 4 NOISE (measured ~0.5 m).
+    assert len(errors) >= 60
+    assert np.sqrt(np.mean(errors**2)) < 4 * NOISE
+    assert np.sqrt(np.mean(trajectory_errors(simulation, poses) ** 2)) < 4 * NOISE
+    summary = estimator.summary()
+    assert summary["degenerate_iterations"] == 0 and summary["iterations"] == 150
+
+
+def test_stationary_map_converges_below_the_noise() -> None:
+    simulation, estimator, poses = run(SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=200))
+    errors = static_landmark_errors(simulation, estimator)
+    # The relative map averages ~200 observations; what remains is the world frame, fixed by the
+    # first observations of ~25 points (NOISE * sqrt(3) / 5 ~ 0.1 m, more at 70 m lever arms).
+    assert len(errors) == 25
+    assert np.sqrt(np.mean(errors**2)) < NOISE
+    assert np.max(trajectory_errors(simulation, poses)) < 2 * NOISE
+
+
+def test_gt_id_is_the_majority_id_and_ids_are_not_used_for_association(figure8_run) -> None:
+    simulation, estimator, poses = figure8_run
+    landmarks = estimator.landmark_map()
+    assert len(np.unique(landmarks.gt_id)) >= 0.95 * len(landmarks)  # few duplicates
+    purity = estimator.landmark_purity()
+    assert purity.shape == (len(landmarks),) and np.mean(purity) > 0.98
+    assert landmarks.observations.sum() <= sum(len(s.observation) for s in simulation.steps())
+    _, blind, blind_poses = run(
+        SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=150, seed=4), drop_ids=True
+    )
+    assert [p.position for p in blind_poses] == [p.position for p in poses]
+    assert np.all(blind.landmark_map().gt_id == -1)
+    assert np.allclose(blind.landmark_map().positions, landmarks.positions)
+
+
+def test_dynamic_points_are_flagged_and_kept_out_of_the_static_map() -> None:
+    simulation, estimator, _ = run(
+        SimulationConfig(scenario="stationary", density=60, noise=NOISE, iterations=200, dynamic=0.3)
+    )
+    landmarks = estimator.landmark_map()
+    known = landmarks.gt_id >= 0
+    truly = known & simulation.landmarks.dynamic[np.where(known, landmarks.gt_id, 0)]
+    flagged = landmarks.dynamic
+    assert np.count_nonzero(flagged & truly) / np.count_nonzero(flagged) >= 0.8  # precision
+    assert np.count_nonzero(flagged & truly) / np.count_nonzero(truly) >= 0.7  # recall
+    assert np.sqrt(np.mean(static_landmark_errors(simulation, estimator) ** 2)) < NOISE
+    assert estimator.summary()["landmarks_dynamic"] == np.count_nonzero(flagged)
+
+
+def test_duplicated_point_is_merged_back() -> None:
+    # Landmark 5 vanishes for 20 iterations; without global matching it comes back as a new point,
+    # which must merge into the old one once grouped at the same global position.
+    config = SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=120, seed=1)
+    _, estimator, _ = run(config, RelativePointConfig(global_matching=False), hide=(5, 30, 50))
+    landmarks = estimator.landmark_map()
+    assert estimator.summary()["merges"] >= 1
+    assert np.count_nonzero(landmarks.gt_id == 5) == 1
+    assert landmarks.observations[landmarks.gt_id == 5].item() == 100
+
+
+def test_returning_point_is_matched_globally() -> None:
+    config = SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=120, seed=1)
+    _, estimator, _ = run(config, hide=(5, 30, 50))
+    landmarks = estimator.landmark_map()
+    assert estimator.summary()["global_matches"] >= 1 and estimator.summary()["merges"] == 0
+    assert landmarks.observations[landmarks.gt_id == 5].tolist() == [100]
+
+
+def test_degenerate_input_holds_the_pose_and_is_counted() -> None:
+    simulation = simulate(SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=40))
+    observations = [step.observation for step in simulation.steps()]
+    estimator = RelativePointEstimator()
+    poses = [estimator.step(o) for o in observations[:20]]
+    stamp = observations[19].stamp_ns
+    line = np.outer(np.linspace(5.0, 50.0, 10), [1.0, 0.2, 0.1])
+    nan_cloud = np.full((6, 3), np.nan)
+    bad = [
+        PointObservation(stamp + 1, np.zeros((0, 3))),
+        PointObservation(stamp + 2, nan_cloud),
+        PointObservation(stamp + 3, observations[19].points[:2]),
+        PointObservation(stamp + 4, line),
+        PointObservation(stamp + 5, np.zeros((5, 3))),
+    ]
+    held = [estimator.step(o) for o in bad]
+    assert all(p.position == poses[-1].position and p.quat_xyzw == poses[-1].quat_xyzw for p in held)
+    summary = estimator.summary()
+    assert summary["degenerate_iterations"] == len(bad)
+    assert summary["empty_iterations"] == 2 and summary["nonfinite_points"] == 6
+    # Normal input afterwards recovers the stationary pose.
+    for o in observations[25:]:
+        recovered = estimator.step(PointObservation(o.stamp_ns + 10**9, o.points, o.ids))
+    assert np.linalg.norm(recovered.position) < 2 * NOISE
+    # A world whose points are all collinear gives no basis and no rotation: held, never placed.
+    collinear = RelativePointEstimator()
+    for t in range(15):
+        held_line = collinear.step(PointObservation(t, line + np.random.default_rng(t).normal(0, 0.01, line.shape)))
+    assert held_line.position == (0.0, 0.0, 0.0) and len(collinear.landmark_map()) == 0
+    assert collinear.summary()["degenerate_iterations"] == 14
+    # A log that starts empty or tiny does not crash either.
+    fresh = RelativePointEstimator()
+    first = fresh.step(PointObservation(0, np.zeros((0, 3))))
+    assert first.position == (0.0, 0.0, 0.0)
+    fresh.step(PointObservation(1, np.ones((1, 3))))
+    assert fresh.summary()["degenerate_iterations"] == 2
+
+
+def test_memory_is_bounded_by_the_map_not_the_iterations() -> None:
+    simulation = simulate(SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=400, clutter=2.0))
+    estimator = RelativePointEstimator(RelativePointConfig(ring_size=32, regroup_after=32, dynamic_window=32))
+    sizes = []
+    for step in simulation.steps():
+        estimator.step(step.observation)
+        if step.index in (149, 399):
+            sizes.append((estimator.store.capacity, len(estimator.groups), estimator.store.count))
+    (capacity_a, groups_a, points_a), (capacity_b, groups_b, points_b) = sizes
+    assert estimator.store.obs.shape[1] == 32
+    assert capacity_b == capacity_a  # clutter points are dropped and their rows reused
+    assert groups_b <= groups_a + 5 and points_b <= points_a + 10
+
+
+def test_config_is_validated() -> None:
+    with pytest.raises(UsageError):
+        RelativePointConfig(match_bound=-1.0)
+    with pytest.raises(UsageError):
+        RelativePointConfig(seed_points=2)
+    with pytest.raises(UsageError):
+        RelativePointConfig(regroup_after=500)
+    with pytest.raises(UsageError):
+        RelativePointConfig.from_mapping({"match-bound": 2.0, "no_such_setting": 1})
+    config = RelativePointConfig.from_mapping({"match-bound": 2.5})
+    assert config.match_bound == 2.5 and RelativePointConfig(**config.to_dict()) == config
