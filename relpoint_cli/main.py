@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
+import signal
 import sys
 from typing import Any
 
@@ -25,6 +27,10 @@ Exit codes: 0 ok, 1 internal error, 2 usage error, 3 input error,
 """
 
 
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 class RelpointGroup(click.Group):
     """A click group whose usage errors are one line on stderr (exit 2), like every other error.
 
@@ -44,8 +50,14 @@ class RelpointGroup(click.Group):
 
     def main(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
         kwargs["standalone_mode"] = False
+        # SIGTERM ends a run like Ctrl-C from the first instant, before any command module is imported.
+        with contextlib.suppress(ValueError):  # not the main thread: leave signals alone
+            signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
         try:
             return super().main(*args, **kwargs)
+        except KeyboardInterrupt:
+            click.echo("relpoint: error: interrupted; no output was written", err=True)
+            sys.exit(EXIT_INTERRUPTED)
         except click.UsageError as error:
             where = f"'{error.ctx.command_path} --help'" if error.ctx else "'relpoint --help'"
             click.echo(f"relpoint: error: {error.format_message()} (see {where})", err=True)
