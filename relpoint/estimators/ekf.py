@@ -23,7 +23,6 @@ Cost
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import Counter
@@ -45,6 +44,7 @@ from relpoint.estimators._association import (
 )
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)
@@ -54,8 +54,10 @@ ASSOCIATIONS = ("nn", "jcbb", "known")
 
 
 @dataclass(frozen=True)
-class EkfConfig:
+class EkfConfig(Settings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
+
+    settings_name: ClassVar[str] = "ekf"
 
     association: str = "nn"
     """Data association: ``nn`` (nearest neighbour in Mahalanobis distance), ``jcbb`` (joint
@@ -120,21 +122,6 @@ class EkfConfig:
             )
         if not (isinstance(self.jcbb_max_nodes, int) and self.jcbb_max_nodes >= 1):
             raise UsageError(f"jcbb_max_nodes must be a positive integer, got {self.jcbb_max_nodes!r}")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> EkfConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown ekf setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 class EkfSlam(Estimator):

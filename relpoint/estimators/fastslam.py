@@ -25,7 +25,6 @@ Layout
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import Counter
@@ -40,6 +39,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
 from relpoint.estimators.base import ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose
 
 logger = logging.getLogger(__name__)
@@ -62,8 +62,10 @@ _PARTICLE_ARRAYS = (
 
 
 @dataclass(frozen=True)
-class FastSlamConfig:
+class FastSlamConfig(Settings):
     """Settings of the FastSLAM estimator. Metres, radians, seconds."""
+
+    settings_name: ClassVar[str] = "fastslam"
 
     variant: str = "2.0"
     """``2.0`` (proposal includes the points) or ``1.0`` (proposal is the motion model)."""
@@ -115,21 +117,6 @@ class FastSlamConfig:
             )
         if not (isinstance(self.resample_threshold, int | float) and 0.0 <= self.resample_threshold <= 1.0):
             raise UsageError(f"resample_threshold must be between 0 and 1, got {self.resample_threshold!r}")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> FastSlamConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown fastslam setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:

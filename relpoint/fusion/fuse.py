@@ -26,12 +26,11 @@ iterations outside one); fixes carry no orientation.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -45,14 +44,17 @@ from relpoint.fusion.global_map import SegmentTransform, fit_segment
 from relpoint.fusion.lagrange import interpolate_fixes
 from relpoint.fusion.segmentation import NO_SEGMENT, segment_run, segment_slices
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import IntArray, LandmarkMap, PositionFix, Trajectory
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class FusionConfig:
+class FusionConfig(Settings):
     """Settings of the fusion post-step. Metres."""
+
+    settings_name: ClassVar[str] = "fusion"
 
     min_matches: int = 5
     """``m_l`` of Algorithm 3: a pair of iterations with fewer matched features breaks the local map."""
@@ -86,21 +88,6 @@ class FusionConfig:
             raise UsageError(f"max_position_error must be a positive number (or inf), got {self.max_position_error!r}")
         if self.local_sigma == 0 and self.drift_fraction == 0:
             raise UsageError("local_sigma and drift_fraction cannot both be 0 (the local estimate needs a covariance)")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> FusionConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown fusion setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True, eq=False)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from relpoint.errors import UsageError
+from relpoint.settings import Settings
 
 SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps")
 
@@ -18,11 +18,13 @@ def setting(default: Any, help: str) -> Any:
 
 
 @dataclass(frozen=True)
-class SimulationConfig:
+class SimulationConfig(Settings):
     """Everything that determines a simulated log; the same config gives a byte-identical file.
 
     Distances in metres, angles in degrees, times in seconds, rates in hertz.
     """
+
+    settings_name: ClassVar[str] = "simulation"
 
     scenario: str = setting(
         "figure8",
@@ -89,19 +91,3 @@ class SimulationConfig:
             raise UsageError(f"iterations must be at least 1, got {self.iterations}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise UsageError(f"seed must be a non-negative integer, got {self.seed!r}")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> SimulationConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown simulation setting(s): {', '.join(unknown)}",
-                f"known settings are {', '.join(sorted(known))}",
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
