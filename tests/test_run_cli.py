@@ -98,7 +98,11 @@ def test_config_command_lists_parameters() -> None:
 @pytest.mark.parametrize("name", sorted(ESTIMATORS))
 def test_info_reports_each_estimator(name: str, small_log: Path) -> None:
     result = CliRunner().invoke(cli, ["info", str(small_log), "--json"])
-    assert json.loads(result.stdout)["estimators"][name]["can_run"] is True
+    capability = json.loads(result.stdout)["estimators"][name]
+    # The small log carries points, odometry and fixes but no depth images.
+    assert capability["can_run"] is ("points" in ESTIMATORS[name].needs)
+    if not capability["can_run"]:
+        assert "depth" in capability["missing"]
 
 
 def test_stamps_going_backwards_stop_the_run_without_output(tmp_path: Path, small_log: Path) -> None:
