@@ -18,6 +18,7 @@ from formats import ros2
 from formats.atomic import atomic_directory, write_text
 from formats.log import LogWriter
 from formats.ply import landmark_vertices, write_ply
+from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
 from relpoint.pipeline import RunResult
@@ -68,7 +69,11 @@ def write_run_directory(out_dir: str | os.PathLike[str], result: RunResult, run_
     with atomic_directory(out_dir) as tmp:
         write_tum(tmp / "trajectory.tum", result.trajectory)
         write_trajectory_csv(tmp / "trajectory.csv", result.trajectory)
-        write_ply(tmp / "map.ply", landmark_vertices(result.landmarks), comments=["relpoint landmark map, frame world"])
+        if result.dense_map is not None:
+            vertices = dense_map_vertices(*result.dense_map)
+            write_ply(tmp / "map.ply", vertices, comments=["relpoint dense map: points, normals, colours, weights; world"])
+        else:
+            write_ply(tmp / "map.ply", landmark_vertices(result.landmarks), comments=["relpoint landmark map, frame world"])
         write_map_csv(tmp / "map.csv", result.landmarks)
         write_timing_csv(tmp / "timing.csv", result.observed, result.map_size, result.seconds)
         write_result_mcap(tmp / "result.mcap", result)
@@ -79,6 +84,7 @@ def write_run_directory(out_dir: str | os.PathLike[str], result: RunResult, run_
                 "landmarks": len(result.landmarks),
                 "dynamic_landmarks": int(result.landmarks.dynamic.sum()),
                 "observed_mean": float(result.observed.mean()) if len(result.observed) else 0.0,
+                **({"map_points": len(result.dense_map[0])} if result.dense_map is not None else {}),
                 **result.summary,
             },
             "timing": result.timing_summary(),

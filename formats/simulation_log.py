@@ -34,9 +34,9 @@ def write_simulation(
             if step.index == 0:
                 writer.write_ground_truth_landmarks(step.stamp_ns, simulation.landmarks, topics.ground_truth_landmarks)
                 counts["ground_truth_landmarks"] += 1
-            writer.write_ground_truth_pose(
-                Pose.from_matrix(step.stamp_ns, step.T_world_sensor), topics.ground_truth_pose
-            )
+            position, quat = truth.positions[step.index], truth.quats_xyzw[step.index]
+            pose = Pose(step.stamp_ns, tuple(position.tolist()), tuple(quat.tolist()))  # type: ignore[arg-type]
+            writer.write_ground_truth_pose(pose, topics.ground_truth_pose)
             writer.write_observation(step.observation, topics.points)
             counts["ground_truth_pose"] += 1
             counts["points"] += 1

@@ -17,13 +17,13 @@ from __future__ import annotations
 import logging
 import os
 import re
-import tempfile
 from collections.abc import Iterable, Iterator
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
+from formats.atomic import write_text
 from relpoint.errors import InputError
 from relpoint.geometry import matrix_to_position_quat
 from relpoint.types import Trajectory
@@ -191,18 +191,8 @@ def read_kitti(path: str | os.PathLike[str], times_path: str | os.PathLike[str] 
 
 
 def _atomic_write(path: Path, lines: Iterable[str]) -> None:
-    """Write ``lines`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as handle:
-            handle.writelines(lines)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    """Write ``lines`` to ``path`` atomically (temporary file beside it, then rename)."""
+    write_text(path, "".join(lines))
 
 
 def write_tum(path: str | os.PathLike[str], trajectory: Trajectory, header: str | None = None) -> None:

@@ -47,6 +47,8 @@ class RunResult:
     map_size: np.ndarray
     seconds: np.ndarray
     summary: dict[str, Any] = field(default_factory=dict)
+    dense_map: tuple[np.ndarray, ...] | None = None
+    """For dense estimators: (positions (M,3) m, normals (M,3), colours (M,3) uint8, weights (M,)) in ``world``."""
 
     def timing_summary(self) -> dict[str, float]:
         """Mean, median and total wall time per iteration, in seconds."""
@@ -108,4 +110,5 @@ def run(
         map_size=np.asarray(map_size, dtype=np.int64),
         seconds=np.asarray(seconds, dtype=np.float64),
         summary=estimator.summary(),
+        dense_map=estimator.dense_map() if hasattr(estimator, "dense_map") else None,
     )

@@ -111,6 +111,7 @@ COMMANDS: dict[str, str] = {
     "export": "relpoint_cli.export:export",
     "fuse": "relpoint_cli.fuse:fuse_command",
     "batch": "relpoint_cli.batch:batch",
+    "import": "relpoint_cli.import_data:import_command",
 }
 
 

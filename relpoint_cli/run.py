@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -18,10 +19,13 @@ from formats.run_output import file_sha256, write_run_directory
 from relpoint import pipeline
 from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
+from relpoint.types import DepthFrame, Intrinsics
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
+
+log = logging.getLogger(__name__)
 
 EXAMPLES = """\b
 Examples:
@@ -72,10 +76,29 @@ def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[st
 
 
 def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
-    """Core-type inputs for the pipeline from decoded log records."""
+    """Core-type inputs for the pipeline from decoded log records.
+
+    Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
+    colour image of the same stamp (colour is written before depth at a stamp); depth images that
+    arrive before any camera_info, or that do not match its size, are skipped and counted.
+    """
+    intrinsics: Intrinsics | None = None
+    color: tuple[int, np.ndarray] | None = None
     for record in records:
         if record.role in ("points", "odometry", "fix"):
             yield record.value
+        elif record.role == "camera_info":
+            intrinsics = record.value
+        elif record.role == "color":
+            color = (record.stamp_ns, record.value)
+        elif record.role == "depth":
+            if intrinsics is None or record.value.shape != (intrinsics.height, intrinsics.width):
+                log.warning("skipping a depth image at %d ns: no matching camera_info before it", record.stamp_ns)
+                continue
+            rgb = color[1] if color is not None and color[0] == record.stamp_ns else None
+            if rgb is not None and rgb.shape[:2] != record.value.shape:
+                rgb = None
+            yield DepthFrame(record.stamp_ns, record.value, intrinsics, rgb)
 
 
 def input_roles(
@@ -166,7 +189,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     spec = ESTIMATORS[estimator_name]
     config = build_config(spec, config_file, params)
     reader = LogReader(log, topics_from(topic_names))
-    total = reader.topic_infos.get(reader.topics.points)
+    total = reader.topic_infos.get(reader.topics.depth if "depth" in spec.needs else reader.topics.points)
     with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
         result = execute_run(
             reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,

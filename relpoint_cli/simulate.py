@@ -11,6 +11,7 @@ import click
 from formats.config_files import load_settings
 from formats.log import COMPRESSIONS
 from formats.simulation_log import write_simulation
+from relpoint.errors import UsageError
 from relpoint.simulation import SCENARIOS, SimulationConfig
 from relpoint.simulation import simulate as make_simulation
 from relpoint_cli.errors import handle_errors
@@ -25,6 +26,7 @@ Examples:
   relpoint simulate -o odo.mcap --odometry-noise 0.05 --fix-every 20 --fix-noise 1.5
   relpoint simulate -o still.mcap --scenario stationary
   relpoint simulate -o fast.mcap --scenario corridor --density 550
+  relpoint simulate -o room.mcap --scenario room --resolution 640x480 --iterations 300
   relpoint simulate -o run.mcap --config sim.toml        # settings from TOML/YAML; options override
 
 A config file holds the same settings by name (dashes or underscores), e.g. in TOML:
@@ -49,15 +51,32 @@ A config file holds the same settings by name (dashes or underscores), e.g. in T
     show_default=True,
     help="MCAP chunk compression.",
 )
-@config_options(SimulationConfig, choices={"scenario": SCENARIOS})
+@click.option("--resolution", type=click.Choice(["320x240", "640x480"]), help="Image size (scenario room only).")
+@config_options(SimulationConfig, choices={"scenario": (*SCENARIOS, "room")})
 @click.pass_context
 @handle_errors
-def simulate(ctx: click.Context, output: Path, config_file: Path | None, compression: str, **settings: Any) -> None:
-    """Write a simulated run (observations, ground truth, odometry, fixes) to an MCAP log."""
+def simulate(
+    ctx: click.Context,
+    output: Path,
+    config_file: Path | None,
+    compression: str,
+    resolution: str | None,
+    **settings: Any,
+) -> None:
+    """Write a simulated run (observations, ground truth, odometry, fixes) to an MCAP log.
+
+    The scenario room renders depth and colour images of a furnished room instead (for the dense
+    estimator) and writes the room's surface samples beside the log as LOG.scene.ply.
+    """
     values: dict[str, Any] = {}
     if config_file is not None:
         values.update(load_settings(config_file, section="simulate"))
     names = [f.name for f in dataclasses.fields(SimulationConfig)]
+    if explicit_options(ctx, ["scenario"]).get("scenario", values.get("scenario")) == "room":
+        simulate_room(ctx, output, compression, resolution, values, explicit_options(ctx, names))
+        return
+    if resolution is not None:
+        raise UsageError("--resolution applies to the room scenario only")
     defaults = {name: settings[name] for name in names}
     merged = {**defaults, **values, **explicit_options(ctx, names)}
     config = SimulationConfig.from_mapping(merged)
@@ -70,3 +89,39 @@ def simulate(ctx: click.Context, output: Path, config_file: Path | None, compres
         f"({int(simulation.landmarks.dynamic.sum())} dynamic), {size / 1e6:.2f} MB",
         err=True,
     ) if not ctx.find_root().obj.get("quiet") else None
+
+
+#: Point-scenario options that carry over to the room scenario, under the room's own names.
+_ROOM_OPTIONS = {"iterations": "frames", "rate": "rate", "seed": "seed"}
+
+
+def simulate_room(
+    ctx: click.Context, output: Path, compression: str, resolution: str | None,
+    file_values: dict[str, Any], explicit: dict[str, Any],
+) -> None:  # fmt: skip
+    """``relpoint simulate --scenario room``: an RGB-D log of a rendered room and its reference cloud."""
+    from formats.rgbd_log import write_reference_cloud, write_rgbd_simulation
+    from relpoint.simulation.rgbd import RgbdConfig, simulate_rgbd
+
+    unused = sorted(set(explicit) - set(_ROOM_OPTIONS) - {"scenario"})
+    if unused:
+        raise UsageError(
+            f"option(s) {', '.join('--' + n.replace('_', '-') for n in unused)} do not apply to the room scenario",
+            "room settings go in a --config file (see docs/dense.md)",
+        )
+    values = {key: value for key, value in file_values.items() if key != "scenario"}
+    values.update({_ROOM_OPTIONS[name]: value for name, value in explicit.items() if name in _ROOM_OPTIONS})
+    if resolution is not None:
+        values["resolution"] = resolution
+    config = RgbdConfig.from_mapping(values)
+    simulation = simulate_rgbd(config)
+    with progress_bar(len(simulation), "render", unit="frame") as bar:
+        counts = write_rgbd_simulation(simulation, output, compression=compression, on_frame=lambda _: bar.update(1))
+    scene = output.with_suffix(".scene.ply")
+    samples = write_reference_cloud(simulation, scene)
+    if not ctx.find_root().obj.get("quiet"):
+        click.echo(
+            f"wrote {output}: {counts['depth']} depth frames at {config.resolution}, "
+            f"{output.stat().st_size / 1e6:.2f} MB; scene reference cloud {scene} ({samples} points)",
+            err=True,
+        )

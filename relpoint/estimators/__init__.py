@@ -18,10 +18,10 @@ __all__ = ["DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "Estimator", "Est
 
 
 def _register_builtin() -> None:
-    from relpoint.estimators import ekf, fastslam
+    from relpoint.estimators import dense, ekf, fastslam
     from relpoint.estimators.relative_point import estimator as relative_point
 
-    for spec in (relative_point.SPEC, ekf.SPEC, fastslam.SPEC):
+    for spec in (relative_point.SPEC, ekf.SPEC, fastslam.SPEC, dense.SPEC):
         register(spec)
 
 

@@ -1,0 +1,271 @@
+"""Importers of RGB-D datasets held as folders into relpoint logs (``relpoint import``).
+
+Two layouts:
+
+TUM RGB-D (Sturm et al. 2012)
+    ``rgb.txt`` and ``depth.txt`` (``timestamp filename`` per line, ``#`` comments), ``groundtruth.txt``
+    (``timestamp tx ty tz qx qy qz qw``, camera pose in the mocap world), depth PNGs (uint16, depth x 5000,
+    0 = none), colour PNGs. Each depth image is paired with the colour image nearest in time within a
+    tolerance (as ``associate.py`` of the benchmark does); unpaired depth frames are written without colour.
+    The camera intrinsics are not in the folder: the Freiburg defaults are used unless given.
+
+7-Scenes (Shotton et al. 2013)
+    ``frame-NNNNNN.depth.png`` (uint16 millimetres, 0 and 65535 = none), ``frame-NNNNNN.color.jpg``,
+    ``frame-NNNNNN.pose.txt`` (4x4 camera-to-world, ``T_world_camera``); no stamps: 30 Hz from 0 s;
+    optional ``camera-intrinsics.txt`` (3x3 K), else fx = fy = 585, cx = 320, cy = 240.
+
+The log holds ``/camera/depth/camera_info`` once, then per frame at its stamp ``/ground_truth/pose``,
+``/camera/color/image`` (rgb8; resized to the depth size when it differs, as 7-Scenes colour is not
+registered to depth) and ``/camera/depth/image`` (16UC1 mm), colour before depth so that a reader can
+attach it to the depth frame that follows. Images are read with Pillow.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from formats.log import LogWriter, Topics, metadata_json
+from relpoint.errors import InputError
+from relpoint.types import Intrinsics, Pose
+
+log = logging.getLogger(__name__)
+
+TUM_DEPTH_SCALE = 5000.0
+#: Freiburg 1 (fr1) intrinsics of the TUM RGB-D benchmark; fr2 and fr3 differ slightly.
+TUM_DEFAULT_INTRINSICS = Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3)
+SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)
+SEVEN_SCENES_RATE = 30.0
+
+
+@dataclass(frozen=True)
+class ImportCounts:
+    """Messages written by an import."""
+
+    depth: int
+    color: int
+    ground_truth_pose: int
+    skipped_depth: int = 0
+
+
+def _read_list(path: Path) -> list[tuple[float, list[str]]]:
+    """A TUM list file: ``(timestamp, [fields...])`` per non-comment line."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such file", "a TUM RGB-D folder holds rgb.txt, depth.txt and groundtruth.txt")
+    rows = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        try:
+            rows.append((float(parts[0]), parts[1:]))
+        except (ValueError, IndexError):
+            raise InputError(f"{path}:{number}: cannot read {line!r}") from None
+    return rows
+
+
+def associate_stamps(first: list[float], second: list[float], tolerance: float) -> list[int | None]:
+    """For each stamp of ``first`` the index of the nearest stamp of ``second`` within ``tolerance`` (s), else None.
+
+    Matches are one-to-one, greedily by increasing time difference (as the TUM ``associate.py``).
+    """
+    order = sorted(range(len(second)), key=lambda k: second[k])
+    sorted_second = [second[k] for k in order]
+    pairs = []
+    for i, stamp in enumerate(first):
+        at = bisect.bisect_left(sorted_second, stamp)
+        for k in (at - 1, at):
+            if 0 <= k < len(sorted_second) and abs(sorted_second[k] - stamp) <= tolerance:
+                pairs.append((abs(sorted_second[k] - stamp), i, order[k]))
+    # Only the two nearest stamps are candidates: the tolerance is normally far below the frame period.
+    pairs.sort()
+    result: list[int | None] = [None] * len(first)
+    used: set[int] = set()
+    for _, i, j in pairs:
+        if result[i] is None and j not in used:
+            result[i] = j
+            used.add(j)
+    return result
+
+
+def _read_depth_png(path: Path, scale: float, invalid: tuple[int, ...] = ()) -> np.ndarray:
+    try:
+        with Image.open(path) as image:
+            raw = np.asarray(image)
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path}: cannot read the depth image ({error})") from None
+    if raw.ndim != 2:
+        raise InputError(f"{path}: a depth image must have one channel, got shape {raw.shape}")
+    raw = raw.astype(np.uint32)
+    depth = raw.astype(np.float32) / np.float32(scale)
+    bad = raw == 0
+    for value in invalid:
+        bad |= raw == value
+    depth[bad] = 0.0
+    return depth
+
+
+def _read_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
+    try:
+        with Image.open(path) as image:
+            image = image.convert("RGB")
+            if image.size != size:
+                image = image.resize(size, Image.Resampling.BILINEAR)
+            return np.asarray(image, dtype=np.uint8)
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path}: cannot read the colour image ({error})") from None
+
+
+def _stamp_ns(seconds: float) -> int:
+    return int(round(seconds * 1e9))
+
+
+def _nearest_pose(
+    stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, t: float, tolerance: float
+) -> Pose | None:
+    """The ground-truth sample nearest to ``t`` (s) if it lies within ``tolerance``, else None."""
+    k = int(np.searchsorted(stamps, t))
+    candidates = [i for i in (k - 1, k) if 0 <= i < len(stamps)]
+    if not candidates:
+        return None
+    nearest = min(candidates, key=lambda i: abs(stamps[i] - t))
+    if abs(stamps[nearest] - t) > tolerance:
+        return None
+    return Pose(_stamp_ns(t), tuple(positions[nearest]), tuple(quats[nearest]))  # type: ignore[arg-type]
+
+
+def import_tum(
+    folder: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    *,
+    intrinsics: Intrinsics | None = None,
+    tolerance: float = 0.02,
+    compression: str = "zstd",
+    topics: Topics | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> ImportCounts:
+    """Convert a TUM RGB-D folder to a relpoint log.
+
+    Parameters
+    ----------
+    folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional).
+    output: the ``.mcap`` to write.
+    intrinsics: the depth camera's intrinsics (default: Freiburg 1); the size is taken from the images.
+    tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
+    """
+    folder = Path(folder)
+    topics = topics or Topics()
+    depth_rows = _read_list(folder / "depth.txt")
+    if not depth_rows:
+        raise InputError(f"{folder / 'depth.txt'} lists no depth image")
+    rgb_rows = _read_list(folder / "rgb.txt") if (folder / "rgb.txt").is_file() else []
+    colour_match = associate_stamps([t for t, _ in depth_rows], [t for t, _ in rgb_rows], tolerance)
+    truth = None
+    if (folder / "groundtruth.txt").is_file():
+        gt_rows = _read_list(folder / "groundtruth.txt")
+        values = np.array([[t, *map(float, f[:7])] for t, f in gt_rows], dtype=np.float64).reshape(-1, 8)
+        order = np.argsort(values[:, 0])
+        truth = values[order]
+    base = intrinsics or TUM_DEFAULT_INTRINSICS
+    depth_count = color_count = pose_count = skipped = 0
+    metadata = {"relpoint.import": metadata_json({"layout": "tum", "source": folder.name, "tolerance": tolerance})}
+    previous = None
+    with LogWriter(output, compression=compression, metadata=metadata) as writer:
+        for index, ((stamp_s, fields), colour_index) in enumerate(zip(depth_rows, colour_match, strict=True)):
+            stamp = _stamp_ns(stamp_s)
+            if previous is not None and stamp <= previous:
+                skipped += 1
+                log.warning("depth frame %s at %.6f s is not after the previous one; skipped", fields[0], stamp_s)
+                continue
+            depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
+            h, w = depth.shape
+            if depth_count == 0:
+                k = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy)
+                writer.write_camera_info(stamp, k, topics.camera_info)
+            if truth is not None:
+                pose = _nearest_pose(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
+                if pose is not None:
+                    writer.write_ground_truth_pose(Pose(stamp, pose.position, pose.quat_xyzw), topics.ground_truth_pose)
+                    pose_count += 1
+            if colour_index is not None:
+                writer.write_color(stamp, _read_rgb(folder / rgb_rows[colour_index][1][0], (w, h)), topics.color)
+                color_count += 1
+            writer.write_depth(stamp, depth, topics.depth)
+            depth_count += 1
+            previous = stamp
+            if on_frame is not None:
+                on_frame(index)
+    return ImportCounts(depth_count, color_count, pose_count, skipped)
+
+
+_SEVEN_SCENES_FRAME = re.compile(r"frame-(\d+)\.depth\.png$")
+
+
+def import_7scenes(
+    folder: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    *,
+    rate: float = SEVEN_SCENES_RATE,
+    first: int = 0,
+    count: int | None = None,
+    compression: str = "zstd",
+    topics: Topics | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> ImportCounts:
+    """Convert a 7-Scenes sequence folder to a relpoint log (frame ``i`` stamped ``i / rate`` s).
+
+    ``first`` and ``count`` select a range of frames (by position in the sorted frame list).
+    """
+    folder = Path(folder)
+    topics = topics or Topics()
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such folder")
+    frames = sorted(
+        (int(m.group(1)), p) for p in folder.iterdir() if (m := _SEVEN_SCENES_FRAME.search(p.name)) is not None
+    )
+    frames = frames[first : None if count is None else first + count]
+    if not frames:
+        raise InputError(f"{folder}: no frame-NNNNNN.depth.png files", "give a 7-Scenes sequence folder (seq-NN)")
+    intrinsics = SEVEN_SCENES_INTRINSICS
+    if (folder / "camera-intrinsics.txt").is_file():
+        K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
+        intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    depth_count = color_count = pose_count = 0
+    metadata = {"relpoint.import": metadata_json({"layout": "7scenes", "source": folder.name, "rate": rate})}
+    with LogWriter(output, compression=compression, metadata=metadata) as writer:
+        for position, (number, depth_path) in enumerate(frames):
+            stamp = _stamp_ns(number / rate)
+            depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
+            h, w = depth.shape
+            if depth_count == 0:
+                k = Intrinsics(w, h, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+                writer.write_camera_info(stamp, k, topics.camera_info)
+            stem = depth_path.name[: -len(".depth.png")]
+            pose_path = folder / f"{stem}.pose.txt"
+            if pose_path.is_file():
+                T = np.loadtxt(pose_path).reshape(4, 4)
+                if np.all(np.isfinite(T)) and abs(T[3, 3]) > 0:
+                    writer.write_ground_truth_pose(Pose.from_matrix(stamp, T), topics.ground_truth_pose)
+                    pose_count += 1
+                else:
+                    log.warning("%s holds an invalid pose; no ground truth for that frame", pose_path.name)
+            color_path = folder / f"{stem}.color.jpg"
+            if not color_path.is_file():
+                color_path = folder / f"{stem}.color.png"
+            if color_path.is_file():
+                writer.write_color(stamp, _read_rgb(color_path, (w, h)), topics.color)
+                color_count += 1
+            writer.write_depth(stamp, depth, topics.depth)
+            depth_count += 1
+            if on_frame is not None:
+                on_frame(position)
+    return ImportCounts(depth_count, color_count, pose_count)

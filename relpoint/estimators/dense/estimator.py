@@ -1,0 +1,304 @@
+"""Dense RGB-D SLAM by projective point-to-plane ICP and point-based fusion (the dense-SLAM paper, section 4).
+
+Each depth frame is turned into a vertex/normal pyramid (section 2, :mod:`.maps`); the camera is tracked
+*map-to-frame*: the map's points rendered at the previous pose are the ICP source and the new frame the
+target (section 4), coarse to fine (:mod:`.icp`); the frame is then fused into the map at the tracked pose
+(section 3, :mod:`.fusion`). The first frame's camera is ``world`` (identity pose).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.errors import EstimatorError, UsageError
+from relpoint.estimators.base import DEPTH, Estimator, EstimatorSpec
+from relpoint.estimators.dense.fusion import PointMap
+from relpoint.estimators.dense.icp import IcpSettings, track
+from relpoint.estimators.dense.maps import Level, build_pyramid
+from relpoint.geometry import FloatArray, invert_pose
+from relpoint.types import DepthFrame, LandmarkMap, Pose
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Settings of the dense estimator. Metres, degrees, frames."""
+
+    downsample: int = 1
+    """Process the depth at 1/downsample of its resolution (1, 2 or 4; 2x2 block averaging)."""
+    smooth_depth: bool = True
+    """Smooth the depth with an edge-preserving 3x3 mean before computing vertices and normals."""
+    pyramid_levels: int = 3
+    """Pyramid levels for coarse-to-fine ICP (each halves the resolution)."""
+    icp_iterations: tuple[int, ...] = (4, 5, 10)
+    """ICP iterations per level, finest first (one entry per level)."""
+    source_stride: int = 2
+    """Use every ``source_stride``-th pixel (in both directions) of the rendered map as ICP source at each
+    level (1 = all; 2 quarters the cost of the finest level)."""
+    icp_distance: float = 0.1
+    """Association gate ``|p' - q|`` of ICP, metres (section 2.1)."""
+    icp_normal_angle: float = 30.0
+    """Association gate on the angle between map and frame normals, degrees."""
+    huber_delta: float = 0.02
+    """Huber threshold on point-to-plane residuals, metres (0 = plain least squares as in the paper)."""
+    convergence_rotation: float = 1e-4
+    """ICP stops a level when the rotation increment is below this (radians) ..."""
+    convergence_translation: float = 1e-4
+    """... and the translation increment below this (metres)."""
+    min_correspondences: int = 100
+    """Fewer pairs than this and the frame's tracking is rejected (the pose is predicted instead)."""
+    fusion_distance: float = 0.01
+    """Fusion gate: largest distance between a frame point and the map point rendered at its pixel, metres,
+    at zero depth ..."""
+    fusion_distance_quadratic: float = 0.005
+    """... plus this times the squared depth (1/m): Kinect-like noise grows with depth squared."""
+    fusion_normal_angle: float = 30.0
+    """Fusion gate on the normal angle, degrees."""
+    radial_sigma: float = 0.6
+    """Keller et al.'s radial confidence: a measurement at normalised distance ``r`` from the image centre
+    is fused with weight ``exp(-r^2 / (2 sigma^2))`` (0 = weight 1 everywhere, the paper's rule)."""
+    track_min_weight: float = 2.0
+    """Only map points with at least this weight are ICP sources (0 = all), unless too few remain."""
+    max_weight: float = 100.0
+    """Weights stop growing here (so that the map keeps adapting)."""
+    min_depth: float = 0.1
+    """Depths below this are ignored, metres."""
+    max_depth: float = 4.0
+    """Depths above this are ignored, metres (Kinect-like noise grows with depth squared)."""
+    remove_unstable: bool = True
+    """Remove points still below ``stable_weight`` ``unstable_age`` frames after they were added."""
+    stable_weight: float = 2.0
+    """Weight a point needs to count as stable."""
+    unstable_age: int = 10
+    """Frames an unstable point may survive."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "icp_iterations", tuple(self.icp_iterations))
+        if self.downsample not in (1, 2, 4):
+            raise UsageError(f"downsample must be 1, 2 or 4, got {self.downsample!r}")
+        if not (isinstance(self.pyramid_levels, int) and 1 <= self.pyramid_levels <= 5):
+            raise UsageError(f"pyramid_levels must be an integer from 1 to 5, got {self.pyramid_levels!r}")
+        if len(self.icp_iterations) != self.pyramid_levels or any(
+            not isinstance(n, int) or n < 0 for n in self.icp_iterations
+        ):
+            raise UsageError(
+                f"icp_iterations must hold {self.pyramid_levels} non-negative integers (finest first), "
+                f"got {self.icp_iterations!r}"
+            )
+        positive = ("icp_distance", "convergence_rotation", "convergence_translation", "fusion_distance",
+                    "max_weight", "max_depth", "stable_weight")  # fmt: skip
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise UsageError(f"{name} must be a positive number, got {value!r}")
+        for name in ("icp_normal_angle", "fusion_normal_angle"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and 0 < value <= 180):
+                raise UsageError(f"{name} must be an angle in (0, 180] degrees, got {value!r}")
+        for name in ("huber_delta", "min_depth", "fusion_distance_quadratic", "radial_sigma", "track_min_weight"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        if self.min_depth >= self.max_depth:
+            raise UsageError(f"min_depth ({self.min_depth}) must be below max_depth ({self.max_depth})")
+        if not (isinstance(self.source_stride, int) and 1 <= self.source_stride <= 8):
+            raise UsageError(f"source_stride must be an integer from 1 to 8, got {self.source_stride!r}")
+        if not (isinstance(self.min_correspondences, int) and self.min_correspondences >= 6):
+            raise UsageError(f"min_correspondences must be an integer >= 6, got {self.min_correspondences!r}")
+        if not (isinstance(self.unstable_age, int) and self.unstable_age >= 1):
+            raise UsageError(f"unstable_age must be a positive integer, got {self.unstable_age!r}")
+        for name in ("remove_unstable", "smooth_depth"):
+            if not isinstance(getattr(self, name), bool):
+                raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> DenseConfig:
+        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
+        unknown = sorted(set(normalised) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown dense setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
+            )
+        return cls(**normalised)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def icp_settings(self) -> IcpSettings:
+        return IcpSettings(
+            iterations=self.icp_iterations,
+            distance_threshold=self.icp_distance,
+            normal_cos_threshold=math.cos(math.radians(self.icp_normal_angle)),
+            convergence_rotation=self.convergence_rotation,
+            convergence_translation=self.convergence_translation,
+            min_correspondences=self.min_correspondences,
+            huber_delta=self.huber_delta,
+        )
+
+
+def _downsample_color(color: npt.NDArray[np.uint8], factor: int) -> npt.NDArray[np.uint8]:
+    h, w = color.shape[0] // factor * factor, color.shape[1] // factor * factor
+    blocks = color[:h, :w].reshape(h // factor, factor, w // factor, factor, 3).astype(np.float32)
+    return np.rint(blocks.mean(axis=(1, 3))).astype(np.uint8)
+
+
+class DenseFusion(Estimator):
+    """Dense SLAM over depth frames: map-to-frame projective ICP tracking and point-based fusion.
+
+    :meth:`step` returns ``T_world_camera`` (camera optical frame) for each frame; the first is the
+    identity. :meth:`dense_map` gives the fused points; :meth:`landmark_map` is empty (no landmarks).
+    """
+
+    name: ClassVar[str] = "dense"
+
+    def __init__(self, config: DenseConfig | None = None) -> None:
+        self.config = config or DenseConfig()
+        self._icp = self.config.icp_settings()
+        self._fusion_cos = math.cos(math.radians(self.config.fusion_normal_angle))
+        self.map = PointMap()
+        self._frames = 0
+        self._input_points = 0
+        self._T_world_camera: FloatArray | None = None
+        self._model_index: npt.NDArray[np.int64] | None = None
+        self._last_stamp: int | None = None
+        self.lost_frames = 0
+        self.removed_points = 0
+        self.last_track: Any = None
+        self._radial: npt.NDArray[np.float32] | None = None
+
+    # -- frames ------------------------------------------------------------------------------------
+
+    def pyramid(self, frame: DepthFrame) -> list[Level]:
+        """The frame's pyramid at the processing resolution (``downsample``) with the depth range applied."""
+        skip = int(math.log2(self.config.downsample))
+        return build_pyramid(
+            frame.depth, frame.intrinsics, self.config.pyramid_levels,
+            min_depth=self.config.min_depth, max_depth=self.config.max_depth, skip=skip,
+            smooth=self.config.smooth_depth,
+        )  # fmt: skip
+
+    def _source_levels(self) -> list[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]]:
+        assert self._model_index is not None
+        out = []
+        for level in range(self.config.pyramid_levels):
+            stride = 2**level * self.config.source_stride
+            ids = self._model_index[::stride, ::stride].reshape(-1)
+            ids = ids[ids >= 0]
+            if self.config.track_min_weight > 0:
+                stable = ids[self.map.weights[ids] >= self.config.track_min_weight]
+                if len(stable) >= 10 * self.config.min_correspondences:
+                    ids = stable
+            out.append((np.take(self.map.positions, ids, axis=1), np.take(self.map.normals, ids, axis=1)))
+        return out
+
+    def _confidence(self, level: Level) -> npt.NDArray[np.float32]:
+        k = level.intrinsics
+        if self._radial is None or self._radial.size != k.width * k.height:
+            u = (np.arange(k.width) - k.cx) / (k.width / 2)
+            v = (np.arange(k.height) - k.cy) / (k.height / 2)
+            r2 = (u[None, :] ** 2 + v[:, None] ** 2) / 2  # 1 at the corners
+            self._radial = np.exp(-r2 / (2 * self.config.radial_sigma**2)).astype(np.float32).reshape(-1)
+        return self._radial
+
+    def step(self, observation: DepthFrame) -> Pose:  # type: ignore[override]
+        """Track the frame against the map, fuse it, and return ``T_world_camera`` at its stamp."""
+        frame = observation
+        if not isinstance(frame, DepthFrame):
+            raise EstimatorError("the dense estimator takes depth frames (DepthFrame), not point observations")
+        if self._last_stamp is not None and frame.stamp_ns <= self._last_stamp:
+            raise EstimatorError(f"depth frame stamp {frame.stamp_ns} ns is not after the previous one")
+        pyramid = self.pyramid(frame)
+        level0 = pyramid[0]
+        colors = frame.color
+        if colors is not None and self.config.downsample > 1:
+            colors = _downsample_color(colors, self.config.downsample)
+        self._input_points += int(level0.valid.sum())
+
+        if self._T_world_camera is None:
+            T_world_camera = np.eye(4)
+        else:
+            # The previous pose is the initial guess (as KinectFusion). Repeating the last motion (constant
+            # velocity) was tried and diverged on noisy frames: an under-converged estimate feeds back.
+            prediction = self._T_world_camera
+            result = track(self._source_levels(), pyramid, invert_pose(prediction), self._icp)
+            self.last_track = result
+            if result.ok:
+                T_world_camera = invert_pose(result.T_camera_world)
+            else:
+                self.lost_frames += 1
+                logger.warning(
+                    "frame %d: tracking failed (%d pairs); pose predicted", self._frames, result.correspondences
+                )
+                T_world_camera = self._T_world_camera
+
+        index_map = self.map.render(invert_pose(T_world_camera), level0)
+        confidence = self._confidence(level0) if self.config.radial_sigma > 0 else None
+        self._model_index, _ = self.map.fuse(
+            T_world_camera, level0, colors, index_map, self.config.fusion_distance, self._fusion_cos,
+            self._frames, self.config.max_weight, self.config.fusion_distance_quadratic, confidence,
+        )  # fmt: skip
+        if self.config.remove_unstable and self._frames % self.config.unstable_age == 0 and self._frames > 0:
+            drop = self.map.unstable(self._frames, self.config.stable_weight, self.config.unstable_age)
+            if drop.any():
+                remap = self.map.remove(drop)
+                self.removed_points += int(drop.sum())
+                self._model_index = np.where(self._model_index >= 0, remap[np.maximum(self._model_index, 0)], -1)
+        self._T_world_camera = T_world_camera
+        self._frames += 1
+        self._last_stamp = frame.stamp_ns
+        return Pose.from_matrix(frame.stamp_ns, T_world_camera)
+
+    # -- outputs -----------------------------------------------------------------------------------
+
+    def landmark_map(self) -> LandmarkMap:
+        return LandmarkMap.empty()
+
+    @property
+    def map_size(self) -> int:
+        return len(self.map)
+
+    def dense_map(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.uint8], FloatArray]:
+        """The fused map: positions (M, 3) metres and unit normals (M, 3) in ``world``, colours (M, 3) uint8 RGB,
+        weights (M,) (measurements fused per point); float64 copies."""
+        return (
+            self.map.positions.T.astype(np.float64),
+            self.map.normals.T.astype(np.float64),
+            np.clip(np.rint(self.map.colors.T), 0, 255).astype(np.uint8),
+            self.map.weights.astype(np.float64),
+        )
+
+    def summary(self) -> dict[str, Any]:
+        points = len(self.map)
+        return {
+            "frames": self._frames,
+            "map_points": points,
+            "input_points": self._input_points,
+            "compression_ratio": points / self._input_points if self._input_points else 0.0,
+            "lost_frames": self.lost_frames,
+            "removed_unstable_points": self.removed_points,
+        }
+
+
+def _build(config: DenseConfig, rng: np.random.Generator) -> DenseFusion:
+    del rng  # deterministic
+    return DenseFusion(config)
+
+
+SPEC = EstimatorSpec(
+    name="dense",
+    description="Dense RGB-D SLAM: map-to-frame projective point-to-plane ICP and point-based fusion",
+    config_class=DenseConfig,
+    factory=_build,
+    needs=frozenset({DEPTH}),
+    uses=frozenset({"color"}),  # optional: colours of the map points
+)

@@ -1,0 +1,276 @@
+"""The point map and point-based fusion (section 3 of the dense-SLAM paper; Keller et al. 2013).
+
+The map is an unordered set of points in ``world``, each with a position, a unit normal, a colour, a
+weight (the number of measurements averaged into it) and the frame indices where it was created and last
+updated. It is stored column-wise (3, M) in float32 and grows by amortised doubling.
+
+Per frame (section 3): the map is *rendered* into the camera by projection with a z-buffer (the
+nearest map point per pixel wins) giving an index map; each frame pixel with a valid vertex and
+normal is *filtered* against the map point rendered at that pixel (distance and normal-angle gates);
+matched pairs are *merged* by the weighted averages
+
+    p <- (w p + T q) / (w + 1),   n <- normalise((w n + R n_q) / (w + 1)),   c <- (w c + c_q) / (w + 1),
+    w <- w + 1,
+
+with ``T = (R, t) = T_world_camera``. Normals are only rotated: the paper's formula also adds ``t`` to
+the normal, which is wrong for a direction. Unmatched pixels are *added* as new points with weight 1.
+Optionally, points that stay below a weight after some frames are removed as unstable (outliers that
+were never seen again).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.estimators.dense.icp import project, transform_soa
+from relpoint.estimators.dense.maps import Level
+from relpoint.geometry import FloatArray
+
+F32 = npt.NDArray[np.float32]
+I64 = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class FusionStats:
+    """Counts of one fusion step: frame points merged into map points, and points added."""
+
+    merged: int
+    added: int
+
+
+class PointMap:
+    """A growing map of fused points in ``world`` (positions, normals, colours, weights)."""
+
+    def __init__(self, capacity: int = 1 << 16) -> None:
+        capacity = max(int(capacity), 16)
+        self._positions = np.zeros((3, capacity), dtype=np.float32)
+        self._normals = np.zeros((3, capacity), dtype=np.float32)
+        self._colors = np.zeros((3, capacity), dtype=np.float32)
+        self._weights = np.zeros(capacity, dtype=np.float32)
+        self._created = np.zeros(capacity, dtype=np.int32)
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    @property
+    def positions(self) -> F32:
+        """(3, M) float32 positions in ``world``, metres (a view)."""
+        return self._positions[:, : self.size]
+
+    @property
+    def normals(self) -> F32:
+        """(3, M) float32 unit normals in ``world`` (a view)."""
+        return self._normals[:, : self.size]
+
+    @property
+    def colors(self) -> F32:
+        """(3, M) float32 RGB colours in 0-255 (a view)."""
+        return self._colors[:, : self.size]
+
+    @property
+    def weights(self) -> F32:
+        """(M,) float32 weights: the number of measurements fused into each point (a view)."""
+        return self._weights[: self.size]
+
+    @property
+    def created(self) -> npt.NDArray[np.int32]:
+        """(M,) frame index at which each point was added (a view)."""
+        return self._created[: self.size]
+
+    def _reserve(self, extra: int) -> None:
+        need = self.size + extra
+        capacity = self._weights.shape[0]
+        if need <= capacity:
+            return
+        while capacity < need:
+            capacity *= 2
+        for name in ("_positions", "_normals", "_colors"):
+            grown = np.zeros((3, capacity), dtype=np.float32)
+            grown[:, : self.size] = getattr(self, name)[:, : self.size]
+            setattr(self, name, grown)
+        for name in ("_weights", "_created"):
+            old = getattr(self, name)
+            grown1 = np.zeros(capacity, dtype=old.dtype)
+            grown1[: self.size] = old[: self.size]
+            setattr(self, name, grown1)
+
+    def append(self, positions: F32, normals: F32, colors: F32, frame_index: int) -> I64:
+        """Add points ((3, n) world positions, normals, colours) with weight 1; returns their ids (n,)."""
+        n = positions.shape[1]
+        self._reserve(n)
+        s = slice(self.size, self.size + n)
+        self._positions[:, s] = positions
+        self._normals[:, s] = normals
+        self._colors[:, s] = colors
+        self._weights[s] = 1.0
+        self._created[s] = frame_index
+        ids = np.arange(self.size, self.size + n, dtype=np.int64)
+        self.size += n
+        return ids
+
+    def render(self, T_camera_world: FloatArray, level: Level) -> I64:
+        """Index map (H, W) int64 of the nearest map point projecting into each pixel of ``level``, -1 for none."""
+        k = level.intrinsics
+        index = np.full(k.height * k.width, -1, dtype=np.int64)
+        if self.size == 0:
+            return index.reshape(k.height, k.width)
+        p_cam = transform_soa(T_camera_world, self.positions)
+        pixel, inside = project(p_cam, level)
+        ids = np.flatnonzero(inside)
+        pixel = pixel[ids]
+        z = p_cam[2, ids]
+        zbuffer = np.full(k.height * k.width, np.inf, dtype=np.float32)
+        np.minimum.at(zbuffer, pixel, z)
+        nearest = z <= zbuffer[pixel]
+        index[pixel[nearest]] = ids[nearest]
+        return index.reshape(k.height, k.width)
+
+    def fuse(
+        self,
+        T_world_camera: FloatArray,
+        level: Level,
+        colors: npt.NDArray[np.uint8] | None,
+        index_map: I64,
+        distance_threshold: float,
+        normal_cos_threshold: float,
+        frame_index: int,
+        max_weight: float = np.inf,
+        distance_quadratic: float = 0.0,
+        confidence: F32 | None = None,
+    ) -> tuple[I64, FusionStats]:
+        """Merge a frame into the map (filter, merge, add) given the map's index map at the frame's pose.
+
+        Parameters
+        ----------
+        T_world_camera: (4, 4) pose of the frame.
+        level: the frame level to fuse (vertices/normals in the camera frame).
+        colors: (H, W, 3) uint8 RGB registered to ``level``, or None (colour 0).
+        index_map: (H, W) map ids rendered at ``T_world_camera`` (:meth:`render`), -1 for none.
+        distance_threshold: largest distance between a frame point and its map point to merge, metres,
+            plus ``distance_quadratic`` times the squared depth (Kinect-like noise grows with depth squared).
+        normal_cos_threshold: smallest cosine between their normals to merge.
+        frame_index: index of the frame (recorded as the creation time of added points).
+        max_weight: weights stop growing here (the newest measurements keep some influence).
+        confidence: optional (H*W,) weight of each pixel's measurement (Keller et al.'s radial confidence);
+            a merge then adds ``alpha`` instead of 1: ``p <- (w p + alpha q) / (w + alpha)``, ``w <- w + alpha``,
+            and new points start at weight ``alpha``. None means 1 everywhere (the paper's rule).
+
+        Returns
+        -------
+        The index map after fusion ((H, W), merged and added points at their pixels) and the counts.
+        """
+        R = T_world_camera[:3, :3].astype(np.float32)
+        t = T_world_camera[:3, 3].astype(np.float32)[:, None]
+        cos = np.float32(normal_cos_threshold)
+        planes = level.planes
+        ids = index_map.reshape(-1)
+        valid = planes[6] > 0
+
+        # Filter: the map point rendered at each valid pixel, within the distance and normal gates.
+        candidates = np.flatnonzero(valid & (ids >= 0))
+        j = ids[candidates]
+        frame = planes[:6, candidates]
+        q = R @ frame[:3] + t
+        n_q = R @ frame[3:6]
+        p = np.take(self._positions, j, axis=1)
+        n_p = np.take(self._normals, j, axis=1)
+        diff = q - p
+        depth = frame[2]
+        limit = (np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth) ** 2
+        ok = ((diff * diff).sum(axis=0) < limit) & ((n_q * n_p).sum(axis=0) > cos)
+        sel = np.flatnonzero(ok)
+        j = j[sel]
+        merged_pixels = candidates[sel]
+
+        # Merge: weighted averages; normals rotated only, then renormalised.
+        w = self._weights[j]
+        alpha = np.float32(1.0) if confidence is None else confidence[merged_pixels]
+        w1 = w + alpha
+        self._positions[:, j] = (np.take(p, sel, axis=1) * w + np.take(q, sel, axis=1) * alpha) / w1
+        n = np.take(n_p, sel, axis=1) * w + np.take(n_q, sel, axis=1) * alpha
+        self._normals[:, j] = n / np.maximum(np.sqrt((n * n).sum(axis=0)), np.float32(1e-12))
+        if colors is not None:
+            rgb = colors.reshape(-1, 3)
+            self._colors[:, j] = (np.take(self._colors, j, axis=1) * w + rgb[merged_pixels].T * alpha) / w1
+        self._weights[j] = np.minimum(w1, np.float32(max_weight))
+
+        # Add: valid pixels left unmatched, unless a map point rendered next to them covers them (the
+        # index map holds one point per pixel, so a surface seen from a new pose shows pinholes).
+        unmatched = valid.copy()
+        unmatched[merged_pixels] = False
+        pixels = np.flatnonzero(unmatched)
+        frame = planes[:6, pixels]
+        q = R @ frame[:3] + t
+        n_q = R @ frame[3:6]
+        covered = self._covered(pixels, index_map, q, n_q, frame[2], distance_threshold, distance_quadratic, cos)
+        keep = np.flatnonzero(~covered)
+        added_pixels = pixels[keep]
+        rgb_new = (
+            colors.reshape(-1, 3)[added_pixels].T.astype(np.float32)
+            if colors is not None
+            else np.zeros((3, len(added_pixels)), dtype=np.float32)
+        )
+        new_ids = self.append(np.take(q, keep, axis=1), np.take(n_q, keep, axis=1), rgb_new, frame_index)
+        if confidence is not None:
+            self._weights[new_ids] = confidence[added_pixels]
+        after = ids.copy()
+        after[added_pixels] = new_ids
+        return after.reshape(index_map.shape), FusionStats(int(len(j)), int(len(new_ids)))
+
+    def _covered(
+        self,
+        pixels: I64,
+        index_map: I64,
+        q: F32,
+        n_q: F32,
+        depth: F32,
+        distance_threshold: float,
+        distance_quadratic: float,
+        cos: np.float32,
+    ) -> npt.NDArray[np.bool_]:
+        """Whether a map point rendered in the 3x3 neighbourhood of each pixel passes the fusion gates."""
+        h, w = index_map.shape
+        covered = np.zeros(len(pixels), dtype=bool)
+        if len(pixels) == 0:
+            return covered
+        padded = np.full((h + 2, w + 2), -1, dtype=np.int64)
+        padded[1:-1, 1:-1] = index_map
+        flat = padded.reshape(-1)
+        row, col = np.divmod(pixels, w)
+        base = (row + 1) * (w + 2) + col + 1
+        limit = (np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth) ** 2
+        for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            open_ = np.flatnonzero(~covered)
+            j = flat[base[open_] + dr * (w + 2) + dc]
+            has = j >= 0
+            test = open_[has]
+            j = j[has]
+            diff = np.take(q, test, axis=1) - np.take(self._positions, j, axis=1)
+            ok = ((diff * diff).sum(axis=0) < limit[test]) & (
+                (np.take(n_q, test, axis=1) * np.take(self._normals, j, axis=1)).sum(axis=0) > cos
+            )
+            covered[test[ok]] = True
+        return covered
+
+    def remove(self, drop: npt.NDArray[np.bool_]) -> I64:
+        """Delete the points flagged in ``drop`` (M,); returns the old-id -> new-id map (-1 for deleted)."""
+        keep = ~drop
+        remap = np.full(self.size, -1, dtype=np.int64)
+        n = int(keep.sum())
+        remap[keep] = np.arange(n)
+        for name in ("_positions", "_normals", "_colors"):
+            array = getattr(self, name)
+            array[:, :n] = array[:, : self.size][:, keep]
+        for name in ("_weights", "_created"):
+            array = getattr(self, name)
+            array[:n] = array[: self.size][keep]
+        self.size = n
+        return remap
+
+    def unstable(self, frame_index: int, min_weight: float, age: int) -> npt.NDArray[np.bool_]:
+        """Points created at least ``age`` frames ago whose weight is still below ``min_weight`` (M,) bool."""
+        return (self.weights < min_weight) & (frame_index - self.created >= age)

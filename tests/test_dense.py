@@ -1,0 +1,277 @@
+"""Dense RGB-D SLAM (issue 6): ICP, its linear system, point-based fusion, the importers, and short runs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from formats.log import LogReader
+from formats.rgbd_import import associate_stamps, import_7scenes, import_tum
+from relpoint.errors import UsageError
+from relpoint.estimators.dense import SPEC, DenseConfig, DenseFusion
+from relpoint.estimators.dense.fusion import PointMap
+from relpoint.estimators.dense.icp import (
+    IcpSettings,
+    increment_matrix,
+    linear_system,
+    normal_equations,
+    track,
+)
+from relpoint.estimators.dense.maps import build_pyramid
+from relpoint.evaluation import EvaluationSettings, dense_metrics_to_mesh, evaluate_trajectory
+from relpoint.geometry import invert_pose
+from relpoint.simulation.rgbd import RgbdConfig, RgbdSimulation, simulate_rgbd
+from relpoint.types import DepthFrame, Intrinsics, Trajectory
+from tests.conftest import shared_data
+
+SETTINGS = IcpSettings(
+    iterations=(10, 10, 10),
+    distance_threshold=0.1,
+    normal_cos_threshold=math.cos(math.radians(30)),
+    convergence_rotation=1e-6,
+    convergence_translation=1e-6,
+    min_correspondences=100,
+    huber_delta=0.0,
+)
+
+
+@pytest.fixture(scope="module")
+def room() -> RgbdSimulation:
+    return simulate_rgbd(RgbdConfig(frames=2, noise=False, seed=1))
+
+
+def _moved(room: RgbdSimulation, delta: np.ndarray) -> RgbdSimulation:
+    """The room seen from its first pose and from that pose moved by ``delta`` (camera frame)."""
+    poses = np.stack([room.poses[0], room.poses[0] @ delta])
+    return RgbdSimulation(room.config, room.intrinsics, room.scene, poses, np.array([0, 33_333_333]))
+
+
+def _source(levels: list) -> list[tuple[np.ndarray, np.ndarray]]:
+    return [(lv.vertices[lv.valid].T.copy(), lv.normals[lv.valid].T.copy()) for lv in levels]
+
+
+def test_icp_recovers_a_known_small_motion(room: RgbdSimulation) -> None:
+    delta = np.eye(4)
+    delta[:3, :3] = Rotation.from_rotvec(np.radians([1.0, -1.5, 0.8])).as_matrix()
+    delta[:3, 3] = [0.02, -0.015, 0.03]
+    sim = _moved(room, delta)
+    first, second = sim.frame(0), sim.frame(1)
+    source = build_pyramid(first.depth, first.intrinsics, 3)
+    target = build_pyramid(second.depth, second.intrinsics, 3)
+    result = track(_source(source), target, np.eye(4), SETTINGS)
+    # world = first camera, so the estimate T_camera_world is T_second_first = delta^-1.
+    error = result.T_camera_world @ delta
+    assert result.ok and result.correspondences > 10_000
+    assert np.linalg.norm(error[:3, 3]) < 1e-3
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(error[:3, :3]).as_rotvec())) < 0.05
+    # Without ICP the error is the motion itself: the check above is not vacuous.
+    assert np.linalg.norm(delta[:3, 3]) > 0.03
+
+
+def test_normal_equations_match_a_numerical_jacobian() -> None:
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(50, 3)).astype(np.float32)
+    q = (p + 0.05 * rng.normal(size=(50, 3))).astype(np.float32)
+    n = rng.normal(size=(50, 3))
+    n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        T = increment_matrix(x)
+        moved = p.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        return np.einsum("ij,ij->i", n.astype(np.float64), moved - q)
+
+    h = 1e-6
+    jacobian = np.stack([(residuals(h * e) - residuals(-h * e)) / (2 * h) for e in np.eye(6)], axis=1)
+    A, b = linear_system(p, q, n)
+    AtA, Atb = normal_equations(A, b)
+    np.testing.assert_allclose(A, jacobian, atol=1e-5)
+    np.testing.assert_allclose(b, -residuals(np.zeros(6)), atol=1e-6)
+    np.testing.assert_allclose(AtA, jacobian.T @ jacobian, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(Atb, -jacobian.T @ residuals(np.zeros(6)), rtol=1e-4, atol=1e-5)
+    # One Gauss-Newton step lowers the cost.
+    x = np.linalg.solve(AtA, Atb)
+    assert np.sum(residuals(x) ** 2) < np.sum(residuals(np.zeros(6)) ** 2)
+
+
+def test_increment_is_a_rotation() -> None:
+    T = increment_matrix(np.array([0.1, -0.2, 0.05, 1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    np.testing.assert_allclose(T[:3, 3], [1.0, 2.0, 3.0])
+
+
+def test_fusing_the_same_frame_twice_doubles_weights_and_keeps_positions(room: RgbdSimulation) -> None:
+    frame = room.frame(0)
+    level = build_pyramid(frame.depth, frame.intrinsics, 1)[0]
+    cloud = PointMap()
+    T = room.poses[0]
+    index, stats = cloud.fuse(T, level, frame.color, cloud.render(invert_pose(T), level), 0.01, 0.9, 0)
+    assert stats.merged == 0 and stats.added == int(level.valid.sum()) == len(cloud)
+    positions = cloud.positions.copy()
+    normals = cloud.normals.copy()
+    np.testing.assert_array_equal(cloud.weights, 1.0)
+    _, stats = cloud.fuse(T, level, frame.color, cloud.render(invert_pose(T), level), 0.01, 0.9, 1)
+    assert stats.merged == len(positions.T) and stats.added == 0 and len(cloud) == positions.shape[1]
+    np.testing.assert_array_equal(cloud.weights, 2.0)
+    np.testing.assert_allclose(cloud.positions, positions, atol=1e-6)
+    np.testing.assert_allclose(cloud.normals, normals, atol=1e-6)
+    # The map lies on the scene's surfaces, in world (noise-free rendering: sub-millimetre).
+    metrics = dense_metrics_to_mesh(
+        positions.T, room.scene.vertices, room.scene.triangles, np.random.default_rng(0), samples=1000
+    )
+    assert metrics.accuracy_median < 1e-3
+    assert index.shape == frame.depth.shape
+
+
+def test_dense_estimator_on_the_simulated_room() -> None:
+    sim = simulate_rgbd(RgbdConfig(frames=15, seed=2))
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    poses = [estimator.step(frame) for frame in sim.frames()]
+    assert np.allclose(poses[0].as_matrix(), np.eye(4))
+    result = evaluate_trajectory(
+        sim.ground_truth, Trajectory.from_poses(poses), EvaluationSettings(align="se3", rpe=False, kitti=False)
+    )
+    assert result.summary["ate_rmse"] < 0.005
+    positions, normals, colors, weights = estimator.dense_map()
+    summary = estimator.summary()
+    assert summary["map_points"] == len(positions) == len(normals) == len(colors) == len(weights)
+    assert 0 < summary["compression_ratio"] < 0.5
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
+    assert weights.max() > 5 and colors.dtype == np.uint8 and colors.max() > 0
+    assert len(estimator.landmark_map()) == 0
+
+
+def test_dense_config_is_validated() -> None:
+    with pytest.raises(UsageError):
+        DenseConfig(downsample=3)
+    with pytest.raises(UsageError):
+        DenseConfig(pyramid_levels=2)  # icp_iterations still lists three levels
+    with pytest.raises(UsageError):
+        DenseConfig.from_mapping({"no_such_setting": 1})
+    assert DenseConfig.from_mapping({"icp-distance": 0.2}).icp_distance == 0.2
+    assert SPEC.needs == frozenset({"depth"})
+
+
+def _write_png16(path: Path, array: np.ndarray) -> None:
+    Image.fromarray(array.astype(np.uint16)).save(path)
+
+
+def test_tum_import_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    h, w = 12, 16
+    depth_stamps = [100.0, 100.1, 100.2]
+    rgb_stamps = [100.005, 100.095, 100.3]  # the third is 0.1 s from any depth frame: left unpaired
+    depths, colours = [], []
+    for k in range(len(depth_stamps)):
+        raw = 5 * rng.integers(100, 4000, size=(h, w))  # multiples of 5: whole millimetres at scale 5000
+        raw[0, :3] = 0
+        _write_png16(tmp_path / f"d{k}.png", raw)
+        depths.append(raw / 5000.0)
+    for k, _ in enumerate(rgb_stamps):
+        rgb = rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+        Image.fromarray(rgb).save(tmp_path / f"c{k}.png")
+        colours.append(rgb)
+    (tmp_path / "depth.txt").write_text(
+        "# depth\n" + "".join(f"{t:.6f} d{k}.png\n" for k, t in enumerate(depth_stamps))
+    )
+    (tmp_path / "rgb.txt").write_text("# rgb\n" + "".join(f"{t:.6f} c{k}.png\n" for k, t in enumerate(rgb_stamps)))
+    gt = [
+        (t + 0.001, 1.0 + k, 2.0, 3.0, 0.0, 0.0, math.sin(0.1 * k), math.cos(0.1 * k))
+        for k, t in enumerate(depth_stamps)
+    ]
+    (tmp_path / "groundtruth.txt").write_text(
+        "# tx ty tz qx qy qz qw\n" + "".join(" ".join(map(str, r)) + "\n" for r in gt)
+    )
+
+    log = tmp_path / "tum.mcap"
+    counts = import_tum(tmp_path, log)
+    assert (counts.depth, counts.color, counts.ground_truth_pose) == (3, 2, 3)
+    reader = LogReader(log)
+    records = list(reader.records(["camera_info", "depth", "color", "ground_truth_pose"]))
+    by_role: dict[str, list] = {}
+    for record in records:
+        by_role.setdefault(record.role, []).append(record)
+    (info,) = by_role["camera_info"]
+    assert isinstance(info.value, Intrinsics) and (info.value.width, info.value.height) == (w, h)
+    assert [r.stamp_ns for r in by_role["depth"]] == [round(t * 1e9) for t in depth_stamps]
+    for record, expected in zip(by_role["depth"], depths, strict=True):
+        np.testing.assert_allclose(record.value, expected, atol=1e-6)
+        assert record.value[0, 0] == 0.0
+    np.testing.assert_array_equal(by_role["color"][0].value, colours[0])
+    np.testing.assert_array_equal(by_role["color"][1].value, colours[1])
+    assert [r.stamp_ns for r in by_role["color"]] == [round(t * 1e9) for t in depth_stamps[:2]]
+    poses = by_role["ground_truth_pose"]
+    assert poses[2].value.position == pytest.approx((3.0, 2.0, 3.0))
+    assert poses[1].value.quat_xyzw == pytest.approx((0.0, 0.0, math.sin(0.1), math.cos(0.1)))
+
+
+def test_associate_stamps_is_one_to_one_within_tolerance() -> None:
+    assert associate_stamps([1.0, 1.01, 2.0], [1.004, 1.5], 0.02) == [0, None, None]
+
+
+def test_7scenes_import_marks_65535_invalid(tmp_path: Path) -> None:
+    raw = np.full((6, 8), 1500)
+    raw[1, 1] = 65535
+    raw[2, 2] = 0
+    for k in range(2):
+        _write_png16(tmp_path / f"frame-{k:06d}.depth.png", raw)
+        Image.fromarray(np.full((6, 8, 3), 40 * k, dtype=np.uint8)).save(tmp_path / f"frame-{k:06d}.color.jpg")
+        T = np.eye(4)
+        T[:3, 3] = [k, 0, 0]
+        np.savetxt(tmp_path / f"frame-{k:06d}.pose.txt", T)
+    log = tmp_path / "7s.mcap"
+    counts = import_7scenes(tmp_path, log)
+    assert (counts.depth, counts.color, counts.ground_truth_pose) == (2, 2, 2)
+    depth = [r for r in LogReader(log).records(["depth", "ground_truth_pose"])]
+    frames = [r for r in depth if r.role == "depth"]
+    assert frames[1].stamp_ns == round(1e9 / 30)
+    assert frames[0].value[1, 1] == 0.0 and frames[0].value[2, 2] == 0.0 and frames[0].value[0, 0] == pytest.approx(1.5)
+    poses = [r for r in depth if r.role == "ground_truth_pose"]
+    assert poses[1].value.position == pytest.approx((1.0, 0.0, 0.0))
+
+
+def test_short_real_7scenes_run_stays_accurate() -> None:
+    folder = shared_data("7scenes-redkitchen-0000-0399")
+    K = np.loadtxt(folder / "camera-intrinsics.txt")
+    intrinsics = Intrinsics(640, 480, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    estimator = DenseFusion(DenseConfig(downsample=2))
+    stamps, truth, poses = [], [], []
+    for i in range(30):
+        with Image.open(folder / f"frame-{i:06d}.depth.png") as image:
+            raw = np.asarray(image).astype(np.float32)
+        raw[raw >= 65535] = 0
+        stamp = round(i * 1e9 / 30)
+        poses.append(estimator.step(DepthFrame(stamp, raw * 1e-3, intrinsics)).as_matrix())
+        truth.append(np.loadtxt(folder / f"frame-{i:06d}.pose.txt"))
+        stamps.append(stamp)
+    result = evaluate_trajectory(
+        Trajectory.from_matrices(stamps, truth),
+        Trajectory.from_matrices(stamps, poses),
+        EvaluationSettings(align="se3", rpe=False, kitti=False),
+    )
+    assert estimator.lost_frames == 0
+    assert result.summary["ate_rmse"] < 0.01
+    assert result.summary["path_length_m"] > 0.05  # the camera moved: the bound is not vacuous
+
+
+def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> None:
+    from formats.rgbd_log import write_rgbd_simulation
+
+    counts = write_rgbd_simulation(room, tmp_path / "room.mcap")
+    assert counts == {"camera_info": 1, "depth": 2, "color": 2, "ground_truth_pose": 2}
+    records = list(LogReader(tmp_path / "room.mcap").records(["camera_info", "depth", "color", "ground_truth_pose"]))
+    depth = [r.value for r in records if r.role == "depth"]
+    truth = [r.value for r in records if r.role == "ground_truth_pose"]
+    (info,) = [r.value for r in records if r.role == "camera_info"]
+    assert info == room.intrinsics
+    frame = room.frame(1)
+    valid = frame.depth > 0
+    assert valid.mean() > 0.9
+    np.testing.assert_array_equal(depth[1] > 0, valid)
+    np.testing.assert_allclose(depth[1][valid], frame.depth[valid], atol=5e-4)  # 16UC1 millimetres
+    np.testing.assert_allclose(truth[1].as_matrix(), room.poses[1], atol=1e-9)

@@ -1,0 +1,59 @@
+"""The dense path through the command line: room simulation, 7-Scenes import, dense run, evaluation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from formats.log import LogReader
+from formats.ply import read_ply
+from relpoint_cli.main import cli
+from tests.conftest import shared_data
+
+
+def invoke(*args: str) -> tuple[int, str, str]:
+    result = CliRunner().invoke(cli, ["-q", *args])
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_room_simulation_runs_densely_within_a_centimetre(tmp_path: Path) -> None:
+    log = tmp_path / "room.mcap"
+    code, _, err = invoke("simulate", "-o", str(log), "--scenario", "room", "--iterations", "25", "--seed", "2")
+    assert code == 0, err
+    assert (tmp_path / "room.scene.ply").exists()
+    assert LogReader(log).available_roles() >= {"depth", "camera_info", "color", "ground_truth_pose"}
+    out = tmp_path / "out"
+    code, _, err = invoke("run", str(log), "--estimator", "dense", "-o", str(out))
+    assert code == 0, err
+    vertices = read_ply(out / "map.ply")
+    assert {"nx", "ny", "nz", "red", "green", "blue", "weight"} <= set(vertices.dtype.names)
+    summary = json.loads((out / "run.json").read_text())["summary"]
+    assert summary["map_points"] == len(vertices) and 0 < summary["compression_ratio"] < 1
+    code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
+    assert code == 0, err
+    assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.01
+
+
+def test_room_rejects_point_options(tmp_path: Path) -> None:
+    code, _, err = invoke("simulate", "-o", str(tmp_path / "r.mcap"), "--scenario", "room", "--density", "30")
+    assert code == 2 and "--density" in err and "room" in err
+
+
+def test_seven_scenes_import_and_dense_run(tmp_path: Path) -> None:
+    folder = shared_data("7scenes-redkitchen-0000-0399")
+    log = tmp_path / "kitchen.mcap"
+    code, _, err = invoke("import", "7scenes", str(folder), "-o", str(log), "--count", "20")
+    assert code == 0, err
+    reader = LogReader(log)
+    assert reader.topic_infos["/camera/depth/image"].count == 20
+    depth = next(r.value for r in reader.records(["depth"]))
+    assert depth.shape == (480, 640) and 0.3 < float(np.median(depth[depth > 0])) < 5.0
+    out = tmp_path / "out"
+    code, _, err = invoke("run", str(log), "--estimator", "dense", "--param", "downsample=2", "-o", str(out))
+    assert code == 0, err
+    code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
+    assert code == 0, err
+    assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.03
