@@ -57,3 +57,14 @@ def test_seven_scenes_import_and_dense_run(tmp_path: Path) -> None:
     code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
     assert code == 0, err
     assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.03
+
+
+def test_dense_runs_are_deterministic(tmp_path: Path) -> None:
+    log = tmp_path / "room.mcap"
+    assert invoke("simulate", "-o", str(log), "--scenario", "room", "--iterations", "8", "--seed", "5")[0] == 0
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        code, _, err = invoke("run", str(log), "--estimator", "dense", "-o", str(out))
+        assert code == 0, err
+    for name in ("trajectory.tum", "trajectory.csv", "map.ply", "map.csv", "result.mcap"):
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
