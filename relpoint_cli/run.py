@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -218,14 +219,10 @@ def config_command(estimator_name: str) -> None:
     click.echo(f"[{spec.name}]  # {spec.description}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
-        text = (
-            "true"
-            if default is True
-            else "false"
-            if default is False
-            else repr(default)
-            if isinstance(default, str)
-            else default
-        )
         help_text = f.metadata.get("help", "")
-        click.echo(f"{f.name} = {text}" + (f"  # {help_text}" if help_text else ""))
+        comment = f"  # {help_text}" if help_text else ""
+        if default is None:
+            click.echo(f"# {f.name} =  (unset){comment}")
+        else:  # JSON scalars and arrays are valid TOML values
+            value = json.dumps(list(default) if isinstance(default, tuple) else default)
+            click.echo(f"{f.name} = {value}{comment}")

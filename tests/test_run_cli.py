@@ -120,3 +120,18 @@ def test_stamps_going_backwards_stop_the_run_without_output(tmp_path: Path, smal
     assert code == 3
     assert len(err.strip().splitlines()) == 1 and "is not after the previous" in err
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["backwards.mcap"]
+
+
+@pytest.mark.parametrize("name", sorted(ESTIMATORS))
+def test_config_output_is_valid_toml_that_rebuilds_the_defaults(name: str, tmp_path: Path) -> None:
+    import tomllib
+
+    from relpoint_cli.run import build_config
+
+    result = CliRunner().invoke(cli, ["config", "--estimator", name])
+    assert result.exit_code == 0
+    path = tmp_path / "params.toml"
+    path.write_text(result.stdout)
+    assert name in tomllib.loads(result.stdout)
+    spec = ESTIMATORS[name]
+    assert build_config(spec, path, ()) == spec.config_class()
