@@ -9,7 +9,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.relative_point.charting import PointCharting
-from relpoint.estimators.relative_point.dynamics import detect_dynamic, gap_threshold
+from relpoint.estimators.relative_point.dynamics import (
+    detect_dynamic,
+    deviation_to_references,
+    gap_threshold,
+    row_nanmedian,
+    world_block_deviation,
+)
 from relpoint.estimators.relative_point.estimator import quaternion_xyzw
 from relpoint.estimators.relative_point.grouping import select_members
 from relpoint.estimators.relative_point.groups import basis_rotation, choose_basis, relative_coordinates
@@ -268,3 +274,77 @@ def test_gap_rule_splits_at_the_first_large_jump() -> None:
     threshold = gap_threshold(deviations, 0.5)
     assert 0.45 < threshold < 2.5
     assert gap_threshold(np.array([0.4, 0.41, 0.43]), 0.5) > 0.43  # no gap: all alike
+
+
+def test_consensus_rejects_a_moving_minority_that_trimming_keeps() -> None:
+    # Five of fourteen anchors displaced by ~3 m: the median rule keeps some of them, the
+    # three-point consensus drops them all and recovers the transform to the noise level.
+    rng = np.random.default_rng(1)
+    T = random_pose(rng)
+    source = rng.uniform(-30, 30, (14, 3))
+    target = apply(T, source) + rng.normal(0, 0.2, (14, 3))
+    target[:5] += rng.normal(0, 3.0, (5, 3))
+    trimmed = fit_transform(source, target, trim=3.0, floor=0.5)
+    robust = fit_transform(source, target, trim=3.0, floor=0.5, consensus=1.0)
+    assert trimmed is not None and robust is not None
+    assert trimmed.inliers[:5].any()
+    assert not robust.inliers[:5].any() and robust.inliers[5:].all()
+    assert np.linalg.norm(robust.T[:3, 3] - T[:3, 3]) < 0.3 < np.linalg.norm(trimmed.T[:3, 3] - T[:3, 3])
+    # Without outliers beyond the bound the consensus changes nothing.
+    clean = apply(T, source) + rng.normal(0, 0.2, (14, 3))
+    plain, guarded = fit_transform(source, clean), fit_transform(source, clean, consensus=1.0)
+    assert plain is not None and guarded is not None and np.array_equal(plain.T, guarded.T)
+
+
+def test_off_line_rms_and_row_median_match_numpy() -> None:
+    rng = np.random.default_rng(3)
+    for points in (rng.normal(0, 5, (30, 3)), np.outer(rng.normal(0, 5, 30), [1.0, 2.0, 3.0]), np.eye(3)):
+        centred = points - points.mean(axis=0)
+        assert is_collinear(points, 0.05) == (
+            np.sqrt(max(np.linalg.eigvalsh(centred.T @ centred / 30)[:2].sum(), 0)) <= 0.05
+        )
+    values = rng.normal(size=(40, 7))
+    values[rng.random((40, 7)) < 0.4] = np.nan
+    values[0] = np.nan
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        expected = np.nanmedian(values, axis=1)
+    assert np.allclose(row_nanmedian(values), expected, equal_nan=True)
+
+
+def test_block_deviation_separates_a_slow_mover() -> None:
+    # A point drifting 3 m over 40 iterations (0.075 m per iteration, a quarter of the noise)
+    # hides in single-observation deviations but stands out of block means.
+    rng = np.random.default_rng(5)
+    m, length = 12, 40
+    points = rng.uniform(-30, 30, (m, 3))
+    tracks = np.empty((m, length, 3))
+    for t in range(length):
+        world = points.copy()
+        world[0] += np.array([3.0, 0.0, 0.0]) * t / length
+        tracks[:, t] = apply(random_pose(rng, 10.0), world) + rng.normal(0, 0.3, (m, 3))
+    valid = np.ones((m, length), bool)
+    references = np.arange(1, 7)
+    plain = deviation_to_references(tracks, valid, references, 15)
+    blocked = deviation_to_references(tracks, valid, references, 15, block=5)
+    ratio_plain = plain[0] / np.median(plain[1:])
+    ratio_blocked = blocked[0] / np.median(blocked[1:])
+    assert ratio_blocked > 2.0 and ratio_blocked > 1.5 * ratio_plain
+
+
+def test_world_scatter_flags_motion_across_the_line_of_sight() -> None:
+    # Known poses map observations to world: a static point's block means scatter by the noise
+    # over sqrt(block), a point moving 3 m over the window by its motion, in any direction.
+    rng = np.random.default_rng(6)
+    length = 40
+    poses = np.stack([random_pose(rng, 10.0) for _ in range(length)])
+    world = np.repeat(rng.uniform(-30, 30, (6, 1, 3)), length, axis=1)
+    world[0] += np.outer(np.linspace(0.0, 3.0, length), [0.0, 0.0, 1.0])
+    inverse = np.linalg.inv(poses)
+    tracks = np.einsum("lab,nlb->nla", inverse[:, :3, :3], world) + inverse[None, :, :3, 3]
+    tracks += rng.normal(0, 0.3, tracks.shape)
+    valid = np.ones((6, length), bool)
+    scatter = world_block_deviation(tracks, valid, poses, 5)
+    assert scatter[0] > 3.0 * np.max(scatter[1:])
+    assert np.all(scatter[1:] < 0.35)
+    valid[1, :30] = False  # two blocks only: not judged
+    assert np.isnan(world_block_deviation(tracks, valid, poses, 5)[1])

@@ -30,9 +30,13 @@ class PointCharting:
     def chart(self, iteration: int, ids: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """Record the points seen in ``iteration``; return a mask (N,) of duplicate entries in ``ids``."""
         ids = np.asarray(ids, dtype=np.int64)
-        unique, first = np.unique(ids, return_index=True)
-        duplicate = np.ones(len(ids), bool)
-        duplicate[first] = False
+        ordered = np.sort(ids)
+        if len(ordered) < 2 or bool(np.all(ordered[1:] != ordered[:-1])):  # the usual case: no duplicates
+            unique, duplicate = ordered, np.zeros(len(ids), bool)
+        else:
+            unique, first = np.unique(ids, return_index=True)
+            duplicate = np.ones(len(ids), bool)
+            duplicate[first] = False
         slot = iteration % self.ring_size
         self._ids[slot] = unique
         self._iteration[slot] = iteration

@@ -59,7 +59,8 @@ def distance_deviation(observations: FloatArray, a: npt.ArrayLike, b: npt.ArrayL
 
     ``observations`` is (M, L, 3): untransformed points of M tracks over L iterations.
     """
-    distance = np.linalg.norm(observations[np.asarray(a)] - observations[np.asarray(b)], axis=2)
+    difference = observations[np.asarray(a)] - observations[np.asarray(b)]
+    distance = np.sqrt(np.einsum("plk,plk->pl", difference, difference))
     return distance.std(axis=1, ddof=1)
 
 
@@ -191,14 +192,66 @@ def detect_dynamic(
     return DynamicResult(static, True, threshold, comparisons, rounds)
 
 
+def row_nanmedian(values: FloatArray) -> FloatArray:
+    """Median of each row (N, K) over its finite entries (NaN where none): ``np.nanmedian(axis=1)``, one sort."""
+    ordered = np.sort(values, axis=1)  # NaN sort last
+    count = np.count_nonzero(np.isfinite(ordered), axis=1)
+    rows = np.arange(len(ordered))
+    low = ordered[rows, np.maximum(count - 1, 0) // 2]
+    high = ordered[rows, count // 2 - (count == 0)]
+    return np.where(count > 0, 0.5 * (low + high), np.nan)
+
+
+def world_block_deviation(tracks: FloatArray, valid: BoolArray, poses: FloatArray, block: int) -> FloatArray:
+    """RMS scatter (N,) of each track's block-mean position in ``world`` (m; NaN under three blocks).
+
+    A witness beside the relative distances: the observations are mapped to ``world`` by the
+    poses of their iterations and averaged over blocks of ``block`` iterations; a static point's
+    block means scatter by the noise over ``sqrt(block)`` plus pose jitter, a moving point's by its
+    motion in every direction (a distance to a reference only sees the motion along it).
+
+    Parameters
+    ----------
+    tracks:
+        (N, L, 3) untransformed observations (sensor frame of each iteration), metres.
+    valid:
+        (N, L) where each track has an observation.
+    poses:
+        (L, 4, 4) ``T_world_sensor`` of the L iterations.
+    block:
+        Iterations per block (blocks count from the latest iteration; blocks with fewer than two
+        observations are ignored).
+    """
+    n, length = valid.shape
+    world = np.einsum("lab,nlb->nla", poses[:, :3, :3], tracks) + poses[None, :, :3, 3]
+    blocks = length // block
+    if n == 0 or blocks < 3:
+        return np.full(n, np.nan)
+    tail = slice(length - blocks * block, length)
+    world = np.where(valid[:, tail, None], world[:, tail], 0.0).reshape(n, blocks, block, 3).sum(axis=2)
+    counts = valid[:, tail].reshape(n, blocks, block).sum(axis=2)
+    usable = counts >= 2
+    means = world / np.maximum(counts, 1)[..., None]
+    used = usable.sum(axis=1)
+    centre = np.where(usable[..., None], means, 0.0).sum(axis=1) / np.maximum(used, 1)[:, None]
+    scatter = np.where(usable[..., None], (means - centre[:, None]) ** 2, 0.0).sum(axis=(1, 2))
+    return np.where(used >= 3, np.sqrt(scatter / np.maximum(used - 1, 1)), np.nan)
+
+
 def deviation_to_references(
-    tracks: FloatArray, valid: BoolArray, references: npt.ArrayLike, min_common: int
+    tracks: FloatArray, valid: BoolArray, references: npt.ArrayLike, min_common: int, block: int = 1
 ) -> FloatArray:
     """Median distance deviation of every track against a set of static reference tracks.
 
     The majority bin of earlier detections persists between iterations as the set of points verified
     static; a new point is judged the way the paper's last round judges a bin against the majority
     bin, against several of its members (median, so one unlucky reference does not decide).
+
+    With ``block > 1`` the distance is first averaged over consecutive blocks of ``block``
+    iterations and the deviation is taken over the block means: the noise of a static pair shrinks
+    by about ``sqrt(block)`` while a point that moves over the window keeps its deviation, so slow
+    movers (a few metres over the window, below the single-observation noise per iteration) stand
+    out. Blocks with fewer than two common observations are ignored.
 
     Parameters
     ----------
@@ -210,26 +263,43 @@ def deviation_to_references(
         Rows of ``tracks`` that are verified static (R,).
     min_common:
         Pairs observed together in fewer iterations are not compared.
+    block:
+        Iterations averaged per block before the deviation (1: the plain deviation).
 
     Returns
     -------
     (N,) median over references (excluding the track itself) of the standard deviation of the
-    distance over the iterations both were observed; NaN where no reference qualifies.
+    distance (or of its block means) over the iterations both were observed; NaN where no reference
+    qualifies.
     """
     references = np.asarray(references, dtype=np.int64)
     if len(references) == 0 or len(tracks) == 0:
         return np.full(len(tracks), np.nan)
     both = valid[:, None, :] & valid[references][None, :, :]  # (N, R, L)
-    distance = np.linalg.norm(tracks[:, None, :, :] - tracks[references][None, :, :, :], axis=3)
+    difference = tracks[:, None, :, :] - tracks[references][None, :, :, :]
+    distance = np.where(both, np.sqrt(np.einsum("nrlk,nrlk->nrl", difference, difference)), 0.0)
     count = both.sum(axis=2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(both, distance, 0.0).sum(axis=2) / count
-        variance = np.where(both, (distance - mean[..., None]) ** 2, 0.0).sum(axis=2) / (count - 1)
-    deviation = np.sqrt(variance)
     usable = (count >= min_common) & (np.arange(len(tracks))[:, None] != references[None, :])
-    deviation = np.where(usable, deviation, np.nan)
+    if block > 1:
+        n, r, length = distance.shape
+        blocks = -(-length // block)
+        pad = blocks * block - length
+        if pad:
+            # Pad at the start so the latest iterations form full blocks.
+            distance = np.concatenate([np.zeros((n, r, pad)), distance], axis=2)
+            both = np.concatenate([np.zeros((n, r, pad), bool), both], axis=2)
+        sums = distance.reshape(n, r, blocks, block).sum(axis=3)
+        counts = both.reshape(n, r, blocks, block).sum(axis=3)
+        both = counts >= 2
+        distance = np.where(both, sums / np.maximum(counts, 1), 0.0)
+        count = both.sum(axis=2)
+        usable &= count >= 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = distance.sum(axis=2) / count
+        variance = np.where(both, (distance - mean[..., None]) ** 2, 0.0).sum(axis=2) / (count - 1)
+    deviation = np.where(usable, np.sqrt(variance), np.nan)
     out = np.full(len(tracks), np.nan)
     any_usable = usable.any(axis=1)
     if any_usable.any():
-        out[any_usable] = np.nanmedian(deviation[any_usable], axis=1)
+        out[any_usable] = row_nanmedian(deviation[any_usable])
     return out

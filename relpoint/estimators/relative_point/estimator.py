@@ -37,6 +37,12 @@ Choices the paper leaves open, and where this implementation adds to it:
   paper's last round against the majority bin), with a second witness: how much the groups that
   placed the point disagree about its global position. Verified points are preferred as basis
   points and weigh more as anchors and for the current position.
+* The sweep compares distances averaged over blocks of ``dynamic_block`` iterations (noise down by
+  about its square root, slow movers kept), and has a third witness: the scatter of the point's
+  block-mean positions in ``world`` through the poses of their iterations, which sees motion in
+  every direction (``dynamic_world_factor``).
+* Group fits and the current position re-seed from the best three-point fit among the heaviest
+  pairs (a deterministic RANSAC) when several pairs lie beyond ``consensus_bound``.
 * Least-squares fits weight each anchor by the iterations averaged into its global position over
   the squared disagreement of its groups (inverse variance), and trim gross outliers.
 * A point in more than ``max_groups_per_point`` groups loses its lightest redundant closed group,
@@ -58,7 +64,7 @@ import numpy as np
 from relpoint.errors import UsageError
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
 from relpoint.estimators.relative_point.charting import PointCharting
-from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references
+from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references, world_block_deviation
 from relpoint.estimators.relative_point.grouping import UngroupedList, select_members
 from relpoint.estimators.relative_point.groups import (
     FIRST,
@@ -69,7 +75,7 @@ from relpoint.estimators.relative_point.groups import (
     choose_basis,
     relative_coordinates,
 )
-from relpoint.estimators.relative_point.lsf import apply, fit_transform
+from relpoint.estimators.relative_point.lsf import _median, apply, fit_transform
 from relpoint.estimators.relative_point.points import IntArray, PointStore
 from relpoint.estimators.relative_point.registration import NO_MATCH, GlobalIndex, MotionModel, match_nearest
 from relpoint.estimators.relative_point.tally import IdTally
@@ -126,11 +132,21 @@ class RelativePointConfig:
     motion from noise, so points are judged against the persisting majority bin)."""
     dynamic_every: int = 5
     """Run the dynamic sweep every this many iterations."""
+    dynamic_block: int = 5
+    """The sweep compares distances averaged over blocks of this many iterations (1: single
+    observations), which lowers the noise so that points moving a few metres over the window stand
+    out (see :func:`~relpoint.estimators.relative_point.dynamics.deviation_to_references`)."""
+    """Run the dynamic sweep every this many iterations."""
     dynamic_references: int = 6
     """Verified static points each point is compared with in the sweep."""
     dynamic_verify_factor: float = 1.5
     """A point whose deviation against the references is at most this times theirs is verified static."""
     dynamic_moving_factor: float = 2.0
+    """A point whose deviation against the references exceeds this times theirs is dynamic."""
+    dynamic_world_factor: float = 2.5
+    """A point whose block-mean positions in ``world`` (mapped by the poses of their iterations)
+    scatter by more than this times the typical scatter of the points in view is dynamic; it sees
+    motion in every direction, where distances only see it along each reference (0 disables)."""
     """A point whose deviation against the references exceeds this times theirs is dynamic."""
     dynamic_spread_factor: float = 2.5
     """A point whose groups disagree about its global position by more than this times the typical
@@ -145,6 +161,10 @@ class RelativePointConfig:
     """Smallest residual trimming may reject (m)."""
     trim_rounds: int = 1
     """Trimming rounds of the group fits and the current position (each refits without the outliers)."""
+    consensus_bound: float = 1.5
+    """Group fits and the current position re-seed from the best three-point fit (deterministic
+    RANSAC over the heaviest pairs) when a pair's residual exceeds this, and drop the pairs beyond
+    it, so moving points in view cannot pull them (m; 0 disables)."""
     unverified_weight: float = 0.5
     """Weight factor, in group fits and the current position, of points not (yet) verified static.
     (Using verified points only would be safer against moving points but, with few points in view,
@@ -165,7 +185,7 @@ class RelativePointConfig:
             "regroup_min_iterations": self.regroup_min_iterations, "regroup_after": self.regroup_after,
             "dynamic_min_iterations": self.dynamic_min_iterations, "max_groups_per_point": self.max_groups_per_point,
             "dynamic_window": self.dynamic_window, "dynamic_every": self.dynamic_every,
-            "dynamic_references": self.dynamic_references,
+            "dynamic_references": self.dynamic_references, "dynamic_block": self.dynamic_block,
             "stale_after": self.stale_after,
         }  # fmt: skip
         for name, value in positive_int.items():
@@ -183,7 +203,10 @@ class RelativePointConfig:
             "dynamic_spread_factor": self.dynamic_spread_factor, "unverified_weight": self.unverified_weight,
             "dynamic_spread_verify": self.dynamic_spread_verify,
         }  # fmt: skip
-        non_negative = {"merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor}
+        non_negative = {
+            "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
+            "consensus_bound": self.consensus_bound,
+        }  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise UsageError(f"{name} must be a positive number, got {value!r}")
@@ -243,6 +266,7 @@ class RelativePointEstimator(Estimator):
             spread_floor=config.spread_floor,
             unverified_weight=config.unverified_weight,
             rounds=config.trim_rounds,
+            consensus=config.consensus_bound,
         )
         self.motion = MotionModel()
         self.index = GlobalIndex(max(config.global_match_bound, config.merge_bound, 1e-3))
@@ -370,7 +394,7 @@ class RelativePointEstimator(Estimator):
         T_new = self.motion.update(reference[row[pairs]], points[pairs], config.trim_floor)
         if config.predict_motion and T_new is not None:
             # Largest change of prediction over the references: translation plus angle x range.
-            change = T_new @ np.linalg.inv(before)
+            change = T_new @ _rigid_inverse(before)
             angle = math.acos(min(1.0, max(-1.0, (float(np.trace(change[:3, :3])) - 1.0) / 2.0)))
             reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", reference, reference))))
             shift = float(np.linalg.norm(change[:3, 3])) + angle * reach
@@ -389,7 +413,7 @@ class RelativePointEstimator(Estimator):
             return
         # Current position predicted from the last one and this iteration's raw-point motion: good
         # to a fraction of the matching bound, and free (the final fit comes after grouping).
-        T_guess = self._T_world_sensor @ np.linalg.inv(self.motion.T_curr_prev)
+        T_guess = self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
         store = self.store
         world = apply(T_guess, points[unmatched])
         recent = k - self.config.match_window
@@ -611,9 +635,11 @@ class RelativePointEstimator(Estimator):
         references = verified[np.argsort(store.run_start[verified], kind="stable")[: config.dynamic_references]]
         tracks, valid = store.observations(tested, np.arange(start, k + 1))
         rows = np.searchsorted(tested, references)
-        deviation = deviation_to_references(tracks, valid, rows, config.dynamic_min_iterations)
+        deviation = deviation_to_references(
+            tracks, valid, rows, config.dynamic_min_iterations, block=config.dynamic_block
+        )
         self.counts["dynamic_comparisons"] += len(tested) * len(rows)
-        noise = float(np.nanmedian(deviation[rows])) if np.isfinite(deviation[rows]).any() else np.nan
+        noise = _finite_median(deviation[rows])
         if not np.isfinite(noise) or noise <= 0:
             return
         # Second witness: how much the point's groups disagree about its global position, against
@@ -628,13 +654,29 @@ class RelativePointEstimator(Estimator):
             & (store.first_iter[tested] == store.run_start[tested])
         )
         spread = np.where(mapped, store.spread(tested), np.nan)
-        typical = float(np.nanmedian(spread)) if mapped.any() else np.nan
+        typical = _finite_median(spread)
         spread_ratio = spread / typical if np.isfinite(typical) and typical > 0 else np.full(len(tested), np.nan)
         judged = np.isfinite(deviation)
         moving = (judged & (deviation > config.dynamic_moving_factor * noise)) | (
             np.isfinite(spread_ratio) & (spread_ratio > config.dynamic_spread_factor)
         )
-        static = judged & ~moving & (deviation <= config.dynamic_verify_factor * noise)
+        if config.dynamic_world_factor > 0:
+            # Third witness: scatter of the point's block-mean world positions within its current
+            # run (the pose of this iteration is not known yet), against the typical scatter.
+            iterations = np.arange(start, k)
+            current = valid[:, :-1] & (iterations[None, :] >= store.run_start[tested, None])
+            poses = self._poses[iterations % config.ring_size]
+            scatter = world_block_deviation(tracks[:, :-1], current, poses, config.dynamic_block)
+            typical_scatter = _finite_median(scatter)
+            if np.isfinite(typical_scatter) and typical_scatter > 0:
+                world_ratio = scatter / typical_scatter
+                moving |= np.isfinite(world_ratio) & (world_ratio > config.dynamic_world_factor)
+                static_ok = ~(world_ratio > config.dynamic_verify_factor)  # NaN: no objection
+            else:
+                static_ok = np.ones(len(tested), bool)
+        else:
+            static_ok = np.ones(len(tested), bool)
+        static = judged & ~moving & static_ok & (deviation <= config.dynamic_verify_factor * noise)
         static &= ~(spread_ratio > config.dynamic_spread_verify * config.dynamic_spread_factor)  # NaN: False
         # Verification is current: a point that no longer passes loses it until it passes again.
         store.verified[tested[judged & ~static]] = -1
@@ -730,6 +772,7 @@ class RelativePointEstimator(Estimator):
             collinear_tolerance=self.config.collinear_tolerance,
             weights=weights,
             rounds=self.config.trim_rounds,
+            consensus=self.config.consensus_bound,
         )
         return None if fit is None else fit.T
 
@@ -808,6 +851,21 @@ def quaternion_xyzw(R: FloatArray) -> tuple[float, float, float, float]:
     sign = -1.0 if q[3] < 0.0 else 1.0
     x, y, z, w = (sign * c / norm for c in q)
     return x, y, z, w
+
+
+def _rigid_inverse(T: FloatArray) -> FloatArray:
+    """Inverse of a rigid 4x4 transform (transpose the rotation; cheaper than a general inverse)."""
+    inverse = np.empty((4, 4))
+    inverse[:3, :3] = T[:3, :3].T
+    inverse[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
+    inverse[3] = (0.0, 0.0, 0.0, 1.0)
+    return inverse
+
+
+def _finite_median(values: FloatArray) -> float:
+    """Median of the finite entries of a 1-D array (NaN if none)."""
+    finite = values[np.isfinite(values)]
+    return _median(finite) if len(finite) else float("nan")
 
 
 def _build(config: RelativePointConfig, rng: np.random.Generator) -> RelativePointEstimator:

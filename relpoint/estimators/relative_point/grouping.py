@@ -57,7 +57,7 @@ def select_members(
     previous = previous[overlap.any(axis=1)]
     if len(previous) < seeds:
         return None
-    seed_rows = np.r_[creation, previous[:seeds]]
+    seed_rows = np.concatenate(([creation], previous[:seeds]))
     interval = np.logical_and.reduce(presence[seed_rows], axis=0)
     if not interval.any():
         return None
@@ -70,10 +70,10 @@ def select_members(
     running = np.logical_and.accumulate(presence[rest] & interval[None, :], axis=0)
     lengths = running.sum(axis=1)
     scores = lengths * (len(seed_rows) + 1 + np.arange(len(rest)))
-    previous_scores = np.r_[interval.sum() * len(seed_rows), scores[:-1]]
+    previous_scores = np.concatenate(([interval.sum() * len(seed_rows)], scores[:-1]))
     failed = np.flatnonzero(scores <= previous_scores)
     take = int(failed[0]) if len(failed) else len(rest)
-    rows = np.r_[seed_rows, rest[:take]].astype(np.int64)
+    rows = np.concatenate((seed_rows, rest[:take])).astype(np.int64)
     return rows, (running[take - 1] if take else interval)
 
 

@@ -23,6 +23,7 @@ the squared disagreement between their groups) and gross outliers are trimmed.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,6 +44,10 @@ LATER = "later"
 """A regrouping over a longer calculation interval (the paper's second grouping)."""
 
 
+_ROLL1 = np.array([1, 2, 0])
+_ROLL2 = np.array([2, 0, 1])
+
+
 def basis_rotation(b0: FloatArray, b1: FloatArray, b2: FloatArray, min_spread: float) -> tuple[FloatArray, BoolArray]:
     """Rotation ``R_sensor_basis`` (..., 3, 3) of the basis frame of three points (..., 3).
 
@@ -52,13 +57,14 @@ def basis_rotation(b0: FloatArray, b1: FloatArray, b2: FloatArray, min_spread: f
     ``b2`` lies within ``min_spread`` of that line (collinear basis: no unique rotation).
     """
     x = b0 - b1
-    x_norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    x_norm = np.sqrt(np.einsum("...i,...i->...", x, x))[..., None]
     x = x / np.maximum(x_norm, 1e-12)
     v = b2 - b0
-    z = v - np.sum(v * x, axis=-1, keepdims=True) * x
-    z_norm = np.linalg.norm(z, axis=-1, keepdims=True)
+    z = v - np.einsum("...i,...i->...", v, x)[..., None] * x
+    z_norm = np.sqrt(np.einsum("...i,...i->...", z, z))[..., None]
     z = z / np.maximum(z_norm, 1e-12)
-    y = np.cross(z, x)
+    # y = z x x, written out (np.cross costs several times more at these sizes).
+    y = z[..., _ROLL1] * x[..., _ROLL2] - z[..., _ROLL2] * x[..., _ROLL1]
     valid = (x_norm[..., 0] >= min_spread) & (z_norm[..., 0] >= min_spread)
     return np.stack([x, y, z], axis=-1), valid
 
@@ -95,17 +101,18 @@ def choose_basis(points: FloatArray, min_spread: float) -> tuple[int, int, int] 
     """
     if len(points) < 3:
         return None
-    i0 = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
-    i1 = int(np.argmax(np.sum((points - points[i0]) ** 2, axis=1)))
-    axis = points[i1] - points[i0]
-    length = float(np.linalg.norm(axis))
+    centred = points - points.sum(axis=0) / len(points)
+    i0 = int(np.argmax(np.einsum("ij,ij->i", centred, centred)))
+    d = points - points[i0]
+    squared = np.einsum("ij,ij->i", d, d)
+    i1 = int(np.argmax(squared))
+    length = math.sqrt(float(squared[i1]))
     if length < min_spread:
         return None
-    axis /= length
-    d = points - points[i0]
-    off_line = np.linalg.norm(d - np.outer(d @ axis, axis), axis=1)
+    along = d @ (d[i1] / length)
+    off_line = squared - along * along  # squared distance from the line through both
     i2 = int(np.argmax(off_line))
-    if off_line[i2] < min_spread:
+    if off_line[i2] < min_spread * min_spread:
         return None
     return i0, i1, i2
 
@@ -168,6 +175,8 @@ class GroupMap:
         spread of those positions between groups (floored at ``spread_floor``, m).
     unverified_weight:
         Factor on the weight of anchors not (yet) verified static by dynamic detection.
+    consensus:
+        Consensus bound of the fits (m; 0 disables; see :func:`fit_transform`).
     """
 
     def __init__(
@@ -182,6 +191,7 @@ class GroupMap:
         unverified_weight: float = 0.5,
         spread_floor: float = 0.2,
         rounds: int = 1,
+        consensus: float = 0.0,
     ) -> None:
         self.store = store
         self.trim = trim
@@ -191,6 +201,7 @@ class GroupMap:
         self.weighted = weighted
         self.unverified_weight = unverified_weight
         self.rounds = rounds
+        self.consensus = consensus
         self.spread_floor = spread_floor
         self.groups: dict[int, RelativeGroup] = {}
         self.refs: dict[int, list[int]] = {}
@@ -250,6 +261,7 @@ class GroupMap:
             collinear_tolerance=self.collinear_tolerance,
             weights=weights,
             rounds=self.rounds,
+            consensus=self.consensus,
         )
         if fit is None:
             self.failed_fits += 1

@@ -10,6 +10,8 @@ Paper name -> Python name
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -38,8 +40,28 @@ def is_collinear(points: FloatArray, tolerance: float) -> bool:
 
 def _off_line_rms(covariance: FloatArray) -> float:
     # The two smallest eigenvalues of the scatter are the mean squared distance off the best line.
-    eigenvalues = np.linalg.eigvalsh(covariance)
-    return float(np.sqrt(max(eigenvalues[0] + eigenvalues[1], 0.0)))
+    (a, d, e), (_, b, f), (_, _, c) = np.asarray(covariance, dtype=np.float64).tolist()
+    return _off_line_rms_of(a, b, c, d, e, f)
+
+
+def _off_line_rms_of(a: float, b: float, c: float, d: float, e: float, f: float) -> float:
+    """RMS distance off the best line of a scatter ``[[a, d, e], [d, b, f], [e, f, c]]`` (m^2 entries).
+
+    That is the square root of the sum of its two smallest eigenvalues, trace minus the largest,
+    found in closed form (trigonometric solution of the symmetric 3x3 eigenproblem; a numpy
+    ``eigvalsh`` call costs several times more at this size).
+    """
+    trace = a + b + c
+    p1 = d * d + e * e + f * f
+    q = trace / 3.0
+    p2 = (a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * p1
+    if p2 <= 1e-300:
+        return math.sqrt(max(trace - q, 0.0))  # isotropic: all three eigenvalues equal q
+    p = math.sqrt(p2 / 6.0)
+    ba, bb, bc, bd, be, bf = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
+    r = 0.5 * (ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be))
+    largest = q + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, r))) / 3.0)
+    return math.sqrt(max(trace - largest, 0.0))
 
 
 def _det3(M: FloatArray) -> float:
@@ -52,27 +74,41 @@ def _kabsch(source: FloatArray, target: FloatArray, weights: FloatArray | None) 
 
     Same mathematics as :func:`relpoint.geometry.fit_rigid` (reflection case handled by flipping
     the weakest singular direction), without its input checking: it runs several times per iteration.
+    The weighted-centred source sums to zero, so neither the cross-covariance nor the scatter needs a
+    centred target or a second centring of the source.
     """
     if weights is None:
-        w_src = source
         total = float(len(source))
+        mean_source = source.sum(axis=0) / total
+        mean_target = target.sum(axis=0) / total
+        weighted = source - mean_source
     else:
-        w_src = source * weights[:, None]
         total = float(weights.sum())
-    mean_source = w_src.sum(axis=0) / total
-    mean_target = (target.T @ weights if weights is not None else target.sum(axis=0)) / total
-    centred = source - mean_source
-    weighted = centred if weights is None else centred * weights[:, None]
-    scatter = weighted.T @ centred / total
-    U, _, Vt = np.linalg.svd(weighted.T @ (target - mean_target))
+        mean_source = weights @ source / total
+        mean_target = weights @ target / total
+        weighted = (source - mean_source) * weights[:, None]
+    weighted_t = weighted.T
+    (a, d, e), (_, b, f), (_, _, c) = (weighted_t @ source).tolist()
+    U, _, Vt = np.linalg.svd(weighted_t @ target)
     R = Vt.T @ U.T
     if _det3(R) < 0:
         Vt[2] = -Vt[2]
         R = Vt.T @ U.T
-    T = np.eye(4)
+    T = np.empty((4, 4))
     T[:3, :3] = R
     T[:3, 3] = mean_target - R @ mean_source
-    return T, _off_line_rms(scatter)
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T, _off_line_rms_of(a / total, b / total, c / total, d / total, e / total, f / total)
+
+
+def _median(values: FloatArray) -> float:
+    """Median of a 1-D array (``np.median`` without its overhead: one partition)."""
+    n = len(values)
+    half = n // 2
+    if n % 2:
+        return float(np.partition(values, half)[half])
+    low, high = np.partition(values, (half - 1, half))[half - 1 : half + 1].tolist()
+    return 0.5 * (low + high)
 
 
 def fit_transform(
@@ -84,6 +120,7 @@ def fit_transform(
     collinear_tolerance: float = 0.05,
     weights: FloatArray | None = None,
     rounds: int = 1,
+    consensus: float = 0.0,
 ) -> Fit | None:
     """Rigid transform taking ``source`` (N, 3) onto ``target`` (N, 3), or ``None`` if degenerate.
 
@@ -103,6 +140,13 @@ def fit_transform(
         Optional non-negative per-pair weights (N,).
     rounds:
         Trimming rounds at most.
+    consensus:
+        Consensus bound (m; 0 disables). When 5 % of the pairs (at least two) have residuals above
+        it after the first fit, the fit is re-seeded from the minimal three-pair fit
+        (:func:`_consensus`) that the most weight agrees with within the bound, and pairs outside
+        the bound are dropped before trimming: moving points cannot pull the fit while they are a
+        minority of the weight, whereas the median rule of ``trim`` only sees them once most pairs
+        fit well.
 
     Returns
     -------
@@ -117,18 +161,72 @@ def fit_transform(
     if spread <= collinear_tolerance:
         return None
     inliers = np.ones(n, bool)
+    if consensus > 0 and n > 4:
+        difference = target - source @ T[:3, :3].T - T[:3, 3]
+        residual = np.sqrt(np.einsum("ij,ij->i", difference, difference))
+        # Only a group of far-off pairs calls for it (stray mismatches are left to trimming), which
+        # also keeps its cost off the common case at high point counts.
+        if np.count_nonzero(residual > consensus) >= max(2, _CONSENSUS_SHARE * n):
+            agree = _consensus(source, target, weights, consensus, residual)
+            if agree is not None:
+                T_agree, spread = _kabsch(source[agree], target[agree], None if weights is None else weights[agree])
+                if spread > collinear_tolerance:
+                    T, inliers = T_agree, agree
+    allowed = inliers  # pairs the consensus kept (all without it); trimming only removes from them
     if trim > 0 and n > 4:
         for _ in range(rounds):
             difference = target - source @ T[:3, :3].T - T[:3, 3]
             residual = np.sqrt(np.einsum("ij,ij->i", difference, difference))
-            keep = residual <= max(trim * float(np.median(residual)), floor)
-            if keep.all() or np.array_equal(keep, inliers) or np.count_nonzero(keep) < 3:
+            keep = allowed & (residual <= max(trim * _median(residual[allowed]), floor))
+            if np.array_equal(keep, inliers) or np.count_nonzero(keep) < 3:
                 break
             T_kept, spread = _kabsch(source[keep], target[keep], None if weights is None else weights[keep])
             if spread <= collinear_tolerance:
                 break
             T, inliers = T_kept, keep
     return Fit(T, inliers)
+
+
+_CONSENSUS_SHARE = 0.05
+"""The consensus runs when at least this share of the pairs (and two) lie beyond its bound."""
+_CONSENSUS_ANCHORS = 8
+"""Minimal fits are drawn from the heaviest this many pairs (all their triples: 56 at most)."""
+_TRIPLES = {
+    m: np.array(list(itertools.combinations(range(m), 3)), dtype=np.int64) for m in range(3, _CONSENSUS_ANCHORS + 1)
+}
+
+
+def _consensus(
+    source: FloatArray, target: FloatArray, weights: FloatArray | None, bound: float, residual: FloatArray
+) -> npt.NDArray[np.bool_] | None:
+    """Pairs agreeing within ``bound`` with the best minimal (three-pair) fit, or ``None``.
+
+    Deterministic RANSAC: every triple of the heaviest pairs is fitted at once (batched SVD); the
+    fit whose agreeing pairs carry the most weight wins (ties: smaller summed residual). ``None``
+    unless it gathers more weight than the full fit's own agreeing pairs (``residual``, (N,)).
+    """
+    n = len(source)
+    w = np.ones(n) if weights is None else weights
+    m = min(n, _CONSENSUS_ANCHORS)
+    heaviest = np.argsort(-w, kind="stable")[:m] if m < n else np.arange(n)
+    triples = heaviest[_TRIPLES[m]]  # (K, 3)
+    src, dst = source[triples], target[triples]  # (K, 3, 3)
+    src_mean, dst_mean = src.mean(axis=1), dst.mean(axis=1)
+    H = np.einsum("kia,kib->kab", src - src_mean[:, None], dst - dst_mean[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    flip = np.linalg.det(np.einsum("kab,kbc->kac", U, Vt)) < 0
+    Vt[flip, 2] *= -1.0
+    R = np.einsum("kba,kcb->kac", Vt, U)  # (V U^T) per triple
+    t = dst_mean - np.einsum("kab,kb->ka", R, src_mean)
+    difference = target[None] - np.einsum("kab,nb->kna", R, source) - t[:, None]
+    residuals = np.sqrt(np.einsum("kna,kna->kn", difference, difference))  # (K, N)
+    agree = residuals <= bound
+    support = agree.astype(np.float64) @ w
+    best = int(np.lexsort((np.where(agree, residuals, bound).sum(axis=1), -support))[0])
+    chosen = agree[best]
+    if np.count_nonzero(chosen) < 3 or support[best] <= float(w[residual <= bound].sum()):
+        return None
+    return chosen
 
 
 def apply(T: npt.ArrayLike, points: FloatArray) -> FloatArray:

@@ -45,11 +45,12 @@ def match_nearest(reference: FloatArray, query: FloatArray, bound: float) -> tup
     distance = np.full(n, np.inf)
     if n == 0 or len(reference) == 0:
         return index, distance
-    tree = cKDTree(reference)
+    # Unbalanced, non-compact trees build faster and query as fast at these sizes (see the benchmark).
+    tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)
     d1, j1 = tree.query(query, k=1, distance_upper_bound=bound)
     found = j1 < len(reference)
     claimed = j1[found]
-    if len(np.unique(claimed)) == len(claimed):  # no conflicts: the usual case
+    if len(claimed) == 0 or np.bincount(claimed).max() == 1:  # no conflicts: the usual case
         index[found] = j1[found]
         distance[found] = d1[found]
         return index, distance
