@@ -200,3 +200,40 @@ def test_corpus_of_damaged_logs(path: Path) -> None:
     except RelpointError:
         return
     assert sum(reader.skipped.values()) > 0
+
+
+@pytest.fixture(scope="module")
+def tiny_rgbd_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from formats.rgbd_log import write_rgbd_simulation
+    from relpoint.simulation.rgbd import RgbdConfig, simulate_rgbd
+
+    path = tmp_path_factory.mktemp("rgbd") / "room.mcap"
+    write_rgbd_simulation(simulate_rgbd(RgbdConfig(frames=3, reference_points=1000, seed=3)), path, compression="none")
+    return path
+
+
+def consume_depth(path: Path) -> None:
+    """The depth readers and the dense estimator over a log; only RelpointErrors may escape."""
+    from relpoint_cli.run import estimator_inputs
+
+    reader = LogReader(path)
+    spec = ESTIMATORS["dense"]
+    estimator = spec.factory(spec.config_class(), np.random.default_rng(0))
+    pipeline.run(estimator_inputs(reader.records(sorted(reader.available_roles()))), estimator)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.data())
+def test_random_damage_to_depth_logs(tiny_rgbd_log: Path, tmp_path: Path, data: st.DataObject) -> None:
+    original = bytearray(tiny_rgbd_log.read_bytes())
+    damaged = bytearray(original)
+    if data.draw(st.booleans()):
+        damaged = damaged[: data.draw(st.integers(0, len(damaged) - 1))]
+    else:
+        for _ in range(data.draw(st.integers(1, 6))):
+            offset = data.draw(st.integers(len(MAGIC), len(damaged) - 1))
+            damaged[offset] ^= 0xFF
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(bytes(damaged))
+    with contextlib.suppress(RelpointError):
+        consume_depth(path)
