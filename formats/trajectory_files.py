@@ -36,6 +36,14 @@ _NS_PER_S = 1_000_000_000
 
 def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
     """(line number, fields) of the non-comment, non-blank lines of ``path``."""
+    for number, stripped in _text_lines(path):
+        if not stripped or stripped.startswith("#"):
+            continue
+        yield number, [f for f in _SEPARATORS.split(stripped) if f]
+
+
+def _text_lines(path: Path) -> list[tuple[int, str]]:
+    """(line number, stripped text) of every line of ``path``; InputError if it cannot be read as text."""
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
@@ -46,11 +54,7 @@ def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
         raise InputError(f"{path}: not a text file") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror})") from None
-    for number, line in enumerate(text.splitlines(), start=1):
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        yield number, [f for f in _SEPARATORS.split(stripped) if f]
+    return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1)]
 
 
 def parse_stamp_ns(text: str) -> int:
@@ -104,6 +108,29 @@ def _build(
     return Trajectory(stamps_arr, np.array(positions, dtype=np.float64).reshape(-1, 3), quats)
 
 
+def _read_tum_fast(path: Path) -> Trajectory | None:
+    """Whole-file parse of a well-formed TUM file; ``None`` sends the caller to the line-by-line reader.
+
+    The line-by-line reader names the file and line of any problem; this path only handles files
+    with exactly 8 finite values on every data line and plain decimal stamps, which is nearly all.
+    """
+    lines = [(number, line) for number, line in _text_lines(path) if line and not line.startswith("#")]
+    if not lines:
+        return None
+    fields = " ".join(line for _, line in lines).replace(",", " ").split()
+    if len(fields) != 8 * len(lines):
+        return None
+    table = np.array(fields, dtype=object).reshape(-1, 8)
+    try:
+        stamps = [parse_stamp_ns(text) for text in table[:, 0]]
+        values = table[:, 1:].astype(np.float64)
+    except ValueError:
+        return None
+    if not np.isfinite(values).all():
+        return None
+    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], [number for number, _ in lines])
+
+
 def read_tum(path: str | os.PathLike[str]) -> Trajectory:
     """Read a TUM trajectory file (see the module docstring).
 
@@ -114,6 +141,9 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
         value, a zero quaternion, or stamps that do not increase - naming the file and line.
     """
     path = Path(path)
+    fast = _read_tum_fast(path)
+    if fast is not None:
+        return fast
     stamps: list[int] = []
     rows: list[list[str]] = []
     lines: list[int] = []
