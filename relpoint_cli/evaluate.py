@@ -17,6 +17,7 @@ import click
 import numpy as np
 
 from formats.atomic import atomic_path, write_text
+from formats.ply import read_ply
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
@@ -29,6 +30,7 @@ from relpoint.evaluation import (
     evaluate_trajectory,
     landmark_metrics,
 )
+from relpoint.evaluation.dense import dense_metrics
 from relpoint.types import Trajectory
 from relpoint_cli.errors import handle_errors
 
@@ -133,6 +135,22 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
     """The summary (NaN/inf written as null), settings and inputs as JSON, atomically."""
     document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs}
     write_text(path, json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n")
+
+
+def dense_map_summary(
+    estimate: Path, reference_cloud: Path, result: EvaluationResult, settings: EvaluationSettings, threshold: float
+) -> dict[str, float]:
+    """Accuracy and completeness of a run's dense map.ply against a reference cloud (dense_* keys)."""
+    map_path = estimate / "map.ply"
+    if not map_path.is_file():
+        raise UsageError(f"--reference-cloud needs a run directory with a map.ply as ESTIMATE, not {estimate}")
+    vertices = read_ply(map_path)
+    reference = read_ply(reference_cloud)
+    points = np.stack([vertices[a] for a in "xyz"], axis=1).astype(np.float64)
+    if settings.align is not AlignMode.NONE:
+        points = result.alignment.apply_positions(points)
+    reference_points = np.stack([reference[a] for a in "xyz"], axis=1).astype(np.float64)
+    return dense_metrics(points, reference_points, threshold=threshold).summary()
 
 
 def write_errors_csv(path: Path, result: EvaluationResult) -> None:
@@ -261,6 +279,14 @@ def _save(fig: Any, path: Path) -> Path:
 )
 @click.option("--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path), help="Write PNG plots here.")
 @click.option(
+    "--reference-cloud",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Dense maps: reference point cloud (PLY, reference frame), e.g. the LOG.scene.ply of a simulated room.",
+)
+@click.option(
+    "--dense-threshold", type=float, default=0.05, show_default=True, help="Dense maps: distance counted as a hit, m."
+)
+@click.option(
     "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",
     help="Exit 5 if summary KEY exceeds VALUE or is NaN (repeatable).",
 )  # fmt: skip
@@ -269,12 +295,15 @@ def _save(fig: Any, path: Path) -> Path:
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
              estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
-             fail_above: tuple[str, ...], **options: Any) -> None:  # fmt: skip
+             reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
+             **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
 
     ESTIMATE is a `relpoint run` output directory, a TUM file, KITTI poses (--times) or an MCAP file
     (--estimate-topic). When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
-    with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary.
+    with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
+    ESTIMATE is a dense run (map.ply with normals) and --reference-cloud is given, the map's accuracy
+    and completeness (dense_*) are added, after the trajectory alignment.
     """
     gates = parse_gates(fail_above)
     settings = EvaluationSettings(**options)
@@ -288,6 +317,9 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     if landmarks is not None and truth is not None:
         alignment = result.alignment if settings.align is not AlignMode.NONE else None
         summary |= landmark_metrics(landmarks, truth, alignment=alignment).summary
+
+    if reference_cloud is not None:
+        summary |= dense_map_summary(estimate, reference_cloud, result, settings, dense_threshold)
 
     exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
     inputs = {

@@ -35,6 +35,16 @@ def test_room_simulation_runs_densely_within_a_centimetre(tmp_path: Path) -> Non
     code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
     assert code == 0, err
     assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.01
+    code, _, err = invoke(
+        "evaluate", str(out), "--reference", str(log), "--align", "se3",
+        "--reference-cloud", str(tmp_path / "room.scene.ply"), "--json", str(tmp_path / "d.json"),
+    )  # fmt: skip
+    assert code == 0, err
+    dense = json.loads((tmp_path / "d.json").read_text())["summary"]
+    # The reference is 200k surface samples (about 2 cm apart), so even perfect points sit ~1.3 cm from
+    # their nearest sample; the depth noise adds the rest.
+    assert dense["dense_accuracy_median"] < 0.035 and dense["dense_accuracy_within"] > 0.75
+    assert 0 < dense["dense_completeness_within"] < 1  # a short run sees part of the room
 
 
 def test_room_rejects_point_options(tmp_path: Path) -> None:
