@@ -19,7 +19,7 @@ from formats.atomic import atomic_directory, write_text
 from formats.log import LogWriter
 from formats.ply import landmark_vertices, write_ply
 from formats.rgbd_log import dense_map_vertices
-from formats.tables import write_map_csv, write_timing_csv, write_trajectory_csv
+from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
 from relpoint.pipeline import RunResult
 from relpoint.types import Pose
@@ -71,11 +71,17 @@ def write_run_directory(out_dir: str | os.PathLike[str], result: RunResult, run_
         write_trajectory_csv(tmp / "trajectory.csv", result.trajectory)
         if result.dense_map is not None:
             vertices = dense_map_vertices(*result.dense_map)
-            write_ply(tmp / "map.ply", vertices, comments=["relpoint dense map: points, normals, colours, weights; world"])
+            write_ply(
+                tmp / "map.ply", vertices, comments=["relpoint dense map: points, normals, colours, weights; world"]
+            )
         else:
-            write_ply(tmp / "map.ply", landmark_vertices(result.landmarks), comments=["relpoint landmark map, frame world"])
+            write_ply(
+                tmp / "map.ply", landmark_vertices(result.landmarks), comments=["relpoint landmark map, frame world"]
+            )
         write_map_csv(tmp / "map.csv", result.landmarks)
         write_timing_csv(tmp / "timing.csv", result.observed, result.map_size, result.seconds)
+        if result.map_history:
+            write_map_history_csv(tmp / "map_history.csv", result.map_history)
         write_result_mcap(tmp / "result.mcap", result)
         document = {
             **run_info,

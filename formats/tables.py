@@ -86,3 +86,48 @@ def write_timing_csv(
         for i, (o, m, s) in enumerate(zip(observed, map_size, seconds, strict=True))
     ]
     write_text(path, _rows_to_text(TIMING_HEADER, rows))
+
+
+MAP_HISTORY_HEADER = ["iteration", "timestamp", "landmark", "x", "y", "z", "dynamic", "gt_id"]
+
+
+def write_map_history_csv(path: str | os.PathLike[str], history: tuple[tuple[int, int, LandmarkMap], ...]) -> None:
+    """``iteration,timestamp,landmark,x,y,z,dynamic,gt_id``: the map at each snapshot iteration."""
+    rows = [
+        [str(iteration), f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}", str(i),
+         f"{p[0]:.9f}", f"{p[1]:.9f}", f"{p[2]:.9f}", str(int(d)), str(int(g))]
+        for iteration, stamp, landmarks in history
+        for i, (p, d, g) in enumerate(zip(landmarks.positions, landmarks.dynamic, landmarks.gt_id, strict=True))
+    ]  # fmt: skip
+    write_text(path, _rows_to_text(MAP_HISTORY_HEADER, rows))
+
+
+def read_map_history_csv(path: str | os.PathLike[str]) -> list[tuple[int, int, LandmarkMap]]:
+    """Read ``map_history.csv`` back as ``(iteration, stamp_ns, map)`` snapshots (observations unknown: 0)."""
+    path = Path(path)
+    try:
+        table = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=np.float64, ndmin=2)
+        stamps_text = [line.split(",")[1] for line in path.read_text(encoding="utf-8").splitlines()[1:] if line]
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path}: not a readable map_history.csv ({error})") from None
+    if table.size == 0:
+        return []
+    if table.shape[1] != len(MAP_HISTORY_HEADER):
+        raise InputError(f"{path}: expected {len(MAP_HISTORY_HEADER)} columns, got {table.shape[1]}")
+    snapshots = []
+    iterations = table[:, 0].astype(np.int64)
+    for iteration in np.unique(iterations):
+        rows = np.flatnonzero(iterations == iteration)
+        whole, _, fraction = stamps_text[rows[0]].partition(".")
+        stamp_ns = int(whole) * 1_000_000_000 + int(fraction.ljust(9, "0")[:9] or 0)
+        block = table[rows]
+        snapshots.append(
+            (
+                int(iteration),
+                stamp_ns,
+                LandmarkMap(
+                    block[:, 3:6], np.zeros(len(rows), np.int64), block[:, 6] != 0, block[:, 7].astype(np.int64)
+                ),
+            )
+        )
+    return snapshots

@@ -47,6 +47,8 @@ class RunResult:
     map_size: np.ndarray
     seconds: np.ndarray
     summary: dict[str, Any] = field(default_factory=dict)
+    map_history: tuple[tuple[int, int, LandmarkMap], ...] = ()
+    """Snapshots ``(iteration, stamp_ns, map)`` taken every ``map_every`` iterations and at the end."""
     dense_map: tuple[np.ndarray, ...] | None = None
     """For dense estimators: (positions (M,3) m, normals (M,3), colours (M,3) uint8, weights (M,)) in ``world``."""
 
@@ -67,8 +69,12 @@ def run(
     estimator: Estimator,
     *,
     on_iteration: Callable[[int, Pose], None] | None = None,
+    map_every: int = 0,
 ) -> RunResult:
     """Run ``estimator`` over ``inputs`` (time-ordered) and collect its results.
+
+    With ``map_every`` > 0 the landmark map is also recorded every that many iterations and after the
+    last one (for landmark error over time, the paper's Fig. 8).
 
     Raises :class:`EstimatorError` if the stream holds no observation at all.
     """
@@ -79,6 +85,7 @@ def run(
     observed = array("q")
     map_size = array("q")
     seconds = array("d")
+    snapshots: list[tuple[int, int, LandmarkMap]] = []
     for item in inputs:
         if isinstance(item, OdometryMeasurement):
             estimator.add_odometry(item)
@@ -95,10 +102,14 @@ def run(
             quats.extend(pose.quat_xyzw)
             observed.append(len(item.points) if isinstance(item, PointObservation) else int((item.depth > 0).sum()))
             map_size.append(estimator.map_size)
+            if map_every > 0 and len(stamps) % map_every == 0:
+                snapshots.append((len(stamps) - 1, pose.stamp_ns, estimator.landmark_map()))
             if on_iteration is not None:
                 on_iteration(len(stamps) - 1, pose)
     if not stamps:
         raise EstimatorError("the log holds no observation to run on")
+    if map_every > 0 and (not snapshots or snapshots[-1][0] != len(stamps) - 1):
+        snapshots.append((len(stamps) - 1, stamps[-1], estimator.landmark_map()))
     return RunResult(
         trajectory=Trajectory(
             np.frombuffer(stamps, dtype=np.int64),
@@ -110,5 +121,6 @@ def run(
         map_size=np.asarray(map_size, dtype=np.int64),
         seconds=np.asarray(seconds, dtype=np.float64),
         summary=estimator.summary(),
+        map_history=tuple(snapshots),
         dense_map=estimator.dense_map() if hasattr(estimator, "dense_map") else None,
     )

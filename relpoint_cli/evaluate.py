@@ -19,6 +19,7 @@ import numpy as np
 from formats.atomic import atomic_path, write_text
 from formats.ply import read_ply
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.tables import read_map_history_csv
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
     STATISTICS,
@@ -153,8 +154,9 @@ def dense_map_summary(
     return dense_metrics(points, reference_points, threshold=threshold).summary()
 
 
-def write_errors_csv(path: Path, result: EvaluationResult) -> None:
-    """Per matched pose: stamp, APE translation/rotation/relation, and the RPE of the pair ending there.
+def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
+    """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
+    the landmark RMSE at poses where the run recorded its map (``--map-every``).
 
     RPE columns are empty for poses that end no pair (with ``--all-pairs`` or deltas in metres or degrees
     several pairs can share a last pose; the last such pair is written).
@@ -165,11 +167,13 @@ def write_errors_csv(path: Path, result: EvaluationResult) -> None:
     if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
         rpe_t[result.rpe_translation.second] = result.rpe_translation.errors
         rpe_r[result.rpe_rotation_deg.second] = result.rpe_rotation_deg.errors
-    header = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg\n"
+    landmark_rmse = landmark_rmse or {}
+    header = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m\n"
     body = []
     for i, stamp in enumerate(result.stamps_ns.tolist()):
         seconds, nanos = divmod(int(stamp), 1_000_000_000)
-        values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i])
+        values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i],
+                  landmark_rmse.get(int(stamp), math.nan))  # fmt: skip
         body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
     write_text(path, header + "\n".join(body) + ("\n" if body else ""))
 
@@ -314,9 +318,18 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
 
     landmarks = load_landmark_map(estimate)
     truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
+    landmark_error_over_time: dict[int, float] = {}
     if landmarks is not None and truth is not None:
         alignment = result.alignment if settings.align is not AlignMode.NONE else None
         summary |= landmark_metrics(landmarks, truth, alignment=alignment).summary
+        history = estimate / "map_history.csv"
+        if history.is_file():  # written by `relpoint run --map-every N`
+            key = "lm_err_rmse_aligned" if alignment is not None else "lm_err_rmse"
+            for _, stamp_ns, snapshot in read_map_history_csv(history):
+                if len(snapshot):
+                    landmark_error_over_time[stamp_ns] = landmark_metrics(
+                        snapshot, truth, alignment=alignment
+                    ).summary.get(key, math.nan)
 
     if reference_cloud is not None:
         summary |= dense_map_summary(estimate, reference_cloud, result, settings, dense_threshold)
@@ -333,7 +346,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     if json_path is not None:
         write_json(json_path, summary, settings, inputs)
     if csv_path is not None:
-        write_errors_csv(csv_path, result)
+        write_errors_csv(csv_path, result, landmark_error_over_time)
     if plot_dir is not None:
         write_plots(plot_dir, ref, result)
     click.echo(format_table(summary, settings.pose_relation))

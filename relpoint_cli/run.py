@@ -125,6 +125,7 @@ def execute_run(
     use_fixes: bool = True,
     extra_info: dict[str, Any] | None = None,
     on_iteration: Callable[[int, Any], None] | None = None,
+    map_every: int = 0,
 ) -> pipeline.RunResult:
     """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
 
@@ -135,7 +136,9 @@ def execute_run(
     estimator = spec.factory(config, np.random.default_rng(seed))
     with threadpool_limits(limits=1, user_api="blas"):
         try:
-            result = pipeline.run(estimator_inputs(reader.records(roles)), estimator, on_iteration=on_iteration)
+            result = pipeline.run(
+                estimator_inputs(reader.records(roles)), estimator, on_iteration=on_iteration, map_every=map_every
+            )
         except EstimatorError as error:
             malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
             if malformed and "no observation" in str(error):
@@ -176,13 +179,21 @@ def execute_run(
     help="TOML/YAML file of estimator parameters.",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the estimator's random draws.")
+@click.option(
+    "--map-every",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Also write map_history.csv with the map every N iterations (landmark error over time); 0 = off.",
+)
 @click.option("--no-odometry", is_flag=True, help="Ignore /odom even if the log has it.")
 @click.option("--no-fixes", is_flag=True, help="Ignore /fix even if the log has it.")
 @topic_options
 @click.pass_context
 @handle_errors
 def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params: tuple[str, ...],
-        config_file: Path | None, seed: int, no_odometry: bool, no_fixes: bool, **topic_names: str) -> None:  # fmt: skip
+        config_file: Path | None, seed: int, map_every: int, no_odometry: bool, no_fixes: bool,
+        **topic_names: str) -> None:  # fmt: skip
     """Run an estimator over LOG and write trajectory, map, timing and run.json to OUTPUT."""
     if estimator_name not in ESTIMATORS:
         known = ", ".join(sorted(ESTIMATORS)) or "none installed"
@@ -194,7 +205,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
         result = execute_run(
             reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,
-            on_iteration=lambda *_: bar.update(1),
+            on_iteration=lambda *_: bar.update(1), map_every=map_every,
         )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()

@@ -135,3 +135,20 @@ def test_config_output_is_valid_toml_that_rebuilds_the_defaults(name: str, tmp_p
     assert name in tomllib.loads(result.stdout)
     spec = ESTIMATORS[name]
     assert build_config(spec, path, ()) == spec.config_class()
+
+
+def test_landmark_error_over_time(tmp_path: Path, small_log: Path) -> None:
+    """`run --map-every` records the map; `evaluate --csv` turns it into landmark error over time (Fig. 8)."""
+    out = tmp_path / "out"
+    code, err = invoke("-q", "run", str(small_log), "--estimator", "relpoint", "--map-every", "20", "-o", str(out))
+    assert code == 0, err
+    with (out / "map_history.csv").open() as stream:
+        iterations = sorted({int(row["iteration"]) for row in csv.DictReader(stream)})
+    assert iterations == [19, 39, 59, 79, 99, 119]
+    code, err = invoke("evaluate", str(out), "--reference", str(small_log), "--csv", str(tmp_path / "e.csv"))
+    assert code == 0, err
+    with (tmp_path / "e.csv").open() as stream:
+        rows = [row for row in csv.DictReader(stream) if row["landmark_rmse_m"]]
+    assert len(rows) == 6
+    errors = [float(row["landmark_rmse_m"]) for row in rows]
+    assert all(0.0 < e < 3.0 for e in errors)  # noise 0.3 m: mapped landmarks stay within metres
