@@ -53,7 +53,9 @@ def main() -> None:
         child(args.estimator, args.child)
         return
     print(f"{args.estimator}: peak RSS against figure-eight passes (density 25, noise 0.3)")
-    print(f"{'passes':>6} {'iterations':>10} {'landmarks':>9} {'seconds':>8} {'peak RSS MB':>11} {'RMSE last pass m':>16}")
+    print(
+        f"{'passes':>6} {'iterations':>10} {'landmarks':>9} {'seconds':>8} {'peak RSS MB':>11} {'RMSE last pass m':>16}"
+    )
     for passes in args.passes:
         output = subprocess.run(
             [sys.executable, __file__, "--estimator", args.estimator, "--child", str(passes)],

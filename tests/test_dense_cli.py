@@ -32,7 +32,9 @@ def test_room_simulation_runs_densely_within_a_centimetre(tmp_path: Path) -> Non
     assert {"nx", "ny", "nz", "red", "green", "blue", "weight"} <= set(vertices.dtype.names)
     summary = json.loads((out / "run.json").read_text())["summary"]
     assert summary["map_points"] == len(vertices) and 0 < summary["compression_ratio"] < 1
-    code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
+    code, _, err = invoke(
+        "evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json")
+    )
     assert code == 0, err
     assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.01
     code, _, err = invoke(
@@ -64,7 +66,9 @@ def test_seven_scenes_import_and_dense_run(tmp_path: Path) -> None:
     out = tmp_path / "out"
     code, _, err = invoke("run", str(log), "--estimator", "dense", "--param", "downsample=2", "-o", str(out))
     assert code == 0, err
-    code, _, err = invoke("evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json"))
+    code, _, err = invoke(
+        "evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json")
+    )
     assert code == 0, err
     assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.03
 
