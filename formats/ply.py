@@ -44,11 +44,13 @@ def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
-    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id."""
-    vertices = np.empty(
-        len(landmarks),
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")],
-    )
+    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id (and purity if known)."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
+    if landmarks.purity is not None:
+        fields.append(("purity", "<f4"))
+    vertices = np.empty(len(landmarks), dtype=fields)
+    if landmarks.purity is not None:
+        vertices["purity"] = landmarks.purity
     vertices["x"], vertices["y"], vertices["z"] = landmarks.positions.T
     vertices["observations"] = landmarks.observations
     vertices["dynamic"] = landmarks.dynamic

@@ -15,6 +15,7 @@ repeat stamps now and then); the count is logged. Every problem is an :class:`In
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Iterable
@@ -26,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from formats import ros2
 from formats.log import LogReader
+from formats.ply import read_ply
 from formats.tables import read_map_csv
 from formats.trajectory_files import read_kitti, read_tum
 from relpoint.errors import InputError
@@ -333,7 +335,15 @@ def load_trajectory(
 def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
     """The ``map.csv`` of a run directory, or None when ``path`` is not a directory holding one."""
     map_csv = Path(path) / "map.csv"
-    return read_map_csv(map_csv) if Path(path).is_dir() and map_csv.is_file() else None
+    if not (Path(path).is_dir() and map_csv.is_file()):
+        return None
+    landmarks = read_map_csv(map_csv)
+    map_ply = Path(path) / "map.ply"
+    if map_ply.is_file():  # the PLY carries the per-landmark association purity when the estimator knows it
+        vertices = read_ply(map_ply)
+        if "purity" in (vertices.dtype.names or ()) and len(vertices) == len(landmarks):
+            landmarks = dataclasses.replace(landmarks, purity=vertices["purity"].astype(np.float64))
+    return landmarks
 
 
 def load_ground_truth_landmarks(path: str | os.PathLike[str]) -> GroundTruthLandmarks | None:

@@ -151,12 +151,15 @@ class LandmarkMap:
     observations: (M,) int64, how many observations were fused into each landmark.
     dynamic: (M,) bool, landmark judged to move (kept out of the static map).
     gt_id: (M,) int64, majority ground-truth id of the fused observations, -1 if unknown.
+    purity: (M,) float64 share of the fused observations that carry ``gt_id`` (association purity),
+        or ``None`` when the estimator or the log cannot tell.
     """
 
     positions: FloatArray
     observations: IntArray
     dynamic: npt.NDArray[np.bool_]
     gt_id: IntArray
+    purity: FloatArray | None = None
 
     def __post_init__(self) -> None:
         positions = _frozen(self.positions, np.float64, (3,), "positions")
@@ -167,6 +170,11 @@ class LandmarkMap:
                 raise ValueError(f"{name} has {len(array)} entries for {n} landmarks")
             object.__setattr__(self, name, array)
         object.__setattr__(self, "positions", positions)
+        if self.purity is not None:
+            purity = _frozen(self.purity, np.float64, (), "purity")
+            if len(purity) != n or np.any((purity < 0) | (purity > 1)):
+                raise ValueError(f"purity must hold {n} shares in [0, 1]")
+            object.__setattr__(self, "purity", purity)
 
     def __len__(self) -> int:
         return len(self.positions)

@@ -321,7 +321,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     landmark_error_over_time: dict[int, float] = {}
     if landmarks is not None and truth is not None:
         alignment = result.alignment if settings.align is not AlignMode.NONE else None
-        summary |= landmark_metrics(landmarks, truth, alignment=alignment).summary
+        summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
         history = estimate / "map_history.csv"
         if history.is_file():  # written by `relpoint run --map-every N`
             key = "lm_err_rmse_aligned" if alignment is not None else "lm_err_rmse"

@@ -152,3 +152,14 @@ def test_landmark_error_over_time(tmp_path: Path, small_log: Path) -> None:
     assert len(rows) == 6
     errors = [float(row["landmark_rmse_m"]) for row in rows]
     assert all(0.0 < e < 3.0 for e in errors)  # noise 0.3 m: mapped landmarks stay within metres
+
+
+def test_association_purity_reaches_the_evaluation(tmp_path: Path, small_log: Path) -> None:
+    out = tmp_path / "out"
+    assert invoke("-q", "run", str(small_log), "--estimator", "relpoint", "-o", str(out))[0] == 0
+    purity = read_ply(out / "map.ply")["purity"]
+    assert len(purity) > 20 and np.all((purity > 0) & (purity <= 1))
+    code, err = invoke("evaluate", str(out), "--reference", str(small_log), "--json", str(tmp_path / "e.json"))
+    assert code == 0, err
+    summary = json.loads((tmp_path / "e.json").read_text())["summary"]
+    assert summary["lm_purity_mean"] == pytest.approx(float(np.mean(purity)), abs=1e-6)

@@ -339,8 +339,9 @@ class RelativePointEstimator(Estimator):
         dynamic = store.dynamic[keep]
         n_obs = store.n_obs[keep]
         positions[dynamic] = store.world_sum[keep[dynamic]] / np.maximum(n_obs[dynamic], 1)[:, None]
-        gt_id, _ = self.tally.majority(store.uid[keep])
-        return LandmarkMap(positions, n_obs, dynamic, gt_id)
+        gt_id, purity = self.tally.majority(store.uid[keep])
+        known = bool(np.any(gt_id >= 0))
+        return LandmarkMap(positions, n_obs, dynamic, gt_id, np.clip(purity, 0.0, 1.0) if known else None)
 
     def landmark_purity(self) -> FloatArray:
         """Share of each landmark's observations carrying its ``gt_id`` (M,), in :meth:`landmark_map` order."""
