@@ -8,6 +8,7 @@ adds building from a plain mapping (a TOML/YAML table or ``--param`` pairs), whe
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any, ClassVar, TypeVar
 
@@ -40,3 +41,17 @@ class Settings:
     def to_dict(self) -> dict[str, Any]:
         """The settings as a plain dict (JSON-serialisable for the built-in settings)."""
         return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+
+def require_positive(values: Mapping[str, Any]) -> None:
+    """Raise :class:`UsageError` naming the first value that is not a finite number > 0."""
+    for name, value in values.items():
+        if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
+            raise UsageError(f"{name} must be a positive number, got {value!r}")
+
+
+def require_non_negative(values: Mapping[str, Any]) -> None:
+    """Raise :class:`UsageError` naming the first value that is not a finite number >= 0."""
+    for name, value in values.items():
+        if not (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
+            raise UsageError(f"{name} must be a number >= 0, got {value!r}")

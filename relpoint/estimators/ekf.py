@@ -24,7 +24,6 @@ Cost
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -44,7 +43,7 @@ from relpoint.estimators._association import (
 )
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
-from relpoint.settings import Settings
+from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)
@@ -105,12 +104,8 @@ class EkfConfig(Settings):
             "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
             "initial_orientation_sigma": self.initial_orientation_sigma,
         }  # fmt: skip
-        for name, value in positive.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
-        for name, value in non_negative.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        require_positive(positive)
+        require_non_negative(non_negative)
         for name in ("gate_probability", "new_landmark_probability"):
             value = getattr(self, name)
             if not (isinstance(value, float) and 0.0 < value < 1.0):

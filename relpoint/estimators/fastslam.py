@@ -39,7 +39,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
 from relpoint.estimators.base import ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
-from relpoint.settings import Settings
+from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose
 
 logger = logging.getLogger(__name__)
@@ -105,12 +105,8 @@ class FastSlamConfig(Settings):
             "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
             "pose_noise": self.pose_noise,
         }  # fmt: skip
-        for name, value in positive.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
-        for name, value in non_negative.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        require_positive(positive)
+        require_non_negative(non_negative)
         if not (isinstance(self.new_landmark_probability, float) and 0.0 < self.new_landmark_probability < 1.0):
             raise UsageError(
                 f"new_landmark_probability must be strictly between 0 and 1, got {self.new_landmark_probability!r}"

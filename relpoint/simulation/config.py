@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from relpoint.errors import UsageError
-from relpoint.settings import Settings
+from relpoint.settings import Settings, require_non_negative, require_positive
 
 SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps")
 
@@ -67,9 +66,7 @@ class SimulationConfig(Settings):
             "range": self.range, "fov_horizontal": self.fov_horizontal, "fov_vertical": self.fov_vertical,
             "radius": self.radius, "length": self.length,
         }  # fmt: skip
-        for name, value in positive.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
+        require_positive(positive)
         non_negative = {
             "noise": self.noise, "clutter": self.clutter, "fix_noise": self.fix_noise, "fix_every": self.fix_every,
             "dynamic_amplitude": self.dynamic_amplitude, "spread_lateral": self.spread_lateral,
@@ -78,9 +75,7 @@ class SimulationConfig(Settings):
             "odometry_angular_noise": 0.0 if self.odometry_angular_noise is None else self.odometry_angular_noise,
             "start_time": self.start_time,
         }  # fmt: skip
-        for name, value in non_negative.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
+        require_non_negative(non_negative)
         if not 0.0 <= self.dynamic <= 1.0:
             raise UsageError(f"dynamic must be a fraction between 0 and 1, got {self.dynamic!r}")
         if self.min_range >= self.range:

@@ -15,18 +15,18 @@ Everything is deterministic given the config's seed; frames are rendered on dema
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
 
 from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import DepthFrame, Intrinsics, Trajectory
 
 RESOLUTIONS = {"320x240": (320, 240), "640x480": (640, 480)}
@@ -37,8 +37,10 @@ def _setting(default: Any, help: str) -> Any:
 
 
 @dataclass(frozen=True)
-class RgbdConfig:
+class RgbdConfig(Settings):
     """Settings of the simulated RGB-D room. Metres, degrees, seconds, hertz."""
+
+    settings_name: ClassVar[str] = "rgbd"
 
     resolution: str = _setting("320x240", "Image size: 320x240 or 640x480.")
     frames: int = _setting(150, "Number of frames.")
@@ -74,19 +76,6 @@ class RgbdConfig:
             raise UsageError(f"min_range ({self.min_range}) must be below max_range ({self.max_range})")
         if not (isinstance(self.reference_points, int) and self.reference_points >= 1):
             raise UsageError(f"reference_points must be a positive integer, got {self.reference_points!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> RgbdConfig:
-        """Build from a mapping (config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(f"unknown rgbd setting(s): {', '.join(unknown)}", f"known: {', '.join(sorted(known))}")
-        return cls(**normalised)
 
 
 # -- scene ------------------------------------------------------------------------------------------------

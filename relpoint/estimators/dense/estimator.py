@@ -8,7 +8,6 @@ target (section 4), coarse to fine (:mod:`.icp`); the frame is then fused into t
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -23,14 +22,17 @@ from relpoint.estimators.dense.fusion import PointMap
 from relpoint.estimators.dense.icp import IcpSettings, track
 from relpoint.estimators.dense.maps import Level, build_pyramid
 from relpoint.geometry import FloatArray, invert_pose
+from relpoint.settings import Settings
 from relpoint.types import DepthFrame, LandmarkMap, Pose
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class DenseConfig:
+class DenseConfig(Settings):
     """Settings of the dense estimator. Metres, degrees, frames."""
+
+    settings_name: ClassVar[str] = "dense"
 
     downsample: int = 1
     """Process the depth at 1/downsample of its resolution (1, 2 or 4; 2x2 block averaging)."""
@@ -118,21 +120,6 @@ class DenseConfig:
         for name in ("remove_unstable", "smooth_depth"):
             if not isinstance(getattr(self, name), bool):
                 raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> DenseConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown dense setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
     def icp_settings(self) -> IcpSettings:
         return IcpSettings(

@@ -52,7 +52,6 @@ Choices the paper leaves open, and where this implementation adds to it:
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import deque
@@ -80,14 +79,17 @@ from relpoint.estimators.relative_point.points import IntArray, PointStore
 from relpoint.estimators.relative_point.registration import NO_MATCH, GlobalIndex, MotionModel, match_nearest
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import LandmarkMap, PointObservation, Pose
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class RelativePointConfig:
+class RelativePointConfig(Settings):
     """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
+
+    settings_name: ClassVar[str] = "relpoint"
 
     ring_size: int = 128
     """Untransformed observations each point keeps (*RltPoint* circular array); bounds regrouping intervals."""
@@ -226,21 +228,6 @@ class RelativePointConfig:
             raise UsageError("match_window and creation_delay must be below ring_size")
         if max(self.regroup_min_iterations, self.regroup_after, self.dynamic_window) > self.ring_size:
             raise UsageError("regroup_min_iterations, regroup_after and dynamic_window must not exceed ring_size")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> RelativePointConfig:
-        """Build from a mapping (a config file, CLI options); unknown keys are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        normalised = {str(k).replace("-", "_"): v for k, v in values.items()}
-        unknown = sorted(set(normalised) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown relpoint setting(s): {', '.join(unknown)}", f"known settings are {', '.join(sorted(known))}"
-            )
-        return cls(**normalised)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 class RelativePointEstimator(Estimator):
