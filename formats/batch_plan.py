@@ -29,9 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from formats.atomic import write_text
+from formats.config_files import read_document
 from formats.log import Topics
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
@@ -39,9 +38,9 @@ from relpoint.evaluation import EvaluationSettings
 from relpoint.simulation import SimulationConfig
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover
-    import tomli as tomllib
+    pass
 
 #: Keys of an estimator table that set how the job runs rather than the estimator's config.
 RUN_KEYS = ("seed", "use_odometry", "use_fixes")
@@ -163,22 +162,7 @@ class BatchPlan:
 
 
 def _read_document(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise UsageError(f"cannot read plan {path}: {error.strerror or error}") from None
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".toml":
-            data: Any = tomllib.loads(text)
-        elif suffix in (".yaml", ".yml"):
-            data = yaml.safe_load(text)
-        else:
-            raise UsageError(f"plan {path} must end in .toml, .yaml or .yml")
-    except (tomllib.TOMLDecodeError, yaml.YAMLError) as error:
-        raise UsageError(f"plan {path} is not valid {suffix[1:].upper()}: {error}".splitlines()[0]) from None
-    if not isinstance(data, dict):
-        raise UsageError(f"plan {path} must hold a table of settings")
+    data = read_document(path, what="plan")
     unknown = sorted(set(data) - set(PLAN_KEYS))
     if unknown:
         raise UsageError(f"plan {path}: unknown key(s) {', '.join(unknown)}", f"known keys: {', '.join(PLAN_KEYS)}")
@@ -302,18 +286,10 @@ def _run_options(values: dict[str, Any], where: str) -> tuple[int, bool, bool]:
 
 def _estimator_config(name: str, values: dict[str, Any], where: str) -> None:
     """Validate ``values`` by building the estimator's config (raises UsageError like ``relpoint run``)."""
-    spec = ESTIMATORS[name]
-    known = {f.name for f in dataclasses.fields(spec.config_class)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise UsageError(
-            f"{where}: unknown {name} parameter(s): {', '.join(unknown)}",
-            f"see `relpoint config --estimator {name}` for the parameters",
-        )
     try:
-        spec.config_class(**values)
-    except (TypeError, ValueError) as error:
-        raise UsageError(f"{where}: bad {name} parameter: {error}") from None
+        ESTIMATORS[name].build_config(values)
+    except UsageError as error:
+        raise UsageError(f"{where}: {error.message}", error.hint) from None
 
 
 def _log_labels(logs: Sequence[Path]) -> dict[Path, str]:

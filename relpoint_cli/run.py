@@ -63,17 +63,7 @@ def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[st
             raise UsageError(f"--param {item!r} is not KEY=VALUE")
         key, value = item.split("=", 1)
         values[key.strip().replace("-", "_")] = parse_value(value)
-    known = {f.name for f in dataclasses.fields(spec.config_class)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise UsageError(
-            f"unknown {spec.name} parameter(s): {', '.join(unknown)}",
-            f"see `relpoint config --estimator {spec.name}` for the parameters",
-        )
-    try:
-        return spec.config_class(**values)
-    except (TypeError, ValueError) as error:
-        raise UsageError(f"bad {spec.name} parameter: {error}") from None
+    return spec.build_config(values)
 
 
 def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:

@@ -9,12 +9,14 @@ reads files, prints or exits: the pipeline (``relpoint.pipeline``) drives it and
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
+from relpoint.errors import UsageError
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 #: Input roles a log can provide (named after the default topics of the log format).
@@ -71,3 +73,17 @@ class EstimatorSpec:
     factory: Callable[[Any, np.random.Generator], Any]
     needs: frozenset[str]
     uses: frozenset[str] = frozenset()
+
+    def build_config(self, values: Mapping[str, Any]) -> Any:
+        """The config dataclass from parameter values; unknown or bad values are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(self.config_class)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown {self.name} parameter(s): {', '.join(unknown)}",
+                f"see `relpoint config --estimator {self.name}` for the parameters",
+            )
+        try:
+            return self.config_class(**values)
+        except (TypeError, ValueError) as error:
+            raise UsageError(f"bad {self.name} parameter: {error}") from None
