@@ -45,3 +45,18 @@ def shared_data(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"shared data {path.name} is not available")
     return path
+
+
+def run_accuracy(errors: list[float], landmarks: object, truth_positions: object) -> dict[str, float]:
+    """Position and landmark error figures of a short simulated run (landmarks matched by ``gt_id``)."""
+    import numpy as np
+
+    known = landmarks.gt_id >= 0
+    residual = landmarks.positions[known] - truth_positions[landmarks.gt_id[known]]
+    return {
+        "position_rmse": float(np.sqrt(np.mean(np.square(errors)))),
+        "final_error": float(errors[-1]),
+        "landmark_rmse": float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
+        "landmarks": len(landmarks),
+        "distinct": len(set(landmarks.gt_id.tolist())),
+    }

@@ -11,6 +11,7 @@ from relpoint.estimators.fastslam import SPEC, FastSlam, FastSlamConfig, low_var
 from relpoint.geometry import invert_pose, transform_points
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation
+from tests.conftest import run_accuracy
 
 DT_NS = 100_000_000
 
@@ -28,17 +29,7 @@ def _run(config: FastSlamConfig, seed: int, iterations: int, **sim_options: obje
         assert slam.weights.sum() == pytest.approx(1.0, abs=1e-12)
         truth = (T_first_world @ step.T_world_sensor)[:3, 3]
         errors.append(np.linalg.norm(np.array(pose.position) - truth))
-    landmarks = slam.landmark_map()
-    truth = transform_points(T_first_world, sim.landmarks.positions)
-    known = landmarks.gt_id >= 0
-    residual = landmarks.positions[known] - truth[landmarks.gt_id[known]]
-    return {
-        "position_rmse": float(np.sqrt(np.mean(np.square(errors)))),
-        "final_error": float(errors[-1]),
-        "landmark_rmse": float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
-        "landmarks": len(landmarks),
-        "distinct": len(set(landmarks.gt_id.tolist())),
-    }
+    return run_accuracy(errors, slam.landmark_map(), transform_points(T_first_world, sim.landmarks.positions))
 
 
 # ----------------------------------------------------------------------------------------- config
