@@ -139,6 +139,50 @@ def test_duplicated_point_is_merged_back() -> None:
     assert landmarks.observations[landmarks.gt_id == 5].item() == 100
 
 
+def test_false_alarm_is_reabsorbed_when_the_point_returns() -> None:
+    # Landmark 5 is wrongly flagged as moving, then leaves view. A flagged point is out of the
+    # global index, so on its return it registers as a new point; once that one is mapped as
+    # static, the old record takes it over: one map entry, static, with every observation.
+    config = SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=120, seed=1)
+    simulation = simulate(config)
+    estimator = RelativePointEstimator()
+    for step in simulation.steps():
+        observation = step.observation
+        if 30 <= step.index < 50:
+            keep = observation.ids != 5
+            observation = PointObservation(observation.stamp_ns, observation.points[keep], observation.ids[keep])
+        estimator.step(observation)
+        if step.index == 29:
+            store = estimator.store
+            live = store.live_ids()
+            keep = live[store.pos_weight[live] > 0]
+            (row,) = keep[estimator.landmark_map().gt_id == 5]
+            estimator._flag_dynamic(np.array([row]))
+            assert estimator.landmark_map().dynamic[estimator.landmark_map().gt_id == 5].tolist() == [True]
+    landmarks = estimator.landmark_map()
+    assert estimator.summary()["reabsorbed"] == 1
+    assert landmarks.dynamic[landmarks.gt_id == 5].tolist() == [False]
+    assert landmarks.observations[landmarks.gt_id == 5].tolist() == [100]
+    assert not landmarks.dynamic.any()
+
+
+def test_map_does_not_grow_over_passes() -> None:
+    # Revisits re-associate (global matching) and false alarms are reabsorbed, so a fourth pass of
+    # the figure eight adds next to nothing to the map of the first.
+    simulation = simulate(SimulationConfig(scenario="figure8", density=25, noise=NOISE, passes=4, seed=1))
+    estimator = RelativePointEstimator()
+    per_pass = len(simulation) // 4
+    sizes = []
+    for step in simulation.steps():
+        estimator.step(step.observation)
+        if (step.index + 1) % per_pass == 0:
+            sizes.append(estimator.map_size)
+    assert sizes[-1] <= sizes[0] + 3, sizes
+    landmarks = estimator.landmark_map()
+    static_ids = landmarks.gt_id[(landmarks.gt_id >= 0) & ~landmarks.dynamic]
+    assert len(np.unique(static_ids)) >= len(static_ids) - 2  # no duplicated landmarks
+
+
 def test_returning_point_is_matched_globally() -> None:
     config = SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=120, seed=1)
     _, estimator, _ = run(config, hide=(5, 30, 50))

@@ -272,7 +272,7 @@ class RelativePointEstimator(Estimator):
                 "degenerate_iterations", "empty_iterations", "nonfinite_points", "new_points", "local_matches",
                 "global_matches", "first_groups", "root_groups", "regroups", "failed_groupings",
                 "first_groups_retired", "groups_pruned", "merges", "dynamic_flagged", "dynamic_comparisons",
-                "dropped_points",
+                "dropped_points", "reabsorbed",
             ),
             0,
         )  # fmt: skip
@@ -719,7 +719,46 @@ class RelativePointEstimator(Estimator):
                     self._merge(older, newer, k)
                     ids[ids == newer] = older
                     break
+        self._reabsorb_flagged(newly, ids, k)
         return ids
+
+    def _reabsorb_flagged(self, newly: IntArray, ids: IntArray, k: int) -> None:
+        """Merge newly mapped static points onto older points flagged dynamic at the same place.
+
+        A static point wrongly flagged leaves the global index, so when the sensor returns it is
+        registered again as a new point. Once that new point is mapped as static, the old record
+        (reported at its mean world position) takes it over and follows its judgement, so the map
+        does not gain an entry for every false alarm across passes. A truly moving point is rarely
+        mapped static at its old mean position, and if it is, it would otherwise sit in the map twice.
+        """
+        store = self.store
+        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
+        if len(newly) == 0:
+            return
+        n = store.high_water
+        flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
+        if len(flagged) == 0:
+            return
+        flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
+        positions = store.positions(newly)
+        d2 = np.sum((positions[:, None, :] - flagged_at[None, :, :]) ** 2, axis=2)
+        older_than = store.uid[flagged][None, :] < store.uid[newly][:, None]
+        d2 = np.where(older_than, d2, np.inf)
+        bound2 = self.config.merge_bound**2
+        taken: set[int] = set()
+        for row in np.argsort(d2.min(axis=1)).tolist():
+            for column in np.argsort(d2[row]).tolist():
+                if d2[row, column] > bound2:
+                    break
+                older, newer = int(flagged[column]), int(newly[row])
+                if older in taken or store.co_observed(older, newer):
+                    continue
+                taken.add(older)
+                self._merge(older, newer, k)
+                store.dynamic[older] = False
+                ids[ids == newer] = older
+                self.counts["reabsorbed"] += 1
+                break
 
     def _merge(self, older: int, newer: int, k: int) -> None:
         store = self.store
