@@ -25,12 +25,16 @@ import os
 import time
 from collections.abc import Callable
 
-import numpy as np
-from scipy.spatial import KDTree, cKDTree
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    # As `relpoint run` does: multithreaded BLAS on 3x3 and 100x3 arrays only adds overhead.
+    os.environ.setdefault(_name, "1")
 
-from relpoint.estimators.relative_point import RelativePointConfig, RelativePointEstimator
-from relpoint.estimators.relative_point.dynamics import detect_dynamic
-from relpoint.simulation import SimulationConfig, simulate
+import numpy as np  # noqa: E402
+from scipy.spatial import KDTree, cKDTree  # noqa: E402
+
+from relpoint.estimators.relative_point import RelativePointConfig, RelativePointEstimator  # noqa: E402
+from relpoint.estimators.relative_point.dynamics import detect_dynamic  # noqa: E402
+from relpoint.simulation import SimulationConfig, simulate  # noqa: E402
 
 #: Figure-eight densities that give about 100 and about 540 observed points per iteration.
 DENSITY_100 = 130.0

@@ -610,14 +610,22 @@ class RelativePointEstimator(Estimator):
         start = k - window + 1
         verified = tested[store.verified[tested] >= 0]
         if len(verified) < 3:
-            full = tested[store.run_start[tested] <= start]
-            if len(full) < 6:
+            # Seed the verified set by the paper's binning over the longest window that at least
+            # six points in view span without a break (not shorter than dynamic_min_iterations).
+            run_length = np.minimum(k - store.run_start[tested] + 1, window)
+            if len(tested) < 6:
                 return
-            tracks, _ = store.observations(full, np.arange(start, k + 1))
-            result = detect_dynamic(tracks, gap_ratio=config.dynamic_gap_ratio)
+            length = int(np.sort(run_length)[-6])
+            full = tested[run_length >= length]
+            tracks, _ = store.observations(full, np.arange(k - length + 1, k + 1))
+            # A short window estimates each deviation from few iterations: a wider noise margin.
+            margin = 1.6 if length == window else 1.6 * math.sqrt(window / length)
+            result = detect_dynamic(tracks, gap_ratio=config.dynamic_gap_ratio, noise_factor=margin)
             self.counts["dynamic_comparisons"] += result.comparisons
             if result.decided:
-                store.verified[full[result.static]] = k
+                # A short window shows fast movers, but it is too short to vouch for the rest.
+                if length == window:
+                    store.verified[full[result.static]] = k
                 self._flag_dynamic(full[~result.static])
             return
         references = verified[np.argsort(store.run_start[verified], kind="stable")[: config.dynamic_references]]
