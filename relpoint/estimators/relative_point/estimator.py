@@ -596,7 +596,9 @@ class RelativePointEstimator(Estimator):
         the factors scale. A second witness is the spread of the point's global position between
         the groups that placed it, against the typical spread in view. Verification is current: a
         point that stops passing loses it. Until three verified points are in view, the paper's
-        binning over the window seeds the set.
+        binning seeds the set over the longest window that six points in view span without a break:
+        a full window verifies its majority bin, a shorter one (with a noise margin widened by the
+        square root of the shortfall) only flags the movers it shows.
         """
         config, store = self.config, self.store
         if not config.dynamic_detection or k % config.dynamic_every:
