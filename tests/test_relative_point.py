@@ -229,6 +229,20 @@ def test_degenerate_input_holds_the_pose_and_is_counted() -> None:
     assert fresh.summary()["degenerate_iterations"] == 2
 
 
+def test_sparse_stretch_coasts_on_the_raw_point_motion() -> None:
+    # Around iteration 170 of this sparse figure eight only three or four points are in view, all
+    # new: no fit to mapped points exists for 16 iterations. Holding the pose leaves it behind the
+    # moving sensor (~1.3 m per iteration); moving it by the raw points' own motion keeps up.
+    simulation = simulate(SimulationConfig(scenario="figure8", density=17.5, noise=NOISE, iterations=240, seed=7))
+    final_error = {}
+    for coast in (True, False):
+        estimator = RelativePointEstimator(RelativePointConfig(coast=coast))
+        poses = [estimator.step(step.observation) for step in simulation.steps()]
+        assert estimator.summary()["degenerate_iterations"] >= 10
+        final_error[coast] = trajectory_errors(simulation, poses)[-1]
+    assert final_error[True] < 8.0 < final_error[False]
+
+
 def test_memory_is_bounded_by_the_map_not_the_iterations() -> None:
     simulation = simulate(SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=400, clutter=2.0))
     estimator = RelativePointEstimator(RelativePointConfig(ring_size=32, regroup_after=32, dynamic_window=32))

@@ -178,6 +178,9 @@ class RelativePointConfig(Settings):
     """Points in more groups have their lightest redundant closed group removed (bounds memory)."""
     stale_after: int = 10
     """Ungrouped points unseen for this many iterations are dropped (clutter, one-off points)."""
+    coast: bool = True
+    """In an iteration with fewer than three usable mapped points, move the pose by the motion of
+    this iteration's locally matched raw points when they give one; False holds the pose."""
 
     def __post_init__(self) -> None:
         positive_int = {
@@ -215,7 +218,7 @@ class RelativePointConfig(Settings):
         for name, value in non_negative.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise UsageError(f"{name} must be a number >= 0, got {value!r}")
-        for name in ("predict_motion", "global_matching", "dynamic_detection"):
+        for name in ("predict_motion", "global_matching", "dynamic_detection", "coast"):
             if not isinstance(getattr(self, name), bool):
                 raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.unverified_weight > 1.0 or self.dynamic_spread_verify > 1.0:
@@ -261,6 +264,7 @@ class RelativePointEstimator(Estimator):
         self.tally = IdTally()
         self._poses = np.repeat(np.eye(4)[None], config.ring_size, axis=0)
         self._T_world_sensor = np.eye(4)
+        self._motion_measured = False
         self._iteration = 0
         self._regroup_queue: deque[int] = deque()
         self._first_groups: deque[int] = deque()
@@ -294,6 +298,7 @@ class RelativePointEstimator(Estimator):
             self.charting.chart(k, np.zeros(0, np.int64))
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)
 
+        self._motion_measured = False
         ids = self._register(points, k)
         if self.config.global_matching:
             self._match_globally(points, ids, k)
@@ -307,9 +312,9 @@ class RelativePointEstimator(Estimator):
 
         T_world_sensor = np.eye(4) if k == 0 else self._locate(points, ids)
         if T_world_sensor is None:
-            logger.debug("iteration %d: fewer than three usable non-collinear points, pose held", k)
+            logger.debug("iteration %d: fewer than three usable non-collinear mapped points, pose coasted", k)
             self.counts["degenerate_iterations"] += 1
-            T_world_sensor = self._T_world_sensor
+            T_world_sensor = self._coast()
         self.store.world_sum[ids] += apply(T_world_sensor, points)
         self._housekeeping(k)
         self._refresh_index()
@@ -380,6 +385,7 @@ class RelativePointEstimator(Estimator):
         pairs = np.flatnonzero((row != NO_MATCH) & (age[row] == 1))
         before = self.motion.T_curr_prev
         T_new = self.motion.update(reference[row[pairs]], points[pairs], config.trim_floor)
+        self._motion_measured = T_new is not None
         if config.predict_motion and T_new is not None:
             # Largest change of prediction over the references: translation plus angle x range.
             change = T_new @ _rigid_inverse(before)
@@ -812,6 +818,19 @@ class RelativePointEstimator(Estimator):
             consensus=self.config.consensus_bound,
         )
         return None if fit is None else fit.T
+
+    def _coast(self) -> FloatArray:
+        """Pose of an iteration without a usable fit to mapped points.
+
+        When this iteration's local matches gave the raw-point motion (three or more non-collinear
+        matched points, mapped or not), the last pose moves by it (visual odometry); otherwise the
+        pose is held. Constant-velocity coasting was tried and rejected: on hand-held real data
+        (Starry Night) it extrapolated erratic motion and doubled the trajectory error. With
+        ``coast=False`` the pose is always held.
+        """
+        if self.config.coast and self._motion_measured:
+            return self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
+        return self._T_world_sensor
 
     def _refresh_index(self) -> None:
         """Move changed global positions in the global index."""
