@@ -12,14 +12,18 @@ without alignment, since the fixes define ``world``:
   (a fix carries no orientation).
 
 Local SLAM sources: ``synthetic`` (a restarting local SLAM with a random-walk drift, from
-``relpoint.fusion.synthetic``; seconds) and ``ekf`` (the EKF-SLAM estimator without fixes; minutes),
-once restarted per segment (Algorithm 3, ``relpoint fuse --restart``) and once as one continuous run
-split afterwards (``relpoint fuse``). With ``--in-loop`` the EKF fusing the fixes inside its filter
-(``add_fix``) is printed too.
+``relpoint.fusion.synthetic``; seconds), ``relpoint`` (the Relative Point estimator; seconds) and
+``ekf`` (the EKF-SLAM estimator without fixes; minutes), the last two once restarted per segment
+(Algorithm 3, ``relpoint fuse --restart``) and once as one continuous run split afterwards
+(``relpoint fuse``), that with the piecewise-rigid fit (the default) and with one rigid fit per local
+map (``split_significance=0``). With ``--in-loop`` the EKF fusing the fixes inside its filter
+(``add_fix``) is printed too. Wall and CPU times are printed for the estimator runs (the machine may be
+shared).
 
 Usage::
 
     .venv/bin/python benchmarks/fusion.py                    # synthetic, seeds 1-5
+    .venv/bin/python benchmarks/fusion.py --source relpoint --seeds 1
     .venv/bin/python benchmarks/fusion.py --source ekf --seeds 1 --in-loop
 """
 
@@ -33,7 +37,7 @@ import numpy as np
 from relpoint import pipeline
 from relpoint.estimators import ESTIMATORS, Estimator
 from relpoint.evaluation import EvaluationSettings, evaluate_trajectory
-from relpoint.fusion import FusionResult, fuse, matched_counts_from_map_growth
+from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import SegmentedRun, run_segmented
 from relpoint.fusion.synthetic import synthetic_local_slam
 from relpoint.simulation import Simulation, SimulationConfig, paths, simulate
@@ -85,7 +89,7 @@ def report(name: str, simulation: Simulation, local: Trajectory, landmarks: Land
     print(f"  {'part':<24}{'iterations':>11}{'fused ATE':>11}{'segment ATE':>13}{'fixes ATE':>11}  (m, no alignment)")
     for seg in result.segments:
         rows = seg.iterations
-        fused = ate(truth, result.trajectory, rows) if seg.transform is not None else float("nan")
+        fused = ate(truth, result.trajectory, rows)  # a left-out segment: the fixes alone
         print(f"  segment {seg.index} ({rows[0]}-{rows[-1]}){'':<{max(0, 11 - len(str(rows[0])) - len(str(rows[-1])))}}"
               f"{len(rows):>11}{fused:>11.3f}{ate(truth, local, rows):>13.3f}{ate(truth, fixes, rows):>11.3f}"
               + ("" if seg.transform is not None else f"  left out: {seg.refused}"))  # fmt: skip
@@ -107,11 +111,13 @@ def run_synthetic(config: SimulationConfig) -> dict[str, float]:
                   local.landmark_iterations, result, seconds)  # fmt: skip
 
 
-def run_ekf(config: SimulationConfig, in_loop: bool) -> dict[str, float]:
+def run_estimator(name: str, config: SimulationConfig, in_loop: bool) -> dict[str, float]:
+    """A real estimator as local SLAM: restarted per segment, and one continuous run split afterwards."""
     simulation = simulate(config)
     steps = list(simulation.steps())
-    spec = ESTIMATORS["ekf"]
+    spec = ESTIMATORS[name]
     fixes = [s.fix for s in steps if s.fix is not None]
+    label = {"ekf": "EKF", "relpoint": "Relative Point"}.get(name, name)
 
     def make() -> Estimator:
         return spec.factory(spec.config_class(), np.random.default_rng(0))
@@ -122,32 +128,40 @@ def run_ekf(config: SimulationConfig, in_loop: bool) -> dict[str, float]:
                 yield s.fix
             yield s.observation
 
-    # Algorithm 3 proper: a fresh EKF (local map) at every break, then fuse (``relpoint fuse --restart``).
-    start = time.perf_counter()
+    # Algorithm 3 proper: a fresh local SLAM (local map) at every break, then fuse (``relpoint fuse --restart``).
+    start, cpu = time.perf_counter(), time.process_time()
     segmented = run_segmented(inputs(), make)
-    print(f"\nEKF restarted per segment: {len(segmented.trajectory)} iterations in {time.perf_counter() - start:.0f} s")
+    print(f"\n{label} restarted per segment: {len(segmented.trajectory)} iterations in "
+          f"{time.perf_counter() - start:.1f} s wall, {time.process_time() - cpu:.1f} s CPU")  # fmt: skip
     start = time.perf_counter()
     result = fuse(segmented.trajectory, segmented.landmarks, None, segmented.fixes,
                   labels=segmented.labels, landmark_labels=segmented.landmark_labels)  # fmt: skip
     seconds = time.perf_counter() - start
     owners = _owners(segmented)
-    figures = report(f"EKF local SLAM restarted per segment, seed {config.seed}", simulation, segmented.trajectory,
-                     segmented.landmarks, owners, result, seconds)  # fmt: skip
+    figures = report(f"{label} local SLAM restarted per segment, seed {config.seed}", simulation,
+                     segmented.trajectory, segmented.landmarks, owners, result, seconds)  # fmt: skip
 
-    # The default post-step: one continuous EKF run, split afterwards (``relpoint fuse``).
-    start = time.perf_counter()
+    # The default post-step: one continuous run, split afterwards (``relpoint fuse``), with the piecewise-rigid
+    # fit (default) and with one rigid fit per local map (``split_significance=0``, the post-step before it).
+    start, cpu = time.perf_counter(), time.process_time()
     run = pipeline.run((s.observation for s in steps), make())
-    print(f"\nEKF continuous: {len(run.trajectory)} iterations in {time.perf_counter() - start:.0f} s")
+    print(f"\n{label} continuous: {len(run.trajectory)} iterations in {time.perf_counter() - start:.1f} s wall, "
+          f"{time.process_time() - cpu:.1f} s CPU")  # fmt: skip
     matched = matched_counts_from_map_growth(run.observed, run.map_size)
-    start = time.perf_counter()
-    continuous = fuse(run.trajectory, run.landmarks, matched, fixes, map_size=run.map_size)
-    seconds = time.perf_counter() - start
     owners = np.searchsorted(run.map_size, np.arange(len(run.landmarks)), side="right")
-    post = report(f"EKF continuous run split afterwards, seed {config.seed}", simulation, run.trajectory,
-                  run.landmarks, owners, continuous, seconds)  # fmt: skip
-    figures |= {f"{k}_continuous": v for k, v in post.items() if k.endswith("fused")}
+    for suffix, fusion_config in (
+        ("continuous", FusionConfig()),
+        ("continuous_rigid", FusionConfig(split_significance=0.0)),
+    ):
+        start = time.perf_counter()
+        continuous = fuse(run.trajectory, run.landmarks, matched, fixes, fusion_config, map_size=run.map_size)
+        seconds = time.perf_counter() - start
+        how = "piecewise-rigid" if fusion_config.split_significance else "one rigid fit per local map"
+        post = report(f"{label} continuous run split afterwards ({how}), seed {config.seed}", simulation,
+                      run.trajectory, run.landmarks, owners, continuous, seconds)  # fmt: skip
+        figures |= {f"{k}_{suffix}": v for k, v in post.items() if k.endswith("fused")}
 
-    if in_loop:
+    if in_loop and name == "ekf":
         # The EKF fusing the fixes inside its filter; the start heading is unknown to it (a 1 rad prior).
         start = time.perf_counter()
         config_in_loop = spec.config_class(initial_orientation_sigma=1.0)
@@ -173,7 +187,7 @@ def _owners(segmented: SegmentedRun) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--source", choices=("synthetic", "ekf"), default="synthetic")
+    parser.add_argument("--source", choices=("synthetic", "ekf", "relpoint"), default="synthetic")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--density", type=float, default=25.0)
     parser.add_argument("--fix-every", type=int, default=10)
@@ -184,7 +198,9 @@ def main() -> None:
     for seed in args.seeds:
         config = SimulationConfig(scenario="figure8-gaps", density=args.density, fix_every=args.fix_every,
                                   fix_noise=args.fix_noise, seed=seed)  # fmt: skip
-        rows.append(run_synthetic(config) if args.source == "synthetic" else run_ekf(config, args.in_loop))
+        rows.append(
+            run_synthetic(config) if args.source == "synthetic" else run_estimator(args.source, config, args.in_loop)
+        )
     if len(rows) > 1:
         print("\nmean over seeds:", ", ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
 

@@ -36,9 +36,9 @@ from relpoint_cli.topics import topic_options, topics_from
 EXAMPLES = """\b
 Examples:
   relpoint simulate -o gaps.mcap --scenario figure8-gaps --fix-every 10 --seed 1
-  relpoint run gaps.mcap --estimator ekf --no-fixes -o out/local
-  relpoint fuse out/local --log gaps.mcap -o out/global
+  relpoint run gaps.mcap --estimator relpoint --no-fixes -o out/local
   relpoint fuse out/local --log gaps.mcap --restart -o out/global   # fresh local map per segment
+  relpoint fuse out/local --log gaps.mcap -o out/global             # split the finished run
   relpoint fuse out/local --log gaps.mcap --param min_matches=8 --param min_spread=2 -o out/global
   relpoint evaluate out/global -r gaps.mcap --align none
 """
@@ -116,6 +116,7 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
     segments = [
         {
             "segment": s.index,
+            "local_map": s.local_map,
             "first_iteration": int(s.iterations[0]),
             "last_iteration": int(s.iterations[-1]),
             "iterations": len(s.iterations),

@@ -324,3 +324,106 @@ def test_run_segmented_starts_a_fresh_local_map_at_every_break() -> None:
     np.testing.assert_array_equal(run.landmarks.gt_id, [*range(10), *range(100, 110)])
     np.testing.assert_array_equal(run.landmark_labels, [0] * 10 + [1] * 10)
     assert len(run.fixes) == 5 and run.matched[0] == 0 and run.matched[1] == 10
+
+
+class _GroupingMapper(_IdMapper):
+    """A stub like the Relative Point estimator: a feature enters the map only on its fourth sighting (in a
+    burst), while ``summary()`` counts the features started (``new_points``) when ``counts`` is set."""
+
+    def __init__(self, counts: bool) -> None:
+        super().__init__()
+        self.counts = counts
+        self.sightings: dict[int, int] = {}
+
+    def step(self, observation: PointObservation) -> Pose:
+        assert observation.ids is not None
+        for i in observation.ids.tolist():
+            self.sightings[i] = self.sightings.get(i, 0) + 1
+        return super().step(observation)
+
+    def landmark_map(self) -> LandmarkMap:
+        ids = np.array(sorted(i for i, n in self.sightings.items() if n >= 4), dtype=np.int64)
+        return LandmarkMap(np.zeros((len(ids), 3)), np.ones(len(ids), np.int64), np.zeros(len(ids), bool), ids)
+
+    def summary(self) -> dict[str, object]:
+        return {"new_points": len(self.sightings)} if self.counts else {}
+
+
+def test_run_segmented_counts_matches_from_started_features_when_reported() -> None:
+    # 30 iterations seeing the same 10 landmarks (5 more from iteration 10): one local map. Read from
+    # map growth, the burst when features are first mapped (iteration 3: 10 of 10 points) is a break.
+    def inputs() -> list[object]:
+        ids = [np.arange(10) if k < 10 else np.arange(15) for k in range(30)]
+        return [PointObservation(k * 100_000_000, np.zeros((len(i), 3)), i) for k, i in enumerate(ids)]
+
+    run = run_segmented(inputs(), lambda: _GroupingMapper(counts=True), min_matches=5, min_length=4)
+    np.testing.assert_array_equal(run.labels, np.zeros(30))
+    assert run.matched[1] == 10 and run.matched[10] == 10  # 5 new of 15 observed at iteration 10
+    np.testing.assert_array_equal(np.sort(run.landmarks.gt_id), np.arange(15))
+    shattered = run_segmented(inputs(), lambda: _GroupingMapper(counts=False), min_matches=5, min_length=4)
+    # Why the started-feature count is read when an estimator has it: each fresh map's burst (10 of 10
+    # points) restarts it three iterations later, too short to keep, until 15 points are seen and a burst
+    # of 10 leaves 5 matched (the map started at iteration 9).
+    np.testing.assert_array_equal(shattered.labels, [-1] * 9 + [0] * 21)
+
+
+# ----------------------------------------------------------------------------------- piecewise-rigid fit
+
+
+def _arc(count: int) -> tuple[np.ndarray, np.ndarray]:
+    stamps = np.arange(count) * 100_000_000
+    t = stamps * 1e-9
+    return stamps, np.stack([60 * np.cos(0.04 * t), 60 * np.sin(0.04 * t), 0.3 * t], axis=1)
+
+
+def _bend(positions: np.ndarray, at: int, degrees: float, jump: np.ndarray) -> np.ndarray:
+    """The path after iteration ``at`` turned about the position there and shifted: a re-association."""
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    bent = positions.copy()
+    bent[at:] = (positions[at:] - positions[at]) @ R.T + positions[at] + jump
+    return bent
+
+
+def test_a_bent_local_map_is_placed_piecewise_and_a_rigid_one_whole() -> None:
+    rng = np.random.default_rng(11)
+    stamps, world = _arc(600)
+    T_local_world = np.eye(4)
+    angle = np.radians(35.0)
+    T_local_world[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    T_local_world[:3, 3] = [-60.0, 40.0, 15.0]
+    local = world @ T_local_world[:3, :3].T + T_local_world[:3, 3]
+    fixes = _fixes_for(stamps[::10], world[::10], 0.7, rng)
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (600, 1))
+    matched = np.full(600, 20)
+    truth = Trajectory(stamps, world, quats)
+    args = ([f.stamp_ns for f in fixes], [f.position for f in fixes], [f.covariance for f in fixes])
+    fixes_ate = _ate(truth, Trajectory(stamps, interpolate_fixes(*args, stamps)[0], quats))
+
+    rigid = fuse(Trajectory(stamps, local, quats), LandmarkMap.empty(), matched, fixes)
+    assert rigid.summary["local_maps_split"] == 0 and len(rigid.segments) == 1
+
+    bent_local = _bend(local, 287, 6.0, np.array([4.0, -3.0, 0.0]))
+    bent = fuse(Trajectory(stamps, bent_local, quats), LandmarkMap.empty(), matched, fixes)
+    whole = fuse(Trajectory(stamps, bent_local, quats), LandmarkMap.empty(), matched, fixes,
+                 FusionConfig(split_significance=0.0))  # fmt: skip
+    assert bent.summary["local_maps_split"] == 1 and bent.summary["segments_placed"] == 2
+    assert [s.local_map for s in bent.segments] == [0, 0]
+    assert bent.segments[1].iterations[0] == 287  # at the jump (286 -> 287), not halfway between fixes
+    assert _ate(truth, bent.trajectory) < 0.6 * fixes_ate < _ate(truth, whole.trajectory)
+    assert _ate(truth, bent.trajectory) < _ate(truth, rigid.trajectory) + 0.2  # measured 0.25 m and 0.22 m
+
+
+def test_a_local_map_that_cannot_be_made_rigid_is_left_out() -> None:
+    rng = np.random.default_rng(12)
+    stamps, world = _arc(120)
+    held = world.copy()
+    held[40:] = world[40]  # the local SLAM lost its position after iteration 40 and held it
+    fixes = _fixes_for(stamps[::10], world[::10], 0.7, rng)
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (120, 1))
+    result = fuse(Trajectory(stamps, held, quats), LandmarkMap.empty(), np.full(120, 20), fixes)
+    assert [s.transform is None for s in result.segments] == [True]  # 4 fixes before the hold: too few to cut
+    assert "is not rigid against the fixes" in (result.segments[0].refused or "")
+    assert not result.fused.any()
+    with pytest.raises(UsageError, match="split_significance"):
+        FusionConfig(split_significance=1.0)

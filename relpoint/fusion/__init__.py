@@ -4,7 +4,7 @@ Zhang, Milios and Gu, *General Concept of 3D SLAM*, sections 5-6 and Algorithm 3
 any estimator's output: Lagrange synchronisation of the fixes (:mod:`.lagrange`), covariance-weighted
 fusion (:mod:`.covariance_fusion`), segmentation into local maps (:mod:`.segmentation`), B-spline path
 parameterisation (:mod:`.bspline`) and the rigid local-to-global fit with map integration
-(:mod:`.global_map`), driven by :func:`fuse`; :func:`run_segmented` runs a local SLAM that restarts
+(:mod:`.global_map`; piecewise where a local map is not rigid, :mod:`.piecewise`), driven by :func:`fuse`; :func:`run_segmented` runs a local SLAM that restarts
 at every break, as Algorithm 3 does. Pure numpy/scipy; no file I/O.
 """
 
@@ -15,6 +15,7 @@ from relpoint.fusion.covariance_fusion import fuse_estimates
 from relpoint.fusion.fuse import FusionConfig, FusionResult, SegmentResult, fuse
 from relpoint.fusion.global_map import SegmentTransform, fit_segment
 from relpoint.fusion.lagrange import interpolate_fixes, lagrange_weights
+from relpoint.fusion.piecewise import Piece, split_segment
 from relpoint.fusion.segmentation import (
     NO_SEGMENT,
     matched_counts_from_ids,
@@ -29,6 +30,7 @@ __all__ = [
     "FusionConfig",
     "FusionResult",
     "PathSpline",
+    "Piece",
     "SegmentResult",
     "SegmentTransform",
     "SegmentedRun",
@@ -42,4 +44,5 @@ __all__ = [
     "run_segmented",
     "segment_run",
     "segment_slices",
+    "split_segment",
 ]

@@ -2,12 +2,19 @@
 
 Implements Zhang, Milios and Gu, *General Concept of 3D SLAM*, Algorithm 3, lines 1-15, around any
 relpoint estimator: each observation is stepped through the current local SLAM; when the features it
-matched (points that did not start a landmark, :func:`.segmentation.matched_counts_from_map_growth`)
-fall below ``min_matches``, or the modelled position error since the map started passes
+matched fall below ``min_matches``, or the modelled position error since the map started passes
 ``max_position_error``, the local map ends before that iteration and a new estimator starts from it,
 at the identity of a new local frame. Every local map thus stays rigid in its own frame: a continuous
 run would instead re-associate old landmarks after a gap (a loop closure across the break) and bend
 the path inside a "segment", which no rigid transform to the fixes can undo.
+
+Matched features are the observed points that did not start a new feature. An estimator whose
+``summary()`` counts the features it started (:data:`FEATURES_STARTED`, the Relative Point estimator's
+``new_points``) is read from that count; for the others a new feature is a new landmark, i.e. the
+map's growth (:func:`.segmentation.matched_counts_from_map_growth`). Map growth would not do for the
+Relative Point estimator: a point enters its map only when a group places it, a few iterations
+after it was first seen and matched, so the first grouping of a fresh local map (about 20 points at
+once) would read as a break and restart the local SLAM every few iterations.
 
 The observation that breaks a local map has already been stepped through it; the landmarks it
 started there are cut off (estimators append new landmarks at the end of their map), the updates it
@@ -63,6 +70,17 @@ class SegmentedRun:
     map_size: IntArray
     seconds: np.ndarray
     fixes: list[PositionFix]
+
+
+#: Key of an estimator's :meth:`~relpoint.estimators.base.Estimator.summary` counting the features it has
+#: started for unmatched observations, mapped yet or not (the Relative Point estimator's ``new_points``).
+FEATURES_STARTED = "new_points"
+
+
+def _features_started(estimator: Estimator) -> int | None:
+    """Features ``estimator`` has started so far, when its summary counts them (:data:`FEATURES_STARTED`)."""
+    value = estimator.summary().get(FEATURES_STARTED)
+    return int(value) if isinstance(value, int | np.integer) else None
 
 
 def run_segmented(
@@ -128,8 +146,13 @@ def run_segmented(
         size_before = 0
         if estimator is not None:
             size_before = estimator.map_size
+            started_before = _features_started(estimator)
             pose = estimator.step(item)
-            pairs = len(item) - max(estimator.map_size - size_before, 0)
+            started_after = _features_started(estimator)
+            if started_before is not None and started_after is not None:
+                pairs = len(item) - max(started_after - started_before, 0)
+            else:
+                pairs = len(item) - max(estimator.map_size - size_before, 0)
             travelled += float(np.linalg.norm(np.subtract(pose.position, poses[-1].position)))
             error = local_sigma + drift_fraction * travelled
             restart = pairs < min_matches or error > max_position_error
