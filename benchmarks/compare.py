@@ -23,8 +23,19 @@ landmark observed; Gauss-Newton on the sparse Jacobian with a sparse LU solve, s
 then confirmed by ``scipy.optimize.least_squares`` (trf, sparse Jacobian), which stops at once on the
 gradient test; trf alone with its iterative LSMR steps needed 800+ evaluations at 300 poses). Its landmark RMSE at checkpoints
 and its (smoothed) position RMSE are the best achievable from the same data; the tables give every
-estimator's error as a ratio to it. GTSAM iSAM2 (the online peer of issue 5) is not run: gtsam is not
-installed in the project venv.
+estimator's error as a ratio to it.
+
+GTSAM peers (``benchmarks/gtsam_peer.py``; gtsam is an optional dependency, ``pip install gtsam``,
+measured with 4.3.0; without it they are skipped with a printed message):
+
+* ``isam2``: iSAM2 as the modern online peer, one update per step with the step's points as
+  ``BearingRangeFactor3D`` factors (Cartesian 0.3 m noise converted to bearing ``0.3/range`` rad and range
+  0.3 m), true association from the ``ids``, a weak constant-position between-pose factor; its own column
+  in every table and plot (``seconds`` = the whole step; ``update_ms_*`` = ``ISAM2.update`` alone);
+* the batch limit's cross-check: GTSAM Levenberg-Marquardt on the same data, with the bearing-range
+  factors at every checkpoint (``gtsam_br_*`` columns of ``batch_<scenario>.csv``: the limit of iSAM2's own
+  model) and, with ``--gtsam-lm-cartesian``, with a Cartesian ``CustomFactor`` (the scipy batch's exact
+  cost; Python callbacks, ~80 s at 900 iterations) at the last checkpoint (``gtsam_lm_*`` columns).
 
 Writes CSV files and PNG plots (matplotlib, Agg) into ``--out`` (default ``docs/results``).
 
@@ -56,10 +67,17 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.sparse.linalg import splu  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-ESTIMATOR_NAMES = ("relpoint", "ekf", "fastslam")
+ESTIMATOR_NAMES = ("relpoint", "ekf", "fastslam", "isam2")
+GTSAM_PEERS = ("isam2",)  # run by benchmarks/gtsam_peer.py, only when gtsam imports
 SCENARIOS = ("figure8", "stationary", "dynamic", "long")
-COLOURS = {"relpoint": "tab:blue", "ekf": "tab:red", "fastslam": "tab:green", "batch": "black"}
-LABELS = {"relpoint": "Relative Point", "ekf": "EKF-SLAM", "fastslam": "FastSLAM 2.0", "batch": "batch LSQ (limit)"}
+COLOURS = {"relpoint": "tab:blue", "ekf": "tab:red", "fastslam": "tab:green", "isam2": "tab:purple", "batch": "black"}
+LABELS = {
+    "relpoint": "Relative Point",
+    "ekf": "EKF-SLAM",
+    "fastslam": "FastSLAM 2.0",
+    "isam2": "iSAM2 (GTSAM, true association)",
+    "batch": "batch LSQ (limit)",
+}
 
 
 @dataclass(frozen=True)
@@ -76,6 +94,7 @@ class Plan:
     noise: float = 0.3
     density: float = 25.0
     seed: int = 1
+    gtsam_lm_cartesian: bool = False  # also GTSAM LM with the Cartesian CustomFactor at the last checkpoint
 
 
 def simulation_config(plan: Plan, scenario: str, estimator: str = "relpoint") -> Any:
@@ -112,6 +131,16 @@ def _pin_threads() -> None:
     threadpool_limits(limits=1)
 
 
+def _gtsam_peer() -> Any:
+    """The ``benchmarks/gtsam_peer.py`` module (importable whether or not gtsam is)."""
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import gtsam_peer
+
+    return gtsam_peer
+
+
 # --------------------------------------------------------------------------------- estimator runs
 
 
@@ -124,8 +153,14 @@ def run_estimator(plan: Plan, scenario: str, name: str) -> dict[str, Any]:
 
     sim = simulate(simulation_config(plan, scenario, name))
     truth = sim.ground_truth.positions
-    estimator = build_estimator(name)
     every = plan.long_every if scenario == "long" else plan.every
+    if name == "isam2":
+        start = time.perf_counter()
+        peer = _gtsam_peer().run_isam2(sim, plan.noise, every=every)
+        peer["smoothed_pos_err"] = np.linalg.norm(peer.pop("smoothed_error"), axis=1)
+        return {"scenario": scenario, "estimator": name, "wall_s": time.perf_counter() - start,
+                "passes": sim.config.passes, **peer}  # fmt: skip
+    estimator = build_estimator(name)
     n = len(sim)
     lm_rmse = np.full(n, np.nan)
     lm_matched = np.zeros(n, dtype=np.int64)
@@ -271,22 +306,30 @@ def run_batch(plan: Plan, scenario: str) -> dict[str, Any]:
     out_rows = []
     start = time.perf_counter()
     position_error = np.full((n, 3), np.nan)
+    peer = _gtsam_peer()
+    with_gtsam = peer.available()[0]
+
+    def errors(t: np.ndarray, m: np.ndarray, truth_lm: np.ndarray, c: int) -> tuple[float, float]:
+        lm_err = np.linalg.norm(m - truth_lm, axis=1)
+        return float(np.sqrt(np.mean(lm_err**2))), _rmse(t - poses[:c, :3, 3])
+
     for c in checkpoints:
         use = pose_idx < c
         ids, lm_idx = np.unique(lm_all[use], return_inverse=True)
         truth_lm = sim.landmarks.positions[ids]
         _, t, m = batch_solve(poses[:c, :3, :3], poses[:c, :3, 3], truth_lm, pose_idx[use], lm_idx, z[use], plan.noise)
-        lm_err = np.linalg.norm(m - truth_lm, axis=1)
         pos_err = t - poses[:c, :3, 3]
-        out_rows.append(
-            {
-                "iteration": int(c),
-                "landmarks": len(ids),
-                "observations": int(use.sum()),
-                "lm_rmse": float(np.sqrt(np.mean(lm_err**2))),
-                "pos_rmse": float(np.sqrt(np.mean(np.sum(pos_err**2, axis=1)))),
-            }
-        )
+        lm_rmse, pos_rmse = errors(t, m, truth_lm, c)
+        row = {"iteration": int(c), "landmarks": len(ids), "observations": int(use.sum()), "lm_rmse": lm_rmse,
+               "pos_rmse": pos_rmse}  # fmt: skip
+        if with_gtsam:  # GTSAM Levenberg-Marquardt on the same data, from the truth
+            args = (poses[:c], truth_lm, pose_idx[use], lm_idx, z[use], plan.noise)
+            row["gtsam_br_lm_rmse"], row["gtsam_br_pos_rmse"] = errors(
+                *peer.batch_lm(*args, "bearing_range"), truth_lm, c
+            )
+            if plan.gtsam_lm_cartesian and c == n:
+                row["gtsam_lm_rmse"], row["gtsam_pos_rmse"] = errors(*peer.batch_lm(*args, "cartesian"), truth_lm, c)
+        out_rows.append(row)
         if c == n:
             position_error = pos_err
     return {
@@ -305,6 +348,10 @@ def _rmse(e: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if e.ndim == 2 else float(np.sqrt(np.mean(e**2)))
 
 
+# Per-iteration extras of the iSAM2 peer: step CPU time, ISAM2.update wall and CPU time, smoothed position error.
+EXTRA_COLUMNS = ("cpu_seconds", "update_seconds", "update_cpu", "smoothed_pos_err")
+
+
 def write_iterations(out: Path, run: dict[str, Any]) -> None:
     path = out / f"{run['scenario']}_{run['estimator']}.csv"
     with path.open("w", newline="") as f:
@@ -321,15 +368,17 @@ def write_iterations(out: Path, run: dict[str, Any]) -> None:
                 "seconds",
                 "map_size",
                 "observed",
+                *(key for key in EXTRA_COLUMNS if key in run),
             ]
         )
+        extra = [run[key] for key in EXTRA_COLUMNS if key in run]
         e = run["error"]
         norm = np.linalg.norm(e, axis=1)
         for k in range(len(e)):
             lm = "" if np.isnan(run["lm_rmse"][k]) else f"{run['lm_rmse'][k]:.5f}"
             lmn = "" if np.isnan(run["lm_rmse"][k]) else str(run["lm_matched"][k])
             w.writerow([k, f"{norm[k]:.5f}", *(f"{v:.5f}" for v in e[k]), lm, lmn, f"{run['seconds'][k]:.6f}",
-                        run["map_size"][k], run["observed"][k]])  # fmt: skip
+                        run["map_size"][k], run["observed"][k], *(f"{x[k]:.6f}" for x in extra)])  # fmt: skip
 
 
 def read_iterations(out: Path, plan: Plan, scenario: str, name: str) -> dict[str, Any]:
@@ -338,7 +387,9 @@ def read_iterations(out: Path, plan: Plan, scenario: str, name: str) -> dict[str
         rows = list(csv.DictReader(f))
     column = lambda key, kind=float: np.array([kind(r[key]) if r[key] != "" else np.nan for r in rows])  # noqa: E731
     seconds = column("seconds")
+    extra = {key: column(key) for key in EXTRA_COLUMNS if rows and key in rows[0]}
     return {
+        **extra,
         "scenario": scenario,
         "estimator": name,
         "wall_s": float(seconds.sum()),
@@ -370,11 +421,17 @@ def summarise(run: dict[str, Any], batch: dict[str, Any] | None) -> dict[str, An
         "lm_matched_final": int(run["lm_matched"][last[-1]]) if len(last) else 0,
         "map_size_final": int(run["map_size"][-1]),
         "ms_mean": 1e3 * float(s.mean()),
+        "ms_median": 1e3 * float(np.median(s)),
         "ms_first100": 1e3 * float(s[:100].mean()),
         "ms_last100": 1e3 * float(s[-100:].mean()),
         "ms_max": 1e3 * float(s.max()),
         "wall_s": run["wall_s"],
     }
+    if "update_seconds" in run:  # the iSAM2 peer: ISAM2.update alone, wall and CPU
+        u, c = run["update_seconds"], run["update_cpu"]
+        row.update({"update_ms_median": 1e3 * float(np.median(u)), "update_ms_first100": 1e3 * float(np.median(u[:100])),
+                    "update_ms_last100": 1e3 * float(np.median(u[-100:])), "update_cpu_ms_median": 1e3 * float(np.median(c)),
+                    "pos_rmse_smoothed": _rmse(run["smoothed_pos_err"])})  # fmt: skip
     if batch is not None and batch["rows"][-1]["iteration"] == n:
         limit = batch["rows"][-1]
         row["lm_ratio_to_batch"] = final_lm / limit["lm_rmse"]
@@ -458,6 +515,11 @@ def plot_all(out: Path, runs: dict[tuple[str, str], dict[str, Any]], batches: di
             w = min(25, len(s))
             smooth = np.convolve(s, np.ones(w) / w, mode="valid")
             ax1.semilogy(np.arange(w, len(s) + 1), smooth, color=COLOURS[name], label=LABELS[name])
+            if "update_cpu" in run:  # the iSAM2 peer: CPU time of ISAM2.update alone (wall time is load-sensitive)
+                cpu = np.convolve(run["update_cpu"], np.ones(w) / w, mode="valid")
+                ax1.semilogy(
+                    np.arange(w, len(s) + 1), cpu, color=COLOURS[name], ls="--", label="iSAM2 update, CPU time"
+                )
             ax2.plot(np.arange(1, len(s) + 1), run["map_size"], color=COLOURS[name], label=LABELS[name])
         ax1.set_ylabel("seconds per iteration (25-iteration mean)")
         ax1.axhline(0.1, color="grey", ls=":", label="0.1 s target")
@@ -522,6 +584,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long-passes-filters", type=int, default=None, help="passes of the long run for EKF/FastSLAM")
     parser.add_argument("--no-batch", action="store_true", help="skip the batch least-squares limit")
     parser.add_argument(
+        "--gtsam-lm-cartesian",
+        action="store_true",
+        help="also cross-check the batch limit at its last checkpoint with GTSAM LM on a Cartesian CustomFactor (slow)",
+    )
+    parser.add_argument(
         "--reuse",
         action="store_true",
         help="read estimator runs whose CSV already exists in --out instead of rerunning",
@@ -552,6 +619,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.long_passes is not None or args.long_passes_filters is not None:
         plan = Plan(**{**plan.__dict__, "long_passes": args.long_passes or plan.long_passes,
                        "long_passes_filters": args.long_passes_filters or plan.long_passes_filters})  # fmt: skip
+    if args.gtsam_lm_cartesian:
+        plan = Plan(**{**plan.__dict__, "gtsam_lm_cartesian": True})
+    gtsam_ok, gtsam_message = _gtsam_peer().available()
+    print(
+        f"GTSAM peers: {gtsam_message}"
+        + ("" if gtsam_ok else "; running without the iSAM2 column and the LM cross-check")
+    )
+    if not gtsam_ok:
+        args.estimators = [e for e in args.estimators if e not in GTSAM_PEERS]
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
 
@@ -565,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         tasks += [(run_batch, (plan, s)) for s in args.only if s != "long"]
     # Longest first so the pool stays busy to the end.
     weight = {"long": 0, "figure8": 1, "dynamic": 1, "stationary": 2}
-    tasks.sort(key=lambda t: (weight[t[1][1]], t[0] is run_batch, t[1][-1] == "relpoint"))
+    tasks.sort(key=lambda t: (weight[t[1][1]], t[0] is run_batch, t[1][-1] in ("relpoint", "isam2")))
     batches: dict[str, dict[str, Any]] = {}
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -591,17 +667,27 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"\nsummary ({'quick' if args.quick else 'full'}; seed {plan.seed}, density {plan.density:g}, noise {plan.noise:g})"
     )
-    header = f"{'scenario':10s} {'estimator':9s} {'passes':>6} {'iters':>6} {'pos RMSE':>9} {'lm RMSE':>8} {'x batch':>8} {'x batch':>8} {'map':>5} {'ms mean':>8} {'ms last100':>10}"
+    header = f"{'scenario':10s} {'estimator':9s} {'passes':>6} {'iters':>6} {'pos RMSE':>9} {'lm RMSE':>8} {'x batch':>8} {'x batch':>8} {'map':>5} {'ms mean':>8} {'ms median':>9} {'ms last100':>10}"
     print(header + "\n" + " " * 44 + "(pos)    (lm)")
     for r in rows:
         print(f"{r['scenario']:10s} {r['estimator']:9s} {r['passes']:>6} {r['iterations']:>6} {r['pos_rmse']:9.3f} "
               f"{r['lm_rmse_final']:8.3f} {r.get('pos_ratio_to_batch', float('nan')):8.2f} "
               f"{r.get('lm_ratio_to_batch', float('nan')):8.2f} {r['map_size_final']:>5} {r['ms_mean']:8.1f} "
-              f"{r['ms_last100']:10.1f}")  # fmt: skip
+              f"{r['ms_median']:9.1f} {r['ms_last100']:10.1f}")  # fmt: skip
+        if "update_ms_median" in r:
+            print(f"{'':17s} iSAM2 update alone: median {r['update_ms_median']:.1f} ms wall "
+                  f"({r['update_cpu_ms_median']:.1f} ms CPU), first/last 100 {r['update_ms_first100']:.1f} / "
+                  f"{r['update_ms_last100']:.1f} ms; smoothed position RMSE {r['pos_rmse_smoothed']:.3f} m")  # fmt: skip
     for scenario, b in batches.items():
         last = b["rows"][-1]
         print(f"batch {scenario}: landmark RMSE {last['lm_rmse']:.4f} m, position RMSE {last['pos_rmse']:.4f} m "
               f"({last['landmarks']} landmarks, {last['observations']} observations)")  # fmt: skip
+        if "gtsam_br_lm_rmse" in last:
+            print(f"  GTSAM LM, bearing-range factors: landmark RMSE {last['gtsam_br_lm_rmse']:.4f} m, "
+                  f"position RMSE {last['gtsam_br_pos_rmse']:.4f} m")  # fmt: skip
+        if "gtsam_lm_rmse" in last:
+            print(f"  GTSAM LM, Cartesian CustomFactor: landmark RMSE {last['gtsam_lm_rmse']:.4f} m, "
+                  f"position RMSE {last['gtsam_pos_rmse']:.4f} m")  # fmt: skip
     print(f"wrote {out}/summary.csv, per-run CSVs and {', '.join(plots)}")
     return 0
 
