@@ -11,10 +11,11 @@ Prints, all in-process on ``relpoint.simulation`` data (no files):
 4. dynamic detection time and comparisons against the share of uncorrelated points (paper Figs. 6-7),
    normalised by n log2 n;
 5. with ``--accuracy``: landmark and trajectory RMSE on the figure eight at density 25, noise 0.3,
-   900 iterations, with and without 30 % dynamic points, and dynamic precision / recall.
+   900 iterations, with and without 30 % dynamic points, and dynamic precision / recall; beside them
+   an oracle run with the moving points removed (the best the static points allow).
 
-Usage: python benchmarks/relative_point.py [--quick] [--accuracy] [--passes 10] [--repeat 3] [--seed 0]
-       [--seeds 0 1 2 3 4]
+Usage: python benchmarks/relative_point.py [--quick] [--accuracy | --accuracy-only] [--passes 10] [--repeat 3]
+       [--seed 0] [--seeds 0 1 2 3 4]
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import math
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     # As `relpoint run` does: multithreaded BLAS on 3x3 and 100x3 arrays only adds overhead.
@@ -165,19 +167,30 @@ def dynamic_detection(quick: bool, seed: int) -> None:
             )
 
 
-def accuracy_run(seed: int, dynamic: float, config: RelativePointConfig | None = None) -> dict[str, float]:
+def accuracy_run(
+    seed: int, dynamic: float, config: RelativePointConfig | None = None, *, oracle: bool = False
+) -> dict[str, float]:
     """One accuracy run (figure eight, density 25, noise 0.3, 900 iterations): RMSEs and dynamic flags.
 
     The simulated first pose is the identity, so estimates (in the first sensor frame) compare with
-    ground truth directly: nothing is fitted or transformed.
+    ground truth directly: nothing is fitted or transformed. ``oracle`` removes the observations of
+    the moving landmarks before the estimator sees them (perfect dynamic detection): the best the
+    static points alone allow.
     """
     sim_config = SimulationConfig(scenario="figure8", density=25, noise=0.3, iterations=900, dynamic=dynamic, seed=seed)
     simulation = simulate(sim_config)
+    truth = simulation.landmarks
     estimator = RelativePointEstimator(config or RelativePointConfig())
-    positions = np.array([estimator.step(step.observation).position for step in simulation.steps()])
+    positions = []
+    for step in simulation.steps():
+        observation = step.observation
+        if oracle and observation.ids is not None:
+            keep = (observation.ids < 0) | ~truth.dynamic[np.maximum(observation.ids, 0)]
+            observation = replace(observation, points=observation.points[keep], ids=observation.ids[keep])
+        positions.append(estimator.step(observation).position)
+    positions = np.array(positions)
     trajectory_rmse = float(np.sqrt(np.mean(np.sum((positions - simulation.ground_truth.positions) ** 2, axis=1))))
     landmarks = estimator.landmark_map()
-    truth = simulation.landmarks
     known = landmarks.gt_id >= 0
     truly_dynamic = known & truth.dynamic[np.where(known, landmarks.gt_id, 0)]
     static = known & ~landmarks.dynamic & ~truly_dynamic
@@ -199,18 +212,33 @@ def accuracy_run(seed: int, dynamic: float, config: RelativePointConfig | None =
 
 def accuracy(seeds: list[int]) -> None:
     print("== 5. accuracy, figure eight, density 25, noise 0.3, 900 iterations (estimates vs ground truth as is)")
+    print("   'oracle': the moving landmarks' observations removed before the estimator (perfect detection)")
     print(
-        f"{'seed':>4} {'dynamic':>7} {'lm RMSE':>8} {'lm med':>7} {'static':>6} {'traj RMSE':>9} "
+        f"{'seed':>4} {'run':>8} {'lm RMSE':>8} {'lm med':>7} {'static':>6} {'traj RMSE':>9} "
         f"{'flagged':>7} {'dyn lm':>6} {'missed':>6} {'prec':>5} {'recall':>6}"
     )
+    runs = {"static": (0.0, False), "dyn 30%": (0.3, False), "oracle": (0.3, True)}
+    table: dict[str, list[dict[str, float]]] = {name: [] for name in runs}
     for seed in seeds:
-        for dynamic in (0.0, 0.3):
-            r = accuracy_run(seed, dynamic)
+        for name, (dynamic, oracle) in runs.items():
+            r = accuracy_run(seed, dynamic, oracle=oracle)
+            table[name].append(r)
             print(
-                f"{seed:>4} {dynamic:>7.1f} {r['landmark_rmse']:>8.3f} {r['landmark_median']:>7.3f} "
+                f"{seed:>4} {name:>8} {r['landmark_rmse']:>8.3f} {r['landmark_median']:>7.3f} "
                 f"{r['static_landmarks']:>6} {r['trajectory_rmse']:>9.3f} {r['flagged']:>7} "
                 f"{r['dynamic_landmarks']:>6} {r['unflagged_dynamic']:>6} {r['precision']:>5.2f} {r['recall']:>6.2f}",
                 flush=True,
+            )
+    if len(seeds) > 1:
+        print(f"over {len(seeds)} seeds: landmark RMSE mean / median (m), trajectory RMSE mean (m), precision, recall")
+        for name, rows in table.items():
+            lm = np.array([r["landmark_rmse"] for r in rows])
+            trajectory = np.array([r["trajectory_rmse"] for r in rows])
+            precision = np.mean([r["precision"] for r in rows])
+            recall = np.mean([r["recall"] for r in rows])
+            print(
+                f"{name:>12}: {lm.mean():.2f} / {np.median(lm):.2f}, {trajectory.mean():.2f}, "
+                f"{precision:.2f}, {recall:.2f}"
             )
 
 
@@ -218,12 +246,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer iterations, passes and sizes (about a minute)")
     parser.add_argument("--accuracy", action="store_true", help="also print the accuracy figures")
+    parser.add_argument("--accuracy-only", action="store_true", help="print only the accuracy figures")
     parser.add_argument("--passes", type=int, default=10, help="figure-eight passes of the flatness test")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="accuracy seeds (default: --seed)")
     parser.add_argument("--repeat", type=int, default=None, help="speed runs to take the best of (default 3, quick 1)")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    if args.accuracy_only:
+        accuracy(args.seeds if args.seeds is not None else [args.seed])
+        return
     matching_structures(args.seed)
     speed(args.quick, args.seed, args.repeat or (1 if args.quick else 3))
     flatness(2 if args.quick else max(args.passes, 10), args.seed)
