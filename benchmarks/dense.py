@@ -2,8 +2,11 @@
 
 Real frames: the 7-Scenes redkitchen frames 0-399 in ``../shared/data`` (read from there, never copied
 into the repository). For each method: SE(3)-aligned ATE (RMSE, metres) against the dataset's poses and
-the median wall time per frame (and CPU time for ours, which a loaded machine inflates less). Peers,
-run in the same process on the same (downsampled) depth images:
+the median wall and CPU time per frame (``time.process_time``: all threads of the process, so a
+multi-threaded peer's CPU time can exceed its wall time; a loaded machine inflates wall time more).
+Ours is fed the 640x480 frames as ``relpoint run`` does (``downsample=2`` at 320x240, so its own 2x2
+downsampling is timed); the peers get the already downsampled images (their downsampling is not timed).
+Peers, run in the same process on the same depth:
 
 - open3d tensor frame-to-frame ``t.pipelines.odometry.rgbd_odometry_multi_scale`` (point-to-plane);
 - open3d dense ``t.pipelines.slam.Model`` (TSDF, frame-to-model, CPU), voxel 0.02 m at 320x240 and
@@ -64,14 +67,15 @@ def main(argv: list[str] | None = None) -> int:
     if DATA.exists():
         K = np.loadtxt(DATA / "camera-intrinsics.txt")
         full = Intrinsics(640, 480, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        depths_mm, colors, truth = [], [], []
+        depths_mm, colors, full_colors, truth = [], [], [], []
         for i in range(args.frames):
             with Image.open(DATA / f"frame-{i:06d}.depth.png") as image:
                 raw = np.asarray(image).astype(np.float32)
             raw[raw >= 65535] = 0
             depths_mm.append(raw)
             with Image.open(DATA / f"frame-{i:06d}.color.jpg") as image:
-                colors.append(np.asarray(image.convert("RGB").resize((640 // factor, 480 // factor))))
+                full_colors.append(np.asarray(image.convert("RGB")))
+            colors.append(np.asarray(Image.fromarray(full_colors[-1]).resize((640 // factor, 480 // factor))))
             truth.append(np.loadtxt(DATA / f"frame-{i:06d}.pose.txt"))
         stamps = np.arange(args.frames, dtype=np.int64) * round(1e9 / 30)
         reference = Trajectory.from_matrices(stamps, np.array(truth))
@@ -81,24 +85,29 @@ def main(argv: list[str] | None = None) -> int:
             640 // factor, 480 // factor, full.fx / factor, full.fy / factor,
             (full.cx + 0.5) / factor - 0.5, (full.cy + 0.5) / factor - 0.5,
         )  # fmt: skip
-        print(f"7-Scenes redkitchen frames 0-{args.frames - 1} at {k.width}x{k.height}", flush=True)
+        print(
+            f"7-Scenes redkitchen frames 0-{args.frames - 1} at {k.width}x{k.height}; "
+            f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores",
+            flush=True,
+        )
 
-        estimator = DenseFusion(DenseConfig(**params))
+        estimator = DenseFusion(DenseConfig(**{"downsample": factor, **params}))
         wall, cpu, poses = [], [], []
-        for i, depth in enumerate(depths):
-            frame = DepthFrame(int(stamps[i]), depth, k, colors[i])
+        for i, raw in enumerate(depths_mm):
+            frame = DepthFrame(int(stamps[i]), raw * np.float32(1e-3), full, full_colors[i])
             t0, c0 = time.perf_counter(), time.process_time()
             poses.append(estimator.step(frame).as_matrix())
             wall.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         summary = estimator.summary()
         ours_ms = np.median(wall) * 1e3
+        ours_cpu_ms = np.median(cpu) * 1e3
         rows.append(
             (
                 "relpoint dense (ours)", ate(reference, poses), ours_ms,
                 f"cpu {np.median(cpu) * 1e3:.0f} ms, {1e3 / ours_ms:.1f} fps wall, {1 / np.median(cpu):.1f} fps cpu, "
                 f"{summary['map_points']} points, compression {summary['compression_ratio']:.4f}, "
-                f"lost {summary['lost_frames']}",
+                f"lost {summary['lost_frames']}, {summary['icp_iterations_per_frame']:.1f} ICP iterations/frame",
             )
         )  # fmt: skip
         print(rows[-1], flush=True)
@@ -115,20 +124,26 @@ def main(argv: list[str] | None = None) -> int:
             # Frame-to-frame multi-scale point-to-plane odometry.
             criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (20, 10, 5)]
             T = np.eye(4)
-            poses, wall = [T.copy()], []
+            poses, wall, cpu = [T.copy()], [], []
             previous = o3d.t.geometry.RGBDImage(color_images[0], images[0])
             for i in range(1, len(images)):
                 current = o3d.t.geometry.RGBDImage(color_images[i], images[i])
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 result = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
                     current, previous, intr, o3c.Tensor(np.eye(4)), 1000.0, 3.0, criteria,
                     o3d.t.pipelines.odometry.Method.PointToPlane,
                 )  # fmt: skip
                 wall.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
                 T = T @ result.transformation.numpy()
                 poses.append(T.copy())
                 previous = current
-            rows.append(("open3d rgbd_odometry_multi_scale", ate(reference, poses), np.median(wall) * 1e3, ""))
+            rows.append(
+                (
+                    "open3d rgbd_odometry_multi_scale", ate(reference, poses), np.median(wall) * 1e3,
+                    f"cpu {np.median(cpu) * 1e3:.0f} ms",
+                )
+            )  # fmt: skip
             print(rows[-1], flush=True)
 
             # Dense SLAM (TSDF voxel block grid, frame-to-model tracking), as open3d's dense_slam.py.
@@ -138,9 +153,9 @@ def main(argv: list[str] | None = None) -> int:
             model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, T_frame_to_model, device)
             input_frame = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, device)
             raycast_frame = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, device)
-            poses, wall = [], []
+            poses, wall, cpu = [], [], []
             for i in range(len(images)):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 input_frame.set_data_from_image("depth", images[i])
                 input_frame.set_data_from_image("color", color_images[i])
                 if i > 0:
@@ -151,10 +166,22 @@ def main(argv: list[str] | None = None) -> int:
                 model.integrate(input_frame, 1000.0, 3.0, 8.0)
                 model.synthesize_model_frame(raycast_frame, 1000.0, 0.1, 3.0, 8.0, False)
                 wall.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
             slam_ms = np.median(wall) * 1e3
-            rows.append((f"open3d t.pipelines.slam.Model (voxel {voxel} m)", ate(reference, poses), slam_ms, ""))
+            slam_cpu_ms = np.median(cpu) * 1e3
+            rows.append(
+                (
+                    f"open3d t.pipelines.slam.Model (voxel {voxel} m)", ate(reference, poses), slam_ms,
+                    f"cpu {slam_cpu_ms:.0f} ms, {1e3 / slam_ms:.1f} fps wall",
+                )
+            )  # fmt: skip
             print(rows[-1], flush=True)
-            rows.append(("ratio ours / open3d SLAM time per frame", float("nan"), ours_ms / slam_ms, ""))
+            rows.append(
+                (
+                    "ratio ours / open3d SLAM time per frame", float("nan"), ours_ms / slam_ms,
+                    f"(wall); cpu ratio {ours_cpu_ms / slam_cpu_ms:.2f}",
+                )
+            )  # fmt: skip
     else:
         print(f"{DATA} is absent: real-frame figures skipped", file=sys.stderr)
 
@@ -164,11 +191,12 @@ def main(argv: list[str] | None = None) -> int:
         sim = simulate_rgbd(RgbdConfig(frames=args.sim_frames, resolution=args.resolution, seed=0))
         frames = list(sim.frames())
         estimator = DenseFusion(DenseConfig(**params))
-        wall, poses = [], []
+        wall, cpu, poses = [], [], []
         for frame in frames:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             poses.append(estimator.step(frame))
             wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         result = evaluate_trajectory(sim.ground_truth, Trajectory.from_poses(poses), settings)
         positions, _, _, _ = estimator.dense_map()
         a = result.alignment
@@ -180,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             (
                 f"simulated room ({args.sim_frames} frames, Kinect-like noise)", result.summary["ate_rmse"],
                 np.median(wall) * 1e3,
-                f"map accuracy median {metrics.accuracy_median * 1e3:.1f} mm, within 2 cm "
+                f"cpu {np.median(cpu) * 1e3:.0f} ms; map accuracy median {metrics.accuracy_median * 1e3:.1f} mm, within 2 cm "
                 f"{metrics.accuracy_within:.3f}; completeness within 2 cm {metrics.completeness_within:.3f} "
                 "(of the whole room, most of which is never seen)",
             )

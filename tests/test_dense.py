@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -14,15 +15,17 @@ from formats.log import LogReader
 from formats.rgbd_import import associate_stamps, import_7scenes, import_tum
 from relpoint.errors import UsageError
 from relpoint.estimators.dense import SPEC, DenseConfig, DenseFusion
-from relpoint.estimators.dense.fusion import PointMap
+from relpoint.estimators.dense.fusion import PointMap, _fill_from_neighbours
 from relpoint.estimators.dense.icp import (
     IcpSettings,
+    alignment_cost,
+    depth_sigma,
     increment_matrix,
     linear_system,
     normal_equations,
     track,
 )
-from relpoint.estimators.dense.maps import build_pyramid
+from relpoint.estimators.dense.maps import build_pyramid, make_level, normal_map, vertex_map
 from relpoint.evaluation import EvaluationSettings, dense_metrics_to_mesh, evaluate_trajectory
 from relpoint.geometry import invert_pose
 from relpoint.simulation.rgbd import RgbdConfig, RgbdSimulation, simulate_rgbd
@@ -98,6 +101,72 @@ def test_normal_equations_match_a_numerical_jacobian() -> None:
     assert np.sum(residuals(x) ** 2) < np.sum(residuals(np.zeros(6)) ** 2)
 
 
+def test_icp_with_depth_weights_and_map_normals_recovers_the_motion(room: RgbdSimulation) -> None:
+    delta = np.eye(4)
+    delta[:3, :3] = Rotation.from_rotvec(np.radians([-0.8, 1.2, 0.5])).as_matrix()
+    delta[:3, 3] = [-0.015, 0.02, 0.025]
+    sim = _moved(room, delta)
+    first, second = sim.frame(0), sim.frame(1)
+    source = _source(build_pyramid(first.depth, first.intrinsics, 3))
+    target = build_pyramid(second.depth, second.intrinsics, 3)
+    settings = dataclasses.replace(SETTINGS, depth_weighting=True, map_normals=True, huber_delta=0.02)
+    result = track(source, target, np.eye(4), settings)
+    error = result.T_camera_world @ delta
+    assert result.ok and np.linalg.norm(error[:3, 3]) < 1e-3
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(error[:3, :3]).as_rotvec())) < 0.05
+    # The true pose explains the frame better than the start (identity) does.
+    n_true, cost_true = alignment_cost(np.linalg.inv(delta), *source[2], target[2], SETTINGS)
+    n_start, cost_start = alignment_cost(np.eye(4), *source[2], target[2], SETTINGS)
+    assert n_true > n_start and cost_true < 0.5 * cost_start
+
+
+def test_depth_noise_model_grows_with_depth() -> None:
+    z = np.array([0.5, 1.0, 2.0, 4.0], dtype=np.float32)
+    sigma = depth_sigma(z)
+    assert np.all(np.diff(sigma) > 0)
+    assert sigma[1] == pytest.approx(0.0012 + 0.0019 * 0.36, rel=1e-5)  # Nguyen et al. 2012 at 1 m
+
+
+def test_vertex_and_normal_maps_of_a_tilted_plane() -> None:
+    k = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
+    # The plane n . x = d with n = (0, -sin a, -cos a) (facing the camera), d = -1.5 m.
+    a = math.radians(25)
+    n = np.array([0.0, -math.sin(a), -math.cos(a)])
+    rays = np.stack(np.meshgrid((np.arange(40) - 19.5) / 30, (np.arange(30) - 14.5) / 30), -1)
+    rays = np.concatenate([rays, np.ones((30, 40, 1))], -1)
+    depth = (-1.5 / (rays @ n)).astype(np.float32)
+    depth[5, 7] = 0.0  # a missing pixel
+    vertices = vertex_map(depth, k)
+    normals, valid = normal_map(vertices, depth)
+    np.testing.assert_allclose(vertices[..., 2], depth)
+    np.testing.assert_allclose(vertices[10, 12], depth[10, 12] * rays[10, 12], rtol=1e-5)
+    assert not valid[5, 7] and not valid[4, 7] and not valid[0].any() and valid[10, 12]
+    np.testing.assert_allclose(normals[valid], np.broadcast_to(n, (int(valid.sum()), 3)), atol=1e-4)
+    level = make_level(depth, k)
+    np.testing.assert_array_equal(level.valid, valid)
+    np.testing.assert_allclose(level.normals, normals, atol=1e-6)
+    assert level.planes[6].sum() == valid.sum() and not level.planes[:3, ~valid.reshape(-1)].any()
+
+
+def test_render_keeps_the_nearest_point_per_pixel() -> None:
+    k = Intrinsics(8, 6, 10.0, 10.0, 3.5, 2.5)
+    level = make_level(np.ones((6, 8), dtype=np.float32), k)
+    cloud = PointMap(capacity=4)
+    points = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 1.0], [0.0, 0.0, 3.0], [0.25, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    cloud.append(points.T.astype(np.float32), np.zeros((3, 5), np.float32), np.zeros((3, 5), np.float32), 0)
+    index = cloud.render(np.eye(4), level)
+    # (0, 0, z) projects to u = 3.5 -> pixel column 4 (nearest, half up), row 3; (0.25, 0, 1) to column 6.
+    assert index[3, 4] == 1 and index[3, 6] == 3
+    assert (index >= 0).sum() == 2  # the far duplicates lose, the point behind the camera is not drawn
+
+
+def test_pinholes_take_a_neighbours_point() -> None:
+    index = np.array([[-1, -1, -1, -1], [-1, 7, -1, -1], [-1, -1, -1, -1], [-1, -1, -1, 9]])
+    filled = _fill_from_neighbours(index)
+    assert filled[1, 1] == 7 and filled[0, 0] == 7 and filled[2, 2] in (7, 9) and filled[3, 3] == 9
+    assert filled[0, 3] == -1  # no rendered neighbour
+
+
 def test_increment_is_a_rotation() -> None:
     T = increment_matrix(np.array([0.1, -0.2, 0.05, 1.0, 2.0, 3.0]))
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
@@ -146,6 +215,17 @@ def test_dense_estimator_on_the_simulated_room() -> None:
     assert len(estimator.landmark_map()) == 0
 
 
+def test_constant_velocity_start_is_used_on_a_smooth_path() -> None:
+    sim = simulate_rgbd(RgbdConfig(frames=10, seed=3))
+    estimator = DenseFusion(DenseConfig(constant_velocity=True))
+    poses = [estimator.step(frame) for frame in sim.frames()]
+    result = evaluate_trajectory(
+        sim.ground_truth, Trajectory.from_poses(poses), EvaluationSettings(align="se3", rpe=False, kitti=False)
+    )
+    assert result.summary["ate_rmse"] < 0.005
+    assert estimator.summary()["predicted_frames"] > 0  # the smooth path makes the prediction the better start
+
+
 def test_dense_config_is_validated() -> None:
     with pytest.raises(UsageError):
         DenseConfig(downsample=3)
@@ -153,6 +233,9 @@ def test_dense_config_is_validated() -> None:
         DenseConfig(pyramid_levels=2)  # icp_iterations still lists three levels
     with pytest.raises(UsageError):
         DenseConfig.from_mapping({"no_such_setting": 1})
+    with pytest.raises(UsageError):
+        DenseConfig(depth_weighting=1)  # type: ignore[arg-type]
+    assert DenseConfig().depth_weighting and not DenseConfig().constant_velocity
     assert DenseConfig.from_mapping({"icp-distance": 0.2}).icp_distance == 0.2
     assert SPEC.needs == frozenset({"depth"})
 

@@ -113,7 +113,11 @@ class PointMap:
         return ids
 
     def render(self, T_camera_world: FloatArray, level: Level) -> I64:
-        """Index map (H, W) int64 of the nearest map point projecting into each pixel of ``level``, -1 for none."""
+        """Index map (H, W) int64 of the nearest map point projecting into each pixel of ``level``, -1 for none.
+
+        A z-buffer over all map points: each point is projected to its nearest pixel and the smallest depth
+        per pixel wins (``np.minimum.at``); ties go to the highest id.
+        """
         k = level.intrinsics
         index = np.full(k.height * k.width, -1, dtype=np.int64)
         if self.size == 0:
@@ -125,7 +129,7 @@ class PointMap:
         z = p_cam[2, ids]
         zbuffer = np.full(k.height * k.width, np.inf, dtype=np.float32)
         np.minimum.at(zbuffer, pixel, z)
-        nearest = z <= zbuffer[pixel]
+        nearest = np.flatnonzero(z <= zbuffer[pixel])
         index[pixel[nearest]] = ids[nearest]
         return index.reshape(k.height, k.width)
 
@@ -162,64 +166,76 @@ class PointMap:
         Returns
         -------
         The index map after fusion ((H, W), merged and added points at their pixels) and the counts.
+
+        A valid pixel without a rendered point (the index map holds one point per pixel, so a surface seen
+        from a new pose shows pinholes) is compared with the first map point rendered in its 3x3
+        neighbourhood, and a pixel failing the gates with every point rendered there; when one passes the
+        pixel is *covered* (neither merged nor added).
         """
         R = T_world_camera[:3, :3].astype(np.float32)
         t = T_world_camera[:3, 3].astype(np.float32)[:, None]
         cos = np.float32(normal_cos_threshold)
         planes = level.planes
+        h, w_img = index_map.shape
         ids = index_map.reshape(-1)
-        valid = planes[6] > 0
+        filled = _fill_from_neighbours(index_map).reshape(-1)
 
-        # Filter: the map point rendered at each valid pixel, within the distance and normal gates.
-        candidates = np.flatnonzero(valid & (ids >= 0))
-        j = ids[candidates]
-        frame = planes[:6, candidates]
+        # Filter: the map point rendered at (or, for pinholes, next to) each valid pixel, within the gates.
+        pixels = np.flatnonzero(planes[6] > 0)
+        frame = np.take(planes[:6], pixels, axis=1)
         q = R @ frame[:3] + t
         n_q = R @ frame[3:6]
-        p = np.take(self._positions, j, axis=1)
-        n_p = np.take(self._normals, j, axis=1)
+        j = filled[pixels]
+        has = j >= 0
+        jj = np.where(has, j, 0)
+        p = np.take(self._positions, jj, axis=1)
+        n_p = np.take(self._normals, jj, axis=1)
         diff = q - p
         depth = frame[2]
-        limit = (np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth) ** 2
-        ok = ((diff * diff).sum(axis=0) < limit) & ((n_q * n_p).sum(axis=0) > cos)
-        sel = np.flatnonzero(ok)
+        limit = np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth
+        limit *= limit
+        diff *= diff
+        ok = diff.sum(axis=0) < limit
+        ok &= (n_q * n_p).sum(axis=0) > cos
+        ok &= has
+        direct = ids[pixels] >= 0
+        sel = np.flatnonzero(ok & direct)
         j = j[sel]
-        merged_pixels = candidates[sel]
+        merged_pixels = pixels[sel]
 
         # Merge: weighted averages; normals rotated only, then renormalised.
         w = self._weights[j]
         alpha = np.float32(1.0) if confidence is None else confidence[merged_pixels]
         w1 = w + alpha
-        self._positions[:, j] = (np.take(p, sel, axis=1) * w + np.take(q, sel, axis=1) * alpha) / w1
-        n = np.take(n_p, sel, axis=1) * w + np.take(n_q, sel, axis=1) * alpha
-        self._normals[:, j] = n / np.maximum(np.sqrt((n * n).sum(axis=0)), np.float32(1e-12))
-        if colors is not None:
-            rgb = colors.reshape(-1, 3)
-            self._colors[:, j] = (np.take(self._colors, j, axis=1) * w + rgb[merged_pixels].T * alpha) / w1
+        inv = np.float32(1.0) / w1
+        a = alpha * inv
+        b = w * inv
+        self._positions[:, j] = np.take(p, sel, axis=1) * b + np.take(q, sel, axis=1) * a
+        n = np.take(n_p, sel, axis=1) * b + np.take(n_q, sel, axis=1) * a
+        n /= np.maximum(np.sqrt((n * n).sum(axis=0)), np.float32(1e-12))
+        self._normals[:, j] = n
+        rgb = None if colors is None else colors.reshape(-1, 3).T.astype(np.float32)  # (3, H*W)
+        if rgb is not None:
+            self._colors[:, j] = np.take(self._colors, j, axis=1) * b + np.take(rgb, merged_pixels, axis=1) * a
         self._weights[j] = np.minimum(w1, np.float32(max_weight))
 
-        # Add: valid pixels left unmatched, unless a map point rendered next to them covers them (the
-        # index map holds one point per pixel, so a surface seen from a new pose shows pinholes).
-        unmatched = valid.copy()
-        unmatched[merged_pixels] = False
-        pixels = np.flatnonzero(unmatched)
-        frame = planes[:6, pixels]
-        q = R @ frame[:3] + t
-        n_q = R @ frame[3:6]
-        covered = self._covered(pixels, index_map, q, n_q, frame[2], distance_threshold, distance_quadratic, cos)
-        keep = np.flatnonzero(~covered)
+        # Add: valid pixels neither merged nor covered by a point rendered next to them.
+        failed = np.flatnonzero(~ok)
+        covered = self._covered(
+            pixels[failed], index_map, np.take(q, failed, axis=1), np.take(n_q, failed, axis=1),
+            depth[failed], distance_threshold, distance_quadratic, cos,
+        )  # fmt: skip
+        keep = failed[~covered]
         added_pixels = pixels[keep]
         rgb_new = (
-            colors.reshape(-1, 3)[added_pixels].T.astype(np.float32)
-            if colors is not None
-            else np.zeros((3, len(added_pixels)), dtype=np.float32)
+            np.take(rgb, added_pixels, axis=1) if rgb is not None else np.zeros((3, len(added_pixels)), np.float32)
         )
         new_ids = self.append(np.take(q, keep, axis=1), np.take(n_q, keep, axis=1), rgb_new, frame_index)
         if confidence is not None:
             self._weights[new_ids] = confidence[added_pixels]
         after = ids.copy()
         after[added_pixels] = new_ids
-        return after.reshape(index_map.shape), FusionStats(int(len(j)), int(len(new_ids)))
+        return after.reshape(h, w_img), FusionStats(int(len(j)), int(len(new_ids)))
 
     def _covered(
         self,
@@ -274,3 +290,15 @@ class PointMap:
     def unstable(self, frame_index: int, min_weight: float, age: int) -> npt.NDArray[np.bool_]:
         """Points created at least ``age`` frames ago whose weight is still below ``min_weight`` (M,) bool."""
         return (self.weights < min_weight) & (frame_index - self.created >= age)
+
+
+def _fill_from_neighbours(index_map: I64) -> I64:
+    """The index map with each empty pixel (-1) given the id of the first non-empty of its 8 neighbours."""
+    h, w = index_map.shape
+    padded = np.full((h + 2, w + 2), -1, dtype=index_map.dtype)
+    padded[1:-1, 1:-1] = index_map
+    filled = index_map.copy()
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+        empty = filled < 0
+        np.copyto(filled, padded[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w], where=empty)
+    return filled

@@ -14,7 +14,9 @@ Each pair gives one linearised point-to-plane residual (section 2.2)
 using the small-angle rotation ``dR ~= I + [x_{0:3}]_x``. Section 2.3 solves the 6x6 normal equations
 ``A^T A x = A^T b``; the increment is re-orthonormalised to a rotation (SVD projection onto SO(3)) and
 left-composed with the estimate. Iterations stop when the increment is below the convergence
-thresholds, and run coarse-to-fine over the frame's pyramid.
+thresholds, and run coarse-to-fine over the frame's pyramid. Optionally (beyond the paper) the normal
+equations are weighted, ``A^T W A x = A^T W b``, by a Huber weight of each residual and by the inverse
+variance of depth noise at the pair's depth (:func:`depth_sigma`), and the plane normal may be the map's.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ class Correspondences:
     normals: (N, 3) float32 frame normals ``n_q``, camera frame.
     index: (N,) int64 indices of the paired source points in the input arrays.
     pixels: (N,) int64 row-major pixel index of each pair in the target level.
+    map_normals: (N, 3) float32 map normals rotated into the camera frame.
     """
 
     source: F32
@@ -51,6 +54,7 @@ class Correspondences:
     normals: F32
     index: npt.NDArray[np.int64]
     pixels: npt.NDArray[np.int64]
+    map_normals: F32
 
     def __len__(self) -> int:
         return len(self.index)
@@ -59,23 +63,32 @@ class Correspondences:
 def transform_soa(T: FloatArray, points: F32) -> F32:
     """Apply a 4x4 transform to points stored column-wise (3, N) float32; returns (3, N)."""
     R = T[:3, :3].astype(np.float32)
-    t = T[:3, 3].astype(np.float32)
-    return R @ points + t[:, None]
+    t = T[:3, 3].astype(np.float32)[:, None]
+    if points.shape[1] > 50_000:  # float32 GEMM with an inner dimension of 3 is slow on large inputs
+        return np.einsum("ij,jn->in", R, points) + t
+    return R @ points + t
 
 
 def project(points_cam: F32, level: Level) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
     """Nearest pixel (row-major index) of camera-frame points (3, N) in ``level``, and whether it is inside.
 
-    Points at or behind the camera (z <= 0) are outside.
+    Points at or behind the camera (z <= 0) are outside; the pixel of a point outside is 0.
     """
     k = level.intrinsics
-    z = points_cam[2]
-    front = z > 1e-6
-    zs = np.where(front, z, np.float32(1.0))
-    u = np.rint(points_cam[0] / zs * np.float32(k.fx) + np.float32(k.cx))
-    v = np.rint(points_cam[1] / zs * np.float32(k.fy) + np.float32(k.cy))
-    inside = front & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-    pixel = np.where(inside, v * k.width + u, 0).astype(np.int64)
+    x, y, z = points_cam
+    inv = np.float32(1.0) / np.where(z > 1e-6, z, np.float32(-1.0))  # negative: fails the u >= 0 test below
+    u = x * inv
+    u *= np.float32(k.fx)
+    u += np.float32(k.cx + 0.5)
+    v = y * inv
+    v *= np.float32(k.fy)
+    v += np.float32(k.cy + 0.5)
+    inside = (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height) & (z > 1e-6)
+    # floor(c + 0.5) is the nearest pixel; u, v are non-negative inside, so truncation is floor.
+    pixel = v.astype(np.int64)
+    pixel *= k.width
+    pixel += u.astype(np.int64)
+    pixel[~inside] = 0
     return pixel, inside
 
 
@@ -108,12 +121,17 @@ def associate(
     n_q = gathered[3:6]
     diff = p_cam - q
     ok &= (diff * diff).sum(axis=0) < np.float32(distance_threshold**2)
+    n_p = T_camera_world[:3, :3].astype(np.float32) @ normals
     if normal_cos_threshold > -1.0:
-        n_p = T_camera_world[:3, :3].astype(np.float32) @ normals
         ok &= (n_p * n_q).sum(axis=0) > np.float32(normal_cos_threshold)
     idx = np.flatnonzero(ok)
     return Correspondences(
-        np.take(p_cam, idx, axis=1).T, np.take(q, idx, axis=1).T, np.take(n_q, idx, axis=1).T, idx, pixel[idx]
+        np.take(p_cam, idx, axis=1).T,
+        np.take(q, idx, axis=1).T,
+        np.take(n_q, idx, axis=1).T,
+        idx,
+        pixel[idx],
+        np.take(n_p, idx, axis=1).T,
     )
 
 
@@ -181,6 +199,8 @@ class IcpSettings:
     convergence_translation: float
     min_correspondences: int
     huber_delta: float
+    depth_weighting: bool = False
+    map_normals: bool = False
 
 
 @dataclass(frozen=True)
@@ -194,11 +214,39 @@ class TrackResult:
     rmse: float
 
 
+def depth_sigma(z: F32) -> F32:
+    """Axial depth noise of a Kinect-like sensor at depth ``z`` (metres): ``0.0012 + 0.0019 (z - 0.4)^2``.
+
+    The noise model of Nguyen, Izadi and Lovell (3DIMPVT 2012), used to weight residuals by their inverse
+    variance (relative to a point at 1 m).
+    """
+    d = z - np.float32(0.4)
+    return np.float32(0.0012) + np.float32(0.0019) * d * d
+
+
+SIGMA_1M = float(0.0012 + 0.0019 * 0.6**2)
+
+
 def _huber_weights(residuals: F32, delta: float) -> F32 | None:
     if delta <= 0:
         return None
     a = np.abs(residuals)
     return np.minimum(np.float32(1.0), np.float32(delta) / np.maximum(a, np.float32(1e-12)))
+
+
+def alignment_cost(
+    T_camera_world: FloatArray, points: F32, normals: F32, level: Level, settings: IcpSettings
+) -> tuple[int, float]:
+    """How well a pose explains a frame level: the number of associated pairs and their mean squared
+    point-to-plane residual (m^2; ``inf`` with fewer than ``settings.min_correspondences`` pairs)."""
+    pairs = associate(
+        T_camera_world, points, normals, level, settings.distance_threshold, settings.normal_cos_threshold
+    )
+    n = len(pairs)
+    if n < settings.min_correspondences:
+        return n, float("inf")
+    _, b = linear_system(pairs.source, pairs.target, pairs.normals)
+    return n, float(np.mean(np.square(b, dtype=np.float64)))
 
 
 def track(
@@ -233,8 +281,12 @@ def track(
                 logger.debug("level %d: only %d correspondences", level_index, last_n)
                 ok = False
                 break
-            A, b = linear_system(pairs.source, pairs.target, pairs.normals)
+            plane_normals = pairs.map_normals if settings.map_normals else pairs.normals
+            A, b = linear_system(pairs.source, pairs.target, plane_normals)
             weights = _huber_weights(b, settings.huber_delta)
+            if settings.depth_weighting:
+                inverse_variance = (np.float32(SIGMA_1M) / depth_sigma(pairs.target[:, 2])) ** 2
+                weights = inverse_variance if weights is None else weights * inverse_variance
             last_rmse = float(np.sqrt(np.mean(np.square(b, dtype=np.float64))))
             x = solve_increment(*normal_equations(A, b, weights))
             if x is None:

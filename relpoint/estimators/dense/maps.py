@@ -2,13 +2,13 @@
 
 A *vertex map* holds, per pixel, the 3D point ``v = d K^-1 [u, v, 1]`` in the camera optical frame (x right,
 y down, z forward, metres); a *normal map* the unit surface normal there, from the cross product of the
-central differences of the vertex map, oriented towards the camera. Pixels without a usable measurement
-are marked by ``valid`` (their vertex/normal entries are zero). Everything is numpy-vectorised.
+central differences of the vertex map, facing the camera. Pixels without a usable measurement are marked
+by ``valid`` (their vertex/normal entries are zero). Everything is numpy-vectorised and kept channel-first
+(``(3, H, W)``) internally so that every arithmetic operation runs over contiguous memory.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,25 +28,27 @@ class Level:
     ----------
     intrinsics: pinhole intrinsics of this level (pixels of this level).
     depth: (H, W) float32 metres, 0 = no measurement.
-    vertices: (H, W, 3) float32 metres, camera optical frame.
-    normals: (H, W, 3) float32 unit normals, camera frame, facing the camera (0 where invalid).
+    planes: (7, H*W) float32 rows x, y, z, nx, ny, nz of every pixel (camera frame, metres; unit normals
+        facing the camera, 0 where invalid) and 1/0 validity (row-major pixels; fast gathers).
     valid: (H, W) bool, pixel has both a vertex and a normal.
-    planes: (7, H*W) float32 rows x, y, z, nx, ny, nz of every pixel and 1/0 validity (fast gathers).
     """
 
     intrinsics: Intrinsics
     depth: F32
-    vertices: F32
-    normals: F32
+    planes: F32
     valid: BoolArray
-    planes: F32 = dataclasses.field(init=False, repr=False)
 
-    def __post_init__(self) -> None:
-        planes = np.empty((7, self.depth.size), dtype=np.float32)
-        planes[:3] = self.vertices.reshape(-1, 3).T
-        planes[3:6] = self.normals.reshape(-1, 3).T
-        planes[6] = self.valid.reshape(-1)
-        object.__setattr__(self, "planes", planes)
+    @property
+    def vertices(self) -> F32:
+        """(H, W, 3) float32 vertex map, camera frame, metres (a view of :attr:`planes`)."""
+        h, w = self.depth.shape
+        return np.moveaxis(self.planes[:3].reshape(3, h, w), 0, -1)
+
+    @property
+    def normals(self) -> F32:
+        """(H, W, 3) float32 unit normals facing the camera, 0 where invalid (a view of :attr:`planes`)."""
+        h, w = self.depth.shape
+        return np.moveaxis(self.planes[3:6].reshape(3, h, w), 0, -1)
 
 
 def scaled_intrinsics(intrinsics: Intrinsics, factor: int) -> Intrinsics:
@@ -73,18 +75,23 @@ def downsample_depth(depth: F32, max_jump: float = 0.03) -> F32:
     Blocks without any valid depth are 0.
     """
     h, w = depth.shape[0] // 2 * 2, depth.shape[1] // 2 * 2
-    corners = [depth[r:h:2, c:w:2] for r in (0, 1) for c in (0, 1)]
-    total = corners[0] + corners[1] + corners[2] + corners[3]
-    count = sum(((c > 0).astype(np.float32) for c in corners), np.zeros_like(total))
-    big = np.float32(np.inf)
-    nearest = np.minimum(
-        np.minimum(np.where(corners[0] > 0, corners[0], big), np.where(corners[1] > 0, corners[1], big)),
-        np.minimum(np.where(corners[2] > 0, corners[2], big), np.where(corners[3] > 0, corners[3], big)),
-    )
-    farthest = np.maximum(np.maximum(corners[0], corners[1]), np.maximum(corners[2], corners[3]))
+    depth = np.asarray(depth, dtype=np.float32)
+    a, b, c, d = (depth[r:h:2, s:w:2] for r in (0, 1) for s in (0, 1))
+    total = a + b
+    total += c
+    total += d
+    count = (a > 0).astype(np.float32)
+    count += b > 0
+    count += c > 0
+    count += d > 0
+    inf = np.float32(np.inf)
+    nearest = np.minimum(np.where(a > 0, a, inf), np.where(b > 0, b, inf))
+    np.minimum(nearest, np.where(c > 0, c, inf), out=nearest)
+    np.minimum(nearest, np.where(d > 0, d, inf), out=nearest)
+    farthest = np.maximum(np.maximum(a, b), np.maximum(c, d))
     mean = total / np.maximum(count, np.float32(1.0))
-    jump = (count > 0) & (farthest - nearest > np.float32(max_jump) * nearest)
-    return np.where(jump, nearest, mean).astype(np.float32)
+    jump = farthest - nearest > np.float32(max_jump) * nearest  # False where no depth (inf on the right)
+    return np.where(jump, nearest, mean).astype(np.float32, copy=False)
 
 
 def smooth_depth(depth: F32, max_jump: float = 0.03) -> F32:
@@ -97,64 +104,93 @@ def smooth_depth(depth: F32, max_jump: float = 0.03) -> F32:
     h, w = depth.shape
     padded = np.zeros((h + 2, w + 2), dtype=np.float32)
     padded[1:-1, 1:-1] = depth
-    limit = np.float32(max_jump) * depth
+    limit = np.float32(max_jump) * depth  # 0 where there is no depth: nothing is "near" then
     total = np.zeros_like(depth)
     count = np.zeros_like(depth)
+    near = np.empty(depth.shape, dtype=bool)
+    diff = np.empty_like(depth)
     for dr in (0, 1, 2):
         for dc in (0, 1, 2):
             nb = padded[dr : dr + h, dc : dc + w]
-            near = (nb > 0) & (np.abs(nb - depth) < limit)
-            total += np.where(near, nb, np.float32(0.0))
+            np.subtract(nb, depth, out=diff)
+            np.abs(diff, out=diff)
+            # A missing neighbour (0) is |0 - d| = d away: never within max_jump * d (max_jump < 1).
+            np.less(diff, limit, out=near)
+            total += nb * near
             count += near
-    return np.where(depth > 0, total / np.maximum(count, np.float32(1.0)), np.float32(0.0)).astype(np.float32)
+    return np.where(count > 0, total / np.maximum(count, np.float32(1.0)), np.float32(0.0)).astype(np.float32)
 
 
 def vertex_map(depth: F32, intrinsics: Intrinsics) -> F32:
     """Back-project a depth image (H, W) metres to an (H, W, 3) vertex map in the camera frame."""
+    return np.moveaxis(_vertices(np.asarray(depth, dtype=np.float32), intrinsics), 0, -1)
+
+
+def _vertices(depth: F32, intrinsics: Intrinsics) -> F32:
     h, w = depth.shape
     x = (np.arange(w, dtype=np.float32) - np.float32(intrinsics.cx)) / np.float32(intrinsics.fx)
     y = (np.arange(h, dtype=np.float32) - np.float32(intrinsics.cy)) / np.float32(intrinsics.fy)
-    out = np.empty((h, w, 3), dtype=np.float32)
-    out[..., 0] = depth * x[None, :]
-    out[..., 1] = depth * y[:, None]
-    out[..., 2] = depth
+    out = np.empty((3, h, w), dtype=np.float32)
+    np.multiply(depth, x[None, :], out=out[0])
+    np.multiply(depth, y[:, None], out=out[1])
+    out[2] = depth
     return out
 
 
 def normal_map(vertices: F32, depth: F32, max_jump: float = 0.05) -> tuple[F32, BoolArray]:
-    """Unit normals (H, W, 3) from central differences of a vertex map, and their validity (H, W).
+    """Unit normals (H, W, 3) from central differences of a vertex map (H, W, 3), and their validity (H, W).
 
-    A normal is valid where the pixel and its four neighbours have depth and no neighbour lies further
-    than ``max_jump`` (relative) from the pixel's depth. Normals face the camera (``n . v < 0``).
+    A normal is valid where the pixel and its four neighbours have depth, no neighbour lies further than
+    ``max_jump`` (relative) from the pixel's depth, and the normal faces the camera (``n . v < 0``).
     """
+    normals, valid = _normals(np.ascontiguousarray(np.moveaxis(vertices, -1, 0)), depth, max_jump)
+    return np.moveaxis(normals, 0, -1), valid
+
+
+def _normals(v: F32, depth: F32, max_jump: float) -> tuple[F32, BoolArray]:
+    """:func:`normal_map` on a channel-first (3, H, W) vertex map; returns (3, H, W) normals and validity."""
     h, w = depth.shape
-    normals = np.zeros((h, w, 3), dtype=np.float32)
+    normals = np.zeros((3, h, w), dtype=np.float32)
     valid = np.zeros((h, w), dtype=bool)
     if h < 3 or w < 3:
         return normals, valid
-    d = depth
-    centre = d[1:-1, 1:-1]
-    ok = centre > 0
+    centre = depth[1:-1, 1:-1]
     limit = np.float32(max_jump) * centre
-    for nb in (d[1:-1, 2:], d[1:-1, :-2], d[2:, 1:-1], d[:-2, 1:-1]):
-        ok &= (nb > 0) & (np.abs(nb - centre) < limit)
-    x, y, z = vertices[..., 0], vertices[..., 1], vertices[..., 2]
-    ax, ay, az = (c[1:-1, 2:] - c[1:-1, :-2] for c in (x, y, z))
-    bx, by, bz = (c[2:, 1:-1] - c[:-2, 1:-1] for c in (x, y, z))
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
-    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    ok &= norm > 0
-    # Orient towards the camera: the vertex is the ray from the camera, so n . v must be negative.
-    facing = nx * x[1:-1, 1:-1] + ny * y[1:-1, 1:-1] + nz * z[1:-1, 1:-1]
-    scale = np.where(ok, np.where(facing > 0, -1.0, 1.0) / np.where(ok, norm, 1.0), 0.0).astype(np.float32)
-    inner = normals[1:-1, 1:-1]
-    inner[..., 0] = nx * scale
-    inner[..., 1] = ny * scale
-    inner[..., 2] = nz * scale
+    ok = centre > 0
+    for nb in (depth[1:-1, 2:], depth[1:-1, :-2], depth[2:, 1:-1], depth[:-2, 1:-1]):
+        ok &= np.abs(nb - centre) < limit  # a missing neighbour (0) fails: max_jump < 1
+    a = v[:, 1:-1, 2:] - v[:, 1:-1, :-2]  # along +u (right)
+    b = v[:, 2:, 1:-1] - v[:, :-2, 1:-1]  # along +v (down)
+    # b x a faces the camera for a surface seen from its front (a x b = x x y = +z points away).
+    nx = b[1] * a[2] - b[2] * a[1]
+    ny = b[2] * a[0] - b[0] * a[2]
+    nz = b[0] * a[1] - b[1] * a[0]
+    norm2 = nx * nx + ny * ny + nz * nz
+    ok &= norm2 > 0
+    facing = nx * v[0, 1:-1, 1:-1] + ny * v[1, 1:-1, 1:-1] + nz * v[2, 1:-1, 1:-1]
+    ok &= facing < 0  # folded (noisy, grazing) neighbourhoods give back-facing normals: not trusted
+    scale = np.zeros_like(norm2)
+    np.divide(np.float32(1.0), np.sqrt(norm2, where=ok, out=np.ones_like(norm2)), out=scale, where=ok)
+    np.multiply(nx, scale, out=normals[0, 1:-1, 1:-1])
+    np.multiply(ny, scale, out=normals[1, 1:-1, 1:-1])
+    np.multiply(nz, scale, out=normals[2, 1:-1, 1:-1])
     valid[1:-1, 1:-1] = ok
     return normals, valid
+
+
+def make_level(depth: F32, intrinsics: Intrinsics) -> Level:
+    """One pyramid level (vertices, normals, validity) of a depth image (H, W) metres."""
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    h, w = depth.shape
+    planes = np.zeros((7, h * w), dtype=np.float32)
+    vertices = _vertices(depth, intrinsics)
+    normals, valid = _normals(vertices, depth, 0.05)
+    flat = valid.reshape(-1)
+    planes[:3] = vertices.reshape(3, -1)
+    planes[:3] *= flat  # invalid pixels carry zeros
+    planes[3:6] = normals.reshape(3, -1)
+    planes[6] = flat
+    return Level(intrinsics, depth, planes, valid)
 
 
 def build_pyramid(
@@ -173,9 +209,8 @@ def build_pyramid(
     filtered by :func:`smooth_depth` (coarser levels average it further).
     """
     depth = np.asarray(depth, dtype=np.float32)
-    depth = np.where((depth >= min_depth) & (depth <= max_depth), depth, np.float32(0.0)).astype(np.float32)
+    current = np.where((depth >= min_depth) & (depth <= max_depth), depth, np.float32(0.0)).astype(np.float32)
     out: list[Level] = []
-    current = depth
     for _ in range(skip):
         current = downsample_depth(current)
     if smooth:
@@ -184,7 +219,5 @@ def build_pyramid(
         k = scaled_intrinsics(intrinsics, 2**level) if level else intrinsics
         if level > skip:
             current = downsample_depth(current)
-        vertices = vertex_map(current, k)
-        normals, valid = normal_map(vertices, current)
-        out.append(Level(k, current, vertices, normals, valid))
+        out.append(make_level(current, k))
     return out
