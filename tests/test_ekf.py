@@ -57,6 +57,8 @@ def _run(config: EkfConfig, iterations: int, **sim_options: object) -> dict[str,
         {"gate_probability": 0.999, "new_landmark_probability": 0.99},
         {"linear_acceleration_noise": -1.0},
         {"jcbb_max_nodes": 0},
+        {"fix_alignment": "umeyama"},
+        {"fix_drift": -0.1},
     ],
 )
 def test_config_rejects_bad_values(options: dict[str, object]) -> None:
@@ -244,7 +246,9 @@ def test_known_association_needs_ids() -> None:
 
 
 def test_fix_is_fused_weighted_by_covariances() -> None:
-    ekf = EkfSlam(EkfConfig(motion="constant_position", position_noise=0.2))
+    # fix_alignment="none": every fix is fused at once, in one frame (the default waits for the fixes
+    # to pin the frame; tests/test_fix_fusion_in_loop.py covers it).
+    ekf = EkfSlam(EkfConfig(motion="constant_position", position_noise=0.2, fix_alignment="none"))
     ekf.step(_observe(0, (10.0, 0.0, 0.0)))
     # Predicting to the fix's stamp gives the position variance 0.2^2; the fix has variance 0.1^2.
     ekf.add_fix(PositionFix(DT_NS, np.array([1.0, 0.0, 0.0]), np.eye(3) * 0.1**2))
@@ -296,3 +300,11 @@ def test_run_with_clutter(association: str) -> None:
     assert result["landmark_rmse"] < 0.3
     if association == "known":
         assert result["landmarks"] == result["distinct"] == 66
+
+
+def test_fix_before_first_observation_places_the_start_without_alignment() -> None:
+    ekf = EkfSlam(EkfConfig(fix_alignment="none"))
+    ekf.add_fix(PositionFix(0, np.array([5.0, -2.0, 1.0]), np.eye(3)))
+    pose = ekf.step(_observe(0, (10.0, 0.0, 0.0)))
+    np.testing.assert_allclose(pose.position, [5.0, -2.0, 1.0])
+    np.testing.assert_allclose(ekf.covariance[:3, :3], np.eye(3))

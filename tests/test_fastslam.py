@@ -44,6 +44,8 @@ def _run(config: FastSlamConfig, seed: int, iterations: int, **sim_options: obje
         {"new_landmark_probability": 1.0},
         {"resample_threshold": 1.5},
         {"search_radius": 0.0},
+        {"start_landmark_probability": 0.999},  # below new_landmark_probability
+        {"fix_alignment": "none"},
     ],
 )
 def test_config_rejects_bad_values(options: dict[str, object]) -> None:
@@ -125,6 +127,19 @@ def test_points_pair_with_their_landmark_or_start_new_ones(variant: str) -> None
     assert landmarks.gt_id.tolist() == [0, 1, 2]
     # The landmark EKF averages the two sightings with equal covariances.
     np.testing.assert_allclose(landmarks.positions[0], [10.05, 0.0, 0.0], atol=1e-9)
+
+
+@pytest.mark.parametrize("variant", ["1.0", "2.0"])
+def test_point_between_the_gates_is_discarded(variant: str) -> None:
+    slam = FastSlam(FastSlamConfig(variant=variant, particles=4, pose_noise=0.0), np.random.default_rng(0))
+    slam.step(PointObservation(0, [[10.0, 0.0, 0.0]], [0]))
+    # A once-seen landmark's innovation covariance is 2 Q = 0.18 m^2 per axis, the same as the
+    # new-landmark density's: the 0.9999 match gate (d2 < 21.1) ends at 1.95 m, the 1 - 1e-7 start
+    # gate (d2 < 35.4) at 2.52 m.
+    slam.step(PointObservation(0, [[12.2, 0.0, 0.0]], [0]))
+    assert slam.counts.tolist() == [1] * 4 and slam.summary()["discarded"] == 4
+    slam.step(PointObservation(0, [[12.8, 0.0, 0.0]], [1]))
+    assert slam.counts.tolist() == [2] * 4
 
 
 # ------------------------------------------------------------------------------- simulated runs

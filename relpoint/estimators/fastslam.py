@@ -6,7 +6,14 @@ one independent 3x3 EKF per landmark. The motion models are those of the EKF (se
 odometry held between records, or a constant-velocity model), the measurement is a landmark's
 position in the sensor frame (eq. 11-13), and each particle associates each point by maximum
 likelihood, starting a new landmark when no landmark explains the point better than a fixed
-new-landmark likelihood (Montemerlo et al., FastSLAM 2.0, 2003).
+new-landmark likelihood (Montemerlo et al., FastSLAM 2.0, 2003). A point that no landmark explains but
+that lies inside a wider gate of one is discarded rather than mapped (as the EKF's two gates do): at a
+loop closure the first points of old landmarks arrive offset by the drift, and a duplicate started
+from them would win every later association and keep the loop open.
+
+Position fixes (``/fix``; *General Concept of 3D SLAM*, sections 5-6) are fused in the loop once
+they pin the local frame (``relpoint.estimators._fix_frame``): each particle is weighted by a fix's
+likelihood and moved towards it by eq. 31-32 together with the landmarks it saw lately.
 
 Variants
     ``1.0`` samples the pose from the motion model and weights by the landmarks' measurement
@@ -37,14 +44,16 @@ from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
-from relpoint.estimators.base import ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings, require_non_negative, require_positive
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)
 
 VARIANTS = ("2.0", "1.0")
+FIX_ALIGNMENTS = ("rigid", "ignore")
 _LOG_2PI = math.log(2.0 * math.pi)
 #: Attributes indexed by particle; resampling copies each of them.
 _PARTICLE_ARRAYS = (
@@ -56,6 +65,8 @@ _PARTICLE_ARRAYS = (
     "means",
     "covs",
     "_seen",
+    "_last",
+    "_frame_cov",
     "_vote_id",
     "_vote_n",
 )
@@ -73,10 +84,14 @@ class FastSlamConfig(Settings):
     """Number of particles."""
     observation_sigma: float = 0.3
     """Standard deviation of a point measurement, per axis (m)."""
-    new_landmark_probability: float = 0.999
+    new_landmark_probability: float = 0.9999
     """Sets the new-landmark likelihood: the density of a point at this chi-square quantile of a
     fresh landmark's innovation. A point starts a landmark in a particle when no landmark there
     explains it with a higher likelihood."""
+    start_landmark_probability: float = 0.9999999
+    """A point that no landmark explains starts a landmark only if it also lies outside this wider
+    quantile of every candidate landmark; points in between are discarded. Without the band a point
+    of a drifted landmark (a loop closure) starts a duplicate that then wins every later association."""
     linear_acceleration_noise: float = 2.0
     """Constant-velocity proposal: white linear acceleration noise (m/s^2)."""
     angular_acceleration_noise: float = 0.5
@@ -92,18 +107,39 @@ class FastSlamConfig(Settings):
     """Resample when the effective sample size falls below this fraction of the particles."""
     search_radius: float = 5.0
     """Landmarks farther than this from a point (in every particle) are not considered for it (m)."""
+    fix_alignment: str = "rigid"
+    """How position fixes (``/fix``) enter: ``rigid`` runs in the local frame until at least three
+    non-collinear fixes pin it, fits the rigid transform local -> fix frame to the mean local
+    positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
+    by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
+    proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
+    fix_min_spread: float = 8.0
+    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
+    fix_drift: float = 0.1
+    """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
+    (m/m, per axis), the drift of the local map that the fixes correct."""
+    fix_window: int = 100
+    """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
+    iterations, by the covariance-weighted correction (eq. 31-32)."""
 
     def __post_init__(self) -> None:
+        if self.fix_alignment not in FIX_ALIGNMENTS:
+            raise UsageError(
+                f"unknown fix alignment {self.fix_alignment!r}", f"choose one of {', '.join(FIX_ALIGNMENTS)}"
+            )
         if self.variant not in VARIANTS:
             raise UsageError(f"unknown FastSLAM variant {self.variant!r}", f"choose one of {', '.join(VARIANTS)}")
         if not (isinstance(self.particles, int) and self.particles >= 1):
             raise UsageError(f"particles must be a positive integer, got {self.particles!r}")
-        positive = {"observation_sigma": self.observation_sigma, "search_radius": self.search_radius}
+        positive = {
+            "observation_sigma": self.observation_sigma, "search_radius": self.search_radius,
+            "fix_min_spread": self.fix_min_spread,
+        }  # fmt: skip
         non_negative = {
             "linear_acceleration_noise": self.linear_acceleration_noise,
             "angular_acceleration_noise": self.angular_acceleration_noise,
             "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
-            "pose_noise": self.pose_noise,
+            "pose_noise": self.pose_noise, "fix_drift": self.fix_drift,
         }  # fmt: skip
         require_positive(positive)
         require_non_negative(non_negative)
@@ -111,6 +147,17 @@ class FastSlamConfig(Settings):
             raise UsageError(
                 f"new_landmark_probability must be strictly between 0 and 1, got {self.new_landmark_probability!r}"
             )
+        if not (isinstance(self.start_landmark_probability, float) and 0.0 < self.start_landmark_probability < 1.0):
+            raise UsageError(
+                f"start_landmark_probability must be strictly between 0 and 1, got {self.start_landmark_probability!r}"
+            )
+        if self.start_landmark_probability < self.new_landmark_probability:
+            raise UsageError(
+                f"start_landmark_probability ({self.start_landmark_probability}) must be at least "
+                f"new_landmark_probability ({self.new_landmark_probability})"
+            )
+        if not (isinstance(self.fix_window, int) and self.fix_window >= 0):
+            raise UsageError(f"fix_window must be a non-negative integer, got {self.fix_window!r}")
         if not (isinstance(self.resample_threshold, int | float) and 0.0 <= self.resample_threshold <= 1.0):
             raise UsageError(f"resample_threshold must be between 0 and 1, got {self.resample_threshold!r}")
 
@@ -153,7 +200,9 @@ class FastSlam(Estimator):
         self._Q = np.eye(3) * cfg.observation_sigma**2
         # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.
         gate = chi2_gate(cfg.new_landmark_probability, 3)
-        self._log_new = -0.5 * gate - 0.5 * (3 * _LOG_2PI + math.log(np.linalg.det(2.0 * self._Q)))
+        log_norm = 0.5 * (3 * _LOG_2PI + math.log(np.linalg.det(2.0 * self._Q)))
+        self._log_new = -0.5 * gate - log_norm
+        self._log_start = -0.5 * chi2_gate(cfg.start_landmark_probability, 3) - log_norm
         self.positions = np.zeros((n, 3))
         self.rotations = np.tile(np.eye(3), (n, 1, 1))
         self.twists = np.zeros((n, 6))
@@ -163,13 +212,21 @@ class FastSlam(Estimator):
         self.means = np.zeros((n, self._capacity, 3))
         self.covs = np.zeros((n, self._capacity, 3, 3))
         self._seen = np.zeros((n, self._capacity), dtype=np.int64)
+        self._last = np.zeros((n, self._capacity), dtype=np.int64)  # iteration each landmark was last seen
+        self._frame_cov = np.zeros((n, 3, 3))  # covariance of each particle's position in the fixes' frame
         self._vote_id = np.full((n, self._capacity), -1, dtype=np.int64)
         self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
         self._stamp_ns: int | None = None
         self._moved = False
+        self._twist_unknown = False
+        self._step_stamp_ns: int | None = None
         self._Sigma = np.zeros((n, 12, 12))
         self._odometry: OdometryMeasurement | None = None
         self._stats = Counter[str]()
+        # Fix frame (``rigid``): None once the particles are in the fixes' frame (or with ``ignore``).
+        self._frame: FixFrame | None = FixFrame(min_spread=cfg.fix_min_spread) if cfg.fix_alignment == "rigid" else None
+        self._frame_tried = 0
+        self._frame_fit: FrameFit | None = None
 
     # ------------------------------------------------------------------------------------ interface
 
@@ -184,20 +241,116 @@ class FastSlam(Estimator):
             self._stamp_ns = observation.stamp_ns
         self._predict_to(observation.stamp_ns)
         Sigma, self._Sigma = self._Sigma, np.zeros_like(self._Sigma)
-        if self.config.variant == "1.0":
+        # 1.0 samples the motion model, except while the initial twist is unknown: a blind draw from
+        # its wide prior (initial_speed_sigma) leaves most particles metres off after one step.
+        proposal = self.config.variant == "2.0" or self._twist_unknown
+        self._twist_unknown = False
+        prior = Sigma
+        if not proposal:
             self._apply_sample(Sigma)
             Sigma = np.zeros_like(Sigma)
         points = np.asarray(observation.points)
-        assoc, log_likelihood, Sigma = self._associate(points, Sigma)
-        if self.config.variant == "2.0":
+        assoc, log_likelihood, Sigma = self._associate(points, Sigma, proposal)
+        if proposal:
             self._apply_sample(Sigma)
+        if self._frame_fit is not None:
+            # The pose drawn each iteration carries the proposal's spread into the particle's place in
+            # ``world``: its frame covariance grows by it (most in stretches without landmarks).
+            self._frame_cov += (Sigma if proposal else prior)[:, :3, :3]
+            # A turned map drifts in proportion to the distance travelled, which the collapsed
+            # particles' spread does not show: a random walk of fix_drift per metre stands for it.
+            if self._step_stamp_ns is not None:
+                dt = (observation.stamp_ns - self._step_stamp_ns) * 1e-9
+                distance = np.linalg.norm(self.twists[:, :3], axis=1) * dt
+                self._frame_cov += (self.config.fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
+        self._step_stamp_ns = observation.stamp_ns
         self.log_weights = self.log_weights + log_likelihood
         self.log_weights -= logsumexp(self.log_weights)
         self._update_landmarks(points, assoc, observation.ids)
         self._add_landmarks(points, assoc, observation.ids)
         self._resample_if_degenerate()
         self._stats["iterations"] += 1
+        if self._frame is not None:
+            w = self.weights
+            mean = w @ self.positions
+            spread = np.einsum("p,pa,pb->ab", w, self.positions - mean, self.positions - mean)
+            self._frame.add_local(observation.stamp_ns, mean, spread)
+            if self._frame.fix_count > self._frame_tried:
+                self._frame_tried = self._frame.fix_count
+                fit = self._frame.fit()
+                if fit is not None:
+                    self._pin_frame(fit)
         return self.pose()
+
+    def add_fix(self, fix: PositionFix) -> None:
+        """Fuse an absolute position fix (``fix_alignment="rigid"``; ignored with ``ignore``).
+
+        Before the fixes pin the frame they only collect pairs for the fit. Afterwards each particle
+        keeps a covariance ``C`` of its position in ``world`` (the fit's uncertainty at the pinning,
+        grown by every drawn pose's spread); a fix weighs the particle by its likelihood
+        ``N(fix; p, C + P_fix)`` and fuses with it by eq. 31-32, moving the particle's pose and the
+        landmarks it saw within ``fix_window`` iterations together (a particle's map cannot
+        follow its pose otherwise: conditioned on the path, the points never pull the map towards the
+        fixes).
+        """
+        if self.config.fix_alignment == "ignore":
+            return
+        if self._frame is not None:
+            self._frame.add_fix(fix)
+            return
+        if self._stamp_ns is not None:
+            self._predict_to(fix.stamp_ns)
+        P_fix = np.asarray(fix.covariance, dtype=np.float64)
+        C = self._frame_cov  # (n, 3, 3): covariance of each particle's position in world
+        S = C + P_fix + np.eye(3) * 1e-12  # the floor keeps a zero-covariance fix invertible
+        S_inv = np.linalg.inv(S)
+        nu = np.asarray(fix.position, dtype=np.float64) - self.positions  # (n, 3)
+        _, logdet = np.linalg.slogdet(S)
+        self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
+        self.log_weights -= logsumexp(self.log_weights)
+        # Eq. 31-32: x_v = x_c + C (C + P_fix)^-1 (x_b - x_c), P_v = C - C (C + P_fix)^-1 C. The shift
+        # moves the particle's pose and the landmarks it saw lately together, as one local frame.
+        K = C @ S_inv
+        shift = np.einsum("pij,pj->pi", K, nu)
+        self.positions = self.positions + shift
+        recent = self._last >= self._stats["iterations"] - self.config.fix_window
+        self.means += np.where(recent[:, :, None], shift[:, None, :], 0.0)
+        fused = C - K @ C
+        self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
+        self._stats["fixes"] += 1
+
+    @property
+    def frame_fit(self) -> FrameFit | None:
+        """The fit that moved the particles into the fixes' frame (``rigid``), or None before (or without) it."""
+        return self._frame_fit
+
+    def _pin_frame(self, fit: FrameFit) -> None:
+        """Move every particle into the fixes' frame by ``fit``, each by a transform drawn from its uncertainty.
+
+        Particle ``p`` maps a local point ``x`` to ``c + Exp(dphi_p) (T x - c) + dt_p`` with
+        ``(dt_p, dphi_p) ~ N(0, Sigma_fit)``: the fit's uncertainty becomes spread between the
+        particles, which the later fixes' likelihoods then select from. Landmark covariances turn
+        with each particle's rotation; twists are in the sensor frame and stay.
+        """
+        n = self.config.particles
+        values, vectors = np.linalg.eigh(fit.covariance)
+        draws = self._rng.standard_normal((n, 6)) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
+        R_T, t = fit.T_world_local[:3, :3], fit.T_world_local[:3, 3]
+        turn = so3_exp(draws[:, 3:])  # (n, 3, 3)
+        R = turn @ R_T  # (n, 3, 3): each particle's rotation local -> world
+        offset = fit.centre + draws[:, :3] - np.einsum("pij,j->pi", turn, fit.centre)  # (n, 3)
+        shift = np.einsum("pij,j->pi", turn, t) + offset
+        self.positions = np.einsum("pij,pj->pi", R, self.positions) + shift
+        self.rotations = R @ self.rotations
+        self.means = np.einsum("pij,pmj->pmi", R, self.means) + shift[:, None, :]
+        self.covs = R[:, None] @ self.covs @ np.swapaxes(R, 1, 2)[:, None]
+        J = fit.perturbation_jacobian(self.positions)
+        self._frame_cov = J @ fit.covariance @ np.swapaxes(J, 1, 2)
+        self._Sigma[:, :3, :] = np.einsum("pij,pjk->pik", R, self._Sigma[:, :3, :])
+        self._Sigma[:, :, :3] = np.einsum("pki,pji->pkj", self._Sigma[:, :, :3], R)
+        self._frame = None
+        self._frame_fit = fit
+        self._stats["frame_pinned_at"] = self._stats["iterations"]
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
         """Hold a body-frame twist as the proposal's input from its stamp until the next one."""
@@ -206,11 +359,15 @@ class FastSlam(Estimator):
         self._odometry = odometry
 
     def landmark_map(self) -> LandmarkMap:
-        """The map of the particle with the largest weight."""
+        """The map of the particle with the largest weight (before the fixes pin the frame: provisionally placed)."""
         best = int(np.argmax(self.log_weights))
         n = int(self.counts[best])
+        positions = self.means[best, :n].copy()
+        if self._frame is not None:
+            T = self._frame.provisional
+            positions = positions @ T[:3, :3].T + T[:3, 3]
         return LandmarkMap(
-            self.means[best, :n].copy(),
+            positions,
             self._seen[best, :n].copy(),
             np.zeros(n, dtype=bool),
             self._vote_id[best, :n].copy(),
@@ -228,6 +385,7 @@ class FastSlam(Estimator):
             "landmarks": self.map_size,
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             **{k: int(v) for k, v in sorted(self._stats.items())},
+            **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
         }
 
     def pose(self) -> Pose:
@@ -239,6 +397,8 @@ class FastSlam(Estimator):
         T = np.eye(4)
         T[:3, :3] = U @ D @ Vt
         T[:3, 3] = position
+        if self._frame is not None:
+            T = self._frame.provisional @ T
         return Pose.from_matrix(self._stamp_ns or 0, T)
 
     # ------------------------------------------------------------------------------------ proposal
@@ -266,6 +426,7 @@ class FastSlam(Estimator):
             q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
             if not self._moved:
                 q += np.repeat([cfg.initial_speed_sigma**2, cfg.initial_turn_rate_sigma**2], 3)
+                self._twist_unknown = True
             Q_twist = np.diag(q)
             F[:, 6:, 6:] = np.eye(6)  # the twist persists; with odometry the input replaces it
         positions, rotations, F_pose, G = twist_step(self.positions, self.rotations, twist[:, :3], twist[:, 3:], dt)
@@ -313,11 +474,14 @@ class FastSlam(Estimator):
             near[i] = (close & valid).any(axis=0)
         return [np.flatnonzero(row) for row in near]
 
-    def _associate(self, points: FloatArray, Sigma: FloatArray) -> tuple[np.ndarray, FloatArray, FloatArray]:
+    def _associate(
+        self, points: FloatArray, Sigma: FloatArray, proposal: bool
+    ) -> tuple[np.ndarray, FloatArray, FloatArray]:
         """Maximum-likelihood association of each point in each particle, one point at a time.
 
-        Returns the association (N, k) (landmark slot, or -1 for a new landmark), each particle's
-        log-likelihood of the points (N,), and the proposal covariance after the points (2.0).
+        Returns the association (N, k) (landmark slot, -1 for a new landmark, -2 for a discarded
+        point), each particle's log-likelihood of the points (N,), and the proposal covariance after
+        the points (when ``proposal``, i.e. 2.0: each paired point refines the pose prior ``Sigma``).
         """
         cfg = self.config
         n = cfg.particles
@@ -326,7 +490,6 @@ class FastSlam(Estimator):
         log_likelihood = np.zeros(n)
         used = np.zeros((n, max(int(self.counts.max()), 1)), dtype=bool)
         rows = np.arange(n)
-        proposal = cfg.variant == "2.0"
         for i, candidates in enumerate(self._candidates(points)):
             c = len(candidates)
             if c == 0:
@@ -351,6 +514,7 @@ class FastSlam(Estimator):
             matched = best_logl >= self._log_new
             slot = candidates[best]
             assoc[matched, i] = slot[matched]
+            assoc[~matched & (best_logl >= self._log_start), i] = -2
             used[rows[matched], slot[matched]] = True
             log_likelihood += np.where(matched, best_logl, self._log_new)
             if proposal and matched.any():
@@ -361,6 +525,7 @@ class FastSlam(Estimator):
                 joseph = I_KH @ Sigma @ np.swapaxes(I_KH, 1, 2) + K @ S_m[rows, best] @ np.swapaxes(K, 1, 2)
                 Sigma = np.where(matched[:, None, None], joseph, Sigma)
         self._stats["paired"] += int((assoc >= 0).sum())
+        self._stats["discarded"] += int((assoc == -2).sum())
         return assoc, log_likelihood, Sigma
 
     # ---------------------------------------------------------------------------------- landmarks
@@ -382,6 +547,7 @@ class FastSlam(Estimator):
         new_cov = I_KH @ cov @ np.swapaxes(I_KH, 1, 2) + K @ self._Q @ np.swapaxes(K, 1, 2)
         self.covs[p, j] = 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
         self._seen[p, j] += 1
+        self._last[p, j] = self._stats["iterations"]
         if ids is not None:
             self._vote(p, j, np.asarray(ids)[i])
 
@@ -394,7 +560,7 @@ class FastSlam(Estimator):
 
     def _add_landmarks(self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None) -> None:
         """Start a landmark ``m = p + R z`` with covariance ``R Q R^T`` for every unexplained point."""
-        p, i = np.nonzero(assoc < 0)
+        p, i = np.nonzero(assoc == -1)
         if len(p) == 0:
             return
         # Slot of each new landmark: the particle's count plus its rank among the particle's new points.
@@ -405,6 +571,7 @@ class FastSlam(Estimator):
         self.means[p, slots] = self.positions[p] + np.einsum("pij,pj->pi", R, points[i])
         self.covs[p, slots] = R @ self._Q @ np.swapaxes(R, 1, 2)
         self._seen[p, slots] = 1
+        self._last[p, slots] = self._stats["iterations"]
         self._vote_id[p, slots] = -1 if ids is None else np.asarray(ids)[i]
         self._vote_n[p, slots] = 0 if ids is None else 1
         self.counts += np.bincount(p, minlength=self.config.particles)
@@ -419,6 +586,7 @@ class FastSlam(Estimator):
         self.means = np.concatenate([self.means, np.zeros((n, extra, 3))], axis=1)
         self.covs = np.concatenate([self.covs, np.zeros((n, extra, 3, 3))], axis=1)
         self._seen = np.concatenate([self._seen, np.zeros((n, extra), dtype=np.int64)], axis=1)
+        self._last = np.concatenate([self._last, np.zeros((n, extra), dtype=np.int64)], axis=1)
         self._vote_id = np.concatenate([self._vote_id, np.full((n, extra), -1, dtype=np.int64)], axis=1)
         self._vote_n = np.concatenate([self._vote_n, np.zeros((n, extra), dtype=np.int64)], axis=1)
         self._capacity = capacity
@@ -447,5 +615,5 @@ SPEC = EstimatorSpec(
     config_class=FastSlamConfig,
     factory=_build,
     needs=frozenset({POINTS}),
-    uses=frozenset({ODOMETRY}),
+    uses=frozenset({ODOMETRY, FIX}),
 )

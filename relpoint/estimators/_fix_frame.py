@@ -1,0 +1,246 @@
+"""Placing a filter's local frame in the frame of the position fixes, inside the estimator loop.
+
+Implements the in-loop part of Zhang, Milios and Gu, *General Concept of 3D SLAM*, sections 5-6 for
+the estimators that carry a pose covariance (EKF-SLAM, FastSLAM): the fixes (``/fix``: buoys, GNSS)
+are synchronised to the observation times by three-point Lagrange interpolation (section 5.1,
+eq. 26-30, :func:`relpoint.fusion.lagrange.interpolate_fixes`); once at least three fixes that are
+not collinear are in, the rigid transform ``T_world_local`` is fitted by least squares to the pairs
+of local positions and interpolated fixes (section 6.3, :func:`relpoint.geometry.fit_rigid`); the
+filter then moves its state into ``world`` and fuses every later fix as a position measurement
+(section 5.2, eq. 31-32 in information form, which is the Kalman update on the position).
+
+Until then the filter runs in its local frame (the first pose at the identity) and its output is
+mapped by a provisional transform: the fixes' offset with one fix, plus the smallest rotation taking
+the local direction of travel onto the fixes' once the fixes span a distance (a line of fixes
+leaves the rotation about itself free).
+
+The transform's uncertainty is a 6-vector ``(dt, dphi)`` in ``world`` about the pairs' weighted
+centroid ``c``: a point ``y`` placed by the fit is truly at ``c + Exp(dphi) (y - c) + dt``, so
+``dy = dt - [y - c]x dphi``, and an orientation ``R_world_sensor`` has the right-perturbation error
+``R^T dphi``. Its covariance is the inverse of the fit's information, counted once per fix (the
+interpolated pairs between two fixes share their noise), and inflated to the residuals when the
+residuals exceed what the fixes and the local positions claim.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from relpoint.estimators._association import skew
+from relpoint.fusion.lagrange import interpolate_fixes
+from relpoint.geometry import FloatArray, fit_rigid
+from relpoint.types import PositionFix
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """A fitted ``T_world_local`` and its uncertainty.
+
+    Attributes
+    ----------
+    T_world_local: (4, 4) rigid transform taking local coordinates into ``world``.
+    covariance: (6, 6) covariance of the error ``(dt, dphi)`` (m, rad) in ``world`` about ``centre``.
+    centre: (3,) weighted centroid of the pairs' fix positions in ``world`` (m).
+    pairs: number of (local position, interpolated fix) pairs fitted.
+    fixes: number of fixes they span.
+    rms: weighted RMS residual of the fit (m).
+    spread: RMS distance of the fixes from their best-fitting line (m).
+    """
+
+    T_world_local: FloatArray
+    covariance: FloatArray
+    centre: FloatArray
+    pairs: int
+    fixes: int
+    rms: float
+    spread: float
+
+    def perturbation_jacobian(self, positions: npt.ArrayLike) -> FloatArray:
+        """``d y / d(dt, dphi)`` (n, 3, 6) of world points ``positions`` (n, 3): ``[I, -[y - c]x]``."""
+        y = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        J = np.zeros((len(y), 3, 6))
+        J[:, :, :3] = np.eye(3)
+        J[:, :, 3:] = -skew(y - self.centre)
+        return J
+
+
+def line_spread(points: npt.ArrayLike) -> float:
+    """RMS distance (m) of points (n, 3) from their least-squares line; 0 for fewer than three."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3:
+        return 0.0
+    singular = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    return float(np.sqrt(np.sum(singular[1:] ** 2) / len(p)))
+
+
+def _smallest_rotation(u: FloatArray, v: FloatArray) -> FloatArray:
+    """The rotation (3, 3) of least angle taking direction ``u`` onto direction ``v``."""
+    u = u / np.linalg.norm(u)
+    v = v / np.linalg.norm(v)
+    axis = np.cross(u, v)
+    sin, cos = np.linalg.norm(axis), float(u @ v)
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        # Opposite: half a turn about any axis perpendicular to u.
+        other = np.eye(3)[int(np.argmin(np.abs(u)))]
+        axis = np.cross(u, other)
+        return Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
+    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
+
+
+class FixFrame:
+    """Collects fixes and a filter's local positions until the fixes pin ``T_world_local``.
+
+    Parameters
+    ----------
+    min_fixes: fixes needed before a fit is tried (at least 3).
+    min_spread: the fixes' RMS distance from their best line (m) needed for a fit; below it the
+        rotation about the line is not determined.
+    max_fixes: only the latest this many fixes (and the local positions since the oldest) are kept.
+    """
+
+    def __init__(self, min_fixes: int = 3, min_spread: float = 8.0, max_fixes: int = 100) -> None:
+        if not 3 <= min_fixes <= max_fixes:
+            raise ValueError(f"need 3 <= min_fixes <= max_fixes, got {min_fixes} and {max_fixes}")
+        self.min_fixes = min_fixes
+        self.min_spread = min_spread
+        self.max_fixes = max_fixes
+        self._fix_stamps: list[int] = []
+        self._fix_positions: list[FloatArray] = []
+        self._fix_covariances: list[FloatArray] = []
+        self._stamps: list[int] = []
+        self._positions: list[FloatArray] = []
+        self._covariances: list[FloatArray] = []
+        self._provisional = np.eye(4)
+
+    @property
+    def fix_count(self) -> int:
+        return len(self._fix_stamps)
+
+    def add_fix(self, fix: PositionFix) -> None:
+        """Keep a fix (one not after the last kept fix is dropped: the interpolation needs increasing stamps)."""
+        if self._fix_stamps and fix.stamp_ns <= self._fix_stamps[-1]:
+            logger.debug("fix at %d ns is not after the previous one; not used for the frame", fix.stamp_ns)
+            return
+        self._fix_stamps.append(int(fix.stamp_ns))
+        self._fix_positions.append(np.array(fix.position, dtype=np.float64))
+        self._fix_covariances.append(np.array(fix.covariance, dtype=np.float64))
+        if len(self._fix_stamps) > self.max_fixes:
+            # A window of the latest fixes bounds the cost when they never spread (a straight run).
+            del self._fix_stamps[0], self._fix_positions[0], self._fix_covariances[0]
+            keep = int(np.searchsorted(np.asarray(self._stamps, dtype=np.int64), self._fix_stamps[0]))
+            del self._stamps[:keep], self._positions[:keep], self._covariances[:keep]
+        self._update_provisional()
+
+    def add_local(self, stamp_ns: int, position: npt.ArrayLike, covariance: npt.ArrayLike) -> None:
+        """Keep the filter's local position (3,) m and its covariance (3, 3) m² at an observation time."""
+        if self._stamps and stamp_ns <= self._stamps[-1]:
+            self._positions[-1] = np.array(position, dtype=np.float64)
+            self._covariances[-1] = np.array(covariance, dtype=np.float64)
+        else:
+            self._stamps.append(int(stamp_ns))
+            self._positions.append(np.array(position, dtype=np.float64))
+            self._covariances.append(np.array(covariance, dtype=np.float64))
+        if len(self._fix_stamps) == 1 or (self._fix_stamps and self._stamps[-1] <= self._fix_stamps[-1]):
+            self._update_provisional()  # otherwise the pairs, and so the transform, have not changed
+
+    @property
+    def provisional(self) -> FloatArray:
+        """Best ``T_world_local`` (4, 4) so far, for the output before the frame is pinned (identity without fixes)."""
+        return self._provisional.copy()
+
+    def _pairs(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """Local positions and covariances at the observation times within the fixes' span, and the fixes there."""
+        if not self._fix_stamps or not self._stamps:
+            return None
+        stamps = np.asarray(self._stamps, dtype=np.int64)
+        inside = (stamps >= self._fix_stamps[0]) & (stamps <= self._fix_stamps[-1])
+        if len(self._fix_stamps) == 1 or not inside.any():
+            # One fix (or none inside the span): pair it with the nearest local position.
+            inside = np.zeros(len(stamps), dtype=bool)
+            inside[int(np.argmin(np.abs(stamps - self._fix_stamps[-1])))] = True
+            if len(self._fix_stamps) == 1:
+                world = np.array([self._fix_positions[0]])
+                world_cov = np.array([self._fix_covariances[0]])
+                return (np.asarray(self._positions)[inside], np.asarray(self._covariances)[inside], world, world_cov)
+        world, world_cov = interpolate_fixes(
+            self._fix_stamps, np.asarray(self._fix_positions), np.asarray(self._fix_covariances), stamps[inside]
+        )
+        return np.asarray(self._positions)[inside], np.asarray(self._covariances)[inside], world, world_cov
+
+    def _update_provisional(self) -> None:
+        pairs = self._pairs()
+        if pairs is None:
+            return
+        local, _, world, _ = pairs
+        rotation = np.eye(3)
+        travel_local, travel_world = local[-1] - local[0], world[-1] - world[0]
+        if len(local) >= 2 and np.linalg.norm(travel_world) > 3.0 * np.sqrt(np.trace(self._fix_covariances[-1])):
+            rotation = _smallest_rotation(travel_local, travel_world)
+        T = np.eye(4)
+        T[:3, :3] = rotation
+        T[:3, 3] = world.mean(axis=0) - rotation @ local.mean(axis=0)
+        self._provisional = T
+
+    def fit(self) -> FrameFit | None:
+        """Fit ``T_world_local`` if at least ``min_fixes`` fixes with ``min_spread`` are paired; else None."""
+        if len(self._fix_stamps) < self.min_fixes:
+            return None
+        spread = line_spread(np.asarray(self._fix_positions))
+        if spread < self.min_spread:
+            return None
+        pairs = self._pairs()
+        if pairs is None or len(pairs[0]) < 3:
+            return None
+        local, local_cov, world, world_cov = pairs
+        if line_spread(local) < 0.5 * self.min_spread:
+            return None  # the local path has not spread (yet) as the fixes have: no rotation to fit
+        weights = 1.0 / np.maximum(np.trace(world_cov + local_cov, axis1=1, axis2=2), 1e-12)
+        result = fit_rigid(local, world, weights=weights)
+        T = result.as_matrix()
+        placed = local @ result.rotation.T + result.translation
+        # Information of (dt, dphi) about the weighted centroid, from every pair, counted once per fix.
+        noise = world_cov + result.rotation @ local_cov @ result.rotation.T
+        try:
+            W = np.linalg.inv(noise)
+        except np.linalg.LinAlgError:
+            return None
+        centre = (weights / weights.sum()) @ world
+        J = np.zeros((len(local), 3, 6))
+        J[:, :, :3] = np.eye(3)
+        J[:, :, 3:] = -skew(placed - centre)
+        fixes_spanned = int(np.count_nonzero(np.asarray(self._fix_stamps) <= self._stamps[-1]))
+        information = np.einsum("nai,nab,nbj->ij", J, W, J) * min(1.0, max(fixes_spanned, 3) / len(local))
+        residual = world - placed
+        chi2 = float(np.mean(np.einsum("na,nab,nb->n", residual, W, residual))) / 3.0
+        try:
+            covariance = np.linalg.inv(information) * max(1.0, chi2)
+        except np.linalg.LinAlgError:
+            return None
+        covariance = 0.5 * (covariance + covariance.T)
+        logger.debug(
+            "frame pinned by %d fixes (%d pairs, spread %.1f m, rms %.2f m)",
+            fixes_spanned,
+            len(local),
+            spread,
+            result.rms,
+        )
+        return FrameFit(T, covariance, centre, len(local), fixes_spanned, result.rms, spread)
+
+
+def frame_summary(rigid: bool, fit: FrameFit | None) -> dict[str, Any]:
+    """run.json figures of the fix frame: whether it is pinned, by how many fixes, and the fit's residual."""
+    if not rigid:
+        return {}
+    if fit is None:
+        return {"fix_frame": "local"}
+    return {"fix_frame": "fixes", "fix_frame_fixes": fit.fixes, "fix_frame_rms": round(fit.rms, 4)}

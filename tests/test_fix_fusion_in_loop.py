@@ -1,0 +1,170 @@
+"""In-loop fusion of position fixes (issue 7) in EKF-SLAM and FastSLAM: the rigid fit that pins the local
+frame, the covariance-weighted fusion of a pose with a fix (eq. 31-32), and short runs on figure8-gaps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from relpoint.errors import UsageError
+from relpoint.estimators._fix_frame import FixFrame, line_spread
+from relpoint.estimators.ekf import EkfConfig, EkfSlam
+from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
+from relpoint.fusion.covariance_fusion import fuse_estimates
+from relpoint.simulation import SimulationConfig, simulate
+from relpoint.simulation.scenario import GAPS_START_HEADING, GAPS_START_POSITION
+from relpoint.types import PositionFix
+
+DT_NS = 100_000_000
+
+
+def _known_transform() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zyx", [35.0, 4.0, -3.0], degrees=True).as_matrix()
+    T[:3, 3] = [60.0, -40.0, -15.0]
+    return T
+
+
+def _arc(n: int) -> np.ndarray:
+    """Local positions (n, 3) along a climbing arc of radius 95 m, 1.2 m apart."""
+    angle = np.arange(n) * 1.2 / 95.0
+    return np.stack([95.0 * np.sin(angle), 95.0 * (1.0 - np.cos(angle)), 0.1 * np.arange(n)], axis=1)
+
+
+def test_fit_reproduces_a_known_transform() -> None:
+    T = _known_transform()
+    local = _arc(101)
+    frame = FixFrame(min_spread=3.0)
+    for k, x in enumerate(local):
+        if k % 10 == 0:
+            frame.add_fix(PositionFix(k * DT_NS, T[:3, :3] @ x + T[:3, 3], np.eye(3) * 1e-6))
+        frame.add_local(k * DT_NS, x, np.zeros((3, 3)))
+    fit = frame.fit()
+    assert fit is not None and fit.fixes == 11
+    # The interpolated fixes between two fixes are off the arc by the quadratic's error, millimetres.
+    np.testing.assert_allclose(fit.T_world_local, T, atol=2e-3)
+    assert np.all(np.linalg.eigvalsh(fit.covariance) > 0)
+    # The rotation about the nearly straight arc is the least determined direction.
+    assert fit.covariance[3:, 3:].max() < 1e-6
+
+
+def test_fit_waits_for_fixes_off_a_line() -> None:
+    frame = FixFrame(min_spread=3.0)
+    T = _known_transform()
+    for k in range(60):
+        x = np.array([1.2 * k, 0.0, 0.0])
+        if k % 10 == 0:
+            frame.add_fix(PositionFix(k * DT_NS, T[:3, :3] @ x + T[:3, 3], np.eye(3)))
+        frame.add_local(k * DT_NS, x, np.zeros((3, 3)))
+    assert frame.fix_count == 6 and line_spread(np.array([T[:3, 3], T[:3, 3] + 1.0, T[:3, 3] + 2.0])) < 1e-9
+    assert frame.fit() is None  # collinear: the rotation about the line is free
+    # The provisional transform still carries the direction of travel onto the fixes'.
+    x = np.array([10.0, 0.0, 0.0])
+    np.testing.assert_allclose(frame.provisional[:3, :3] @ x, T[:3, :3] @ x, atol=1e-9)
+
+
+@pytest.mark.parametrize("options", [{"fix_alignment": "gps"}, {"fix_min_spread": 0.0}, {"fix_window": -1}])
+def test_configs_reject_bad_fix_settings(options: dict[str, object]) -> None:
+    with pytest.raises(UsageError):
+        EkfConfig(**options)  # type: ignore[arg-type]
+    with pytest.raises(UsageError):
+        FastSlamConfig(**options)  # type: ignore[arg-type]
+
+
+def _gaps(iterations: int, fix_noise: float = 1.0) -> list:  # type: ignore[type-arg]
+    sim = simulate(
+        SimulationConfig(scenario="figure8-gaps", fix_every=10, fix_noise=fix_noise, iterations=iterations, seed=1)
+    )
+    return list(sim.steps())
+
+
+def _drive(estimator: EkfSlam | FastSlam, steps: list, with_fixes: bool = True) -> np.ndarray:  # type: ignore[type-arg]
+    errors = []
+    for step in steps:
+        if with_fixes and step.fix is not None:
+            estimator.add_fix(step.fix)
+        pose = estimator.step(step.observation)
+        errors.append(np.linalg.norm(np.array(pose.position) - step.T_world_sensor[:3, 3]))
+    return np.array(errors)
+
+
+def test_ekf_moves_its_state_into_the_fixes_frame() -> None:
+    ekf = EkfSlam(EkfConfig())
+    _drive(ekf, _gaps(130, fix_noise=0.05))
+    fit = ekf.frame_fit
+    assert fit is not None and ekf.summary()["fix_frame"] == "fixes"
+    heading = np.rad2deg(Rotation.from_matrix(fit.T_world_local[:3, :3]).as_euler("zyx")[0])
+    assert heading == pytest.approx(GAPS_START_HEADING, abs=0.5)
+    np.testing.assert_allclose(fit.T_world_local[:3, 3], GAPS_START_POSITION, atol=0.5)
+    P = ekf.covariance
+    assert np.abs(P - P.T).max() <= 1e-12 * np.abs(P).max() and np.linalg.eigvalsh(P).min() > -1e-9 * np.abs(P).max()
+
+
+def test_ekf_fused_position_variance_is_below_both_inputs() -> None:
+    ekf = EkfSlam(EkfConfig(fix_drift=0.0, fix_min_spread=3.0))
+    steps = _gaps(90)
+    _drive(ekf, steps)
+    assert ekf.frame_fit is not None
+    prior_position, prior = np.array(ekf.pose().position), ekf.covariance[:3, :3]
+    fix = PositionFix(steps[-1].stamp_ns, prior_position + np.array([1.0, -0.5, 0.3]), np.diag([1.0, 0.8, 1.2]))
+    ekf.add_fix(fix)  # at the state's stamp: no prediction in between
+    posterior = ekf.covariance[:3, :3]
+    # Eq. 31-32: the Kalman update on the position is the covariance-weighted fusion.
+    expected_position, expected = fuse_estimates(prior_position, prior, fix.position, fix.covariance)
+    np.testing.assert_allclose(ekf.pose().position, expected_position, atol=1e-9)
+    np.testing.assert_allclose(posterior, expected, atol=1e-12)
+    for other in (prior, fix.covariance):
+        assert np.linalg.eigvalsh(other - posterior).min() > 0
+        assert np.all(np.diag(posterior) < np.diag(other))
+
+
+def test_fastslam_fused_particle_variance_is_below_both_inputs() -> None:
+    slam = FastSlam(FastSlamConfig(particles=10, fix_min_spread=3.0), np.random.default_rng(0))
+    steps = _gaps(90)
+    _drive(slam, steps)
+    assert slam.frame_fit is not None
+    before_positions, before = slam.positions.copy(), slam._frame_cov.copy()
+    fix = PositionFix(steps[-1].stamp_ns, before_positions.mean(axis=0) + np.array([2.0, 0.0, -1.0]), np.eye(3) * 0.5)
+    slam.add_fix(fix)
+    expected_positions, expected = fuse_estimates(
+        before_positions, before, np.tile(fix.position, (10, 1)), fix.covariance
+    )
+    np.testing.assert_allclose(slam.positions, expected_positions, atol=1e-9)
+    np.testing.assert_allclose(slam._frame_cov, expected, atol=1e-12)
+    for p in range(10):
+        for other in (before[p], fix.covariance):
+            assert np.linalg.eigvalsh(other - slam._frame_cov[p]).min() > 0
+    assert slam.weights.sum() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_ekf_short_run_with_fixes_ends_closer_to_truth() -> None:
+    steps = _gaps(160)
+    with_fixes = _drive(EkfSlam(EkfConfig()), steps)
+    without = _drive(EkfSlam(EkfConfig()), steps, with_fixes=False)
+    # Measured: final error 1.0 m with fixes, 77 m without (the local frame starts at the identity).
+    assert with_fixes[-1] < 2.0
+    assert with_fixes[-1] < 0.1 * without[-1]
+    assert np.sqrt(np.mean(with_fixes[-40:] ** 2)) < 2.0
+
+
+@pytest.mark.parametrize(("variant", "bound", "ratio"), [("2.0", 2.5, 0.1), ("1.0", 10.0, 0.5)])
+def test_fastslam_short_run_with_fixes_ends_closer_to_truth(variant: str, bound: float, ratio: float) -> None:
+    steps = _gaps(140)
+    with_fixes = _drive(FastSlam(FastSlamConfig(variant=variant, particles=10), np.random.default_rng(1)), steps)
+    without = _drive(
+        FastSlam(FastSlamConfig(variant=variant, particles=5), np.random.default_rng(1)), steps, with_fixes=False
+    )
+    # Measured (10 particles, pinned at iteration 121): 2.0 ends 1.3 m from the truth with fixes, 28 m
+    # without; 1.0 ends 7.7 m off (25 m without): its motion-model proposal turns the map in a way
+    # the fixes correct only slowly.
+    assert with_fixes[-1] < bound
+    assert with_fixes[-1] < ratio * without[-1]
+
+
+def test_fastslam_ignores_fixes_when_told() -> None:
+    steps = _gaps(40)
+    slam = FastSlam(FastSlamConfig(particles=5, fix_alignment="ignore"), np.random.default_rng(0))
+    errors = _drive(slam, steps)
+    assert slam.frame_fit is None and "fix_frame" not in slam.summary()
+    assert errors[0] == pytest.approx(np.linalg.norm(GAPS_START_POSITION), abs=1e-9)
