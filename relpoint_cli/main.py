@@ -116,8 +116,16 @@ COMMANDS: dict[str, str] = {
 
 
 def main() -> None:
-    """Console entry point."""
-    cli(prog_name="relpoint")
+    """Console entry point.
+
+    An interrupt that lands outside a command's own handling (while click unwinds, say) still ends
+    with the one-line message and exit code 130, not with Python's default SIGINT exit.
+    """
+    try:
+        cli(prog_name="relpoint")
+    except KeyboardInterrupt:
+        click.echo("relpoint: error: interrupted; no output was written", err=True)
+        sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":  # pragma: no cover
