@@ -393,7 +393,7 @@ def read_iterations(out: Path, plan: Plan, scenario: str, name: str) -> dict[str
         "scenario": scenario,
         "estimator": name,
         "wall_s": float(seconds.sum()),
-        "passes": simulation_config(plan, scenario, name).passes,
+        "passes": _passes_in(rows, plan, scenario, name),
         "error": np.stack([column("err_x"), column("err_y"), column("err_z")], axis=1),
         "lm_rmse": column("lm_rmse"),
         "lm_matched": np.nan_to_num(column("lm_matched")).astype(np.int64),
@@ -402,6 +402,19 @@ def read_iterations(out: Path, plan: Plan, scenario: str, name: str) -> dict[str
         "observed": column("observed").astype(np.int64),
         "summary": {},
     }
+
+
+def _passes_in(rows: list[dict[str, str]], plan: Plan, scenario: str, name: str) -> int:
+    """Passes a reused CSV holds (a long run may come from another ``--long-passes*`` setting)."""
+    from dataclasses import replace
+
+    from relpoint.simulation import simulate
+
+    config = simulation_config(plan, scenario, name)
+    if scenario != "long":
+        return config.passes
+    per_pass = len(simulate(replace(config, passes=1)))
+    return max(1, round(len(rows) / per_pass))
 
 
 def summarise(run: dict[str, Any], batch: dict[str, Any] | None) -> dict[str, Any]:
