@@ -168,3 +168,22 @@ def test_fastslam_ignores_fixes_when_told() -> None:
     errors = _drive(slam, steps)
     assert slam.frame_fit is None and "fix_frame" not in slam.summary()
     assert errors[0] == pytest.approx(np.linalg.norm(GAPS_START_POSITION), abs=1e-9)
+
+
+def test_frame_is_pinned_when_fixes_spread_after_a_full_window_of_collinear_ones() -> None:
+    # More collinear fixes than the window keeps: the fix count stops growing, but every new fix
+    # must still trigger a fit, so the first fix off the line pins the frame.
+    frame = FixFrame(min_fixes=3, min_spread=8.0, max_fixes=5)
+    covariance = np.eye(3)
+    for k in range(8):
+        stamp = k * 10**9
+        frame.add_fix(PositionFix(stamp, np.array([10.0 * k, 0.0, 0.0]), covariance))
+        assert frame.update(stamp, np.array([10.0 * k, 0.0, 0.0]), 0.01 * covariance) is None
+    assert frame.fix_count == 5
+    turn = [(8, (70.0, 30.0, 0.0)), (9, (70.0, 60.0, 0.0)), (10, (70.0, 90.0, 0.0))]
+    fits = []
+    for k, position in turn:
+        frame.add_fix(PositionFix(k * 10**9, np.array(position), covariance))
+        fits.append(frame.update(k * 10**9, np.array(position), 0.01 * covariance))
+    fit = next(f for f in fits if f is not None)
+    np.testing.assert_allclose(fit.T_world_local, np.eye(4), atol=1e-6)

@@ -121,6 +121,8 @@ class FixFrame:
         self._positions: list[FloatArray] = []
         self._covariances: list[FloatArray] = []
         self._provisional = np.eye(4)
+        self._fixes_received = 0
+        self._fixes_tried = 0
 
     @property
     def fix_count(self) -> int:
@@ -131,6 +133,7 @@ class FixFrame:
         if self._fix_stamps and fix.stamp_ns <= self._fix_stamps[-1]:
             logger.debug("fix at %d ns is not after the previous one; not used for the frame", fix.stamp_ns)
             return
+        self._fixes_received += 1
         self._fix_stamps.append(int(fix.stamp_ns))
         self._fix_positions.append(np.array(fix.position, dtype=np.float64))
         self._fix_covariances.append(np.array(fix.covariance, dtype=np.float64))
@@ -152,6 +155,14 @@ class FixFrame:
             self._covariances.append(np.array(covariance, dtype=np.float64))
         if len(self._fix_stamps) == 1 or (self._fix_stamps and self._stamps[-1] <= self._fix_stamps[-1]):
             self._update_provisional()  # otherwise the pairs, and so the transform, have not changed
+
+    def update(self, stamp_ns: int, position: npt.ArrayLike, covariance: npt.ArrayLike) -> FrameFit | None:
+        """:meth:`add_local`, then :meth:`fit` if a fix arrived since the last attempt (else ``None``)."""
+        self.add_local(stamp_ns, position, covariance)
+        if self._fixes_received == self._fixes_tried:
+            return None
+        self._fixes_tried = self._fixes_received
+        return self.fit()
 
     @property
     def provisional(self) -> FloatArray:

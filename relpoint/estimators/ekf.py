@@ -186,7 +186,6 @@ class EkfSlam(Estimator):
         self._frame: FixFrame | None = None
         if self.config.fix_alignment == "rigid":
             self._frame = FixFrame(min_spread=self.config.fix_min_spread)
-        self._frame_tried = 0
         self._frame_fit: FrameFit | None = None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
         self._position_at_fix: FloatArray | None = None
@@ -213,12 +212,9 @@ class EkfSlam(Estimator):
             self._stats["discarded"] += len(points) - len(paired) - len(fresh)
         self._stats["iterations"] += 1
         if self._frame is not None:
-            self._frame.add_local(observation.stamp_ns, self._position, self._P[:3, :3])
-            if self._frame.fix_count > self._frame_tried:
-                self._frame_tried = self._frame.fix_count
-                fit = self._frame.fit()
-                if fit is not None:
-                    self._pin_frame(fit)
+            fit = self._frame.update(observation.stamp_ns, self._position, self._P[:3, :3])
+            if fit is not None:
+                self._pin_frame(fit)
         return self.pose()
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:

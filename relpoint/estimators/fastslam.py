@@ -225,7 +225,6 @@ class FastSlam(Estimator):
         self._stats = Counter[str]()
         # Fix frame (``rigid``): None once the particles are in the fixes' frame (or with ``ignore``).
         self._frame: FixFrame | None = FixFrame(min_spread=cfg.fix_min_spread) if cfg.fix_alignment == "rigid" else None
-        self._frame_tried = 0
         self._frame_fit: FrameFit | None = None
 
     # ------------------------------------------------------------------------------------ interface
@@ -274,12 +273,9 @@ class FastSlam(Estimator):
             w = self.weights
             mean = w @ self.positions
             spread = np.einsum("p,pa,pb->ab", w, self.positions - mean, self.positions - mean)
-            self._frame.add_local(observation.stamp_ns, mean, spread)
-            if self._frame.fix_count > self._frame_tried:
-                self._frame_tried = self._frame.fix_count
-                fit = self._frame.fit()
-                if fit is not None:
-                    self._pin_frame(fit)
+            fit = self._frame.update(observation.stamp_ns, mean, spread)
+            if fit is not None:
+                self._pin_frame(fit)
         return self.pose()
 
     def add_fix(self, fix: PositionFix) -> None:
