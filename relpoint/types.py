@@ -183,6 +183,20 @@ class LandmarkMap:
     def empty(cls) -> LandmarkMap:
         return cls(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64))
 
+    @classmethod
+    def concatenate(cls, maps: Sequence[LandmarkMap]) -> LandmarkMap:
+        """One map holding every landmark of ``maps`` in order (purity kept only if every map has it)."""
+        if not maps:
+            return cls.empty()
+        purities = [m.purity for m in maps]
+        return cls(
+            np.concatenate([m.positions for m in maps]),
+            np.concatenate([m.observations for m in maps]),
+            np.concatenate([m.dynamic for m in maps]),
+            np.concatenate([m.gt_id for m in maps]),
+            None if any(p is None for p in purities) else np.concatenate(purities),
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class GroundTruthLandmarks:

@@ -343,16 +343,7 @@ def fuse(
     _orient_unplaced(global_rotations, rotations, placed_by, segments)
     quats = Rotation.from_matrix(global_rotations).as_quat()
     global_traj = Trajectory(trajectory.stamps_ns, global_positions, quats)
-    global_map = (
-        LandmarkMap(
-            np.concatenate([m.positions for m in global_maps]),
-            np.concatenate([m.observations for m in global_maps]),
-            np.concatenate([m.dynamic for m in global_maps]),
-            np.concatenate([m.gt_id for m in global_maps]),
-        )
-        if global_maps
-        else LandmarkMap.empty()
-    )
+    global_map = LandmarkMap.concatenate(global_maps)
     placed = [s for s in segments if s.transform is not None]
     summary: dict[str, Any] = {
         "local_maps": len(local_maps),

@@ -187,16 +187,7 @@ def run_segmented(
     renumber = np.full(len(maps), NO_SEGMENT, dtype=np.int64)
     renumber[keep] = np.arange(len(keep))
     kept = [maps[i] for i in keep]
-    landmarks = (
-        LandmarkMap(
-            np.concatenate([m.positions for m in kept]),
-            np.concatenate([m.observations for m in kept]),
-            np.concatenate([m.dynamic for m in kept]),
-            np.concatenate([m.gt_id for m in kept]),
-        )
-        if kept
-        else LandmarkMap.empty()
-    )
+    landmarks = LandmarkMap.concatenate(kept)
     landmark_labels = np.concatenate([np.full(len(m), i, dtype=np.int64) for i, m in enumerate(kept)] or [[]])
     log.info("local SLAM restarted %d times; %d local maps kept", len(maps) - 1, len(kept))
     return SegmentedRun(
