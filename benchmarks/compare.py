@@ -471,6 +471,15 @@ def plot_all(out: Path, runs: dict[tuple[str, str], dict[str, Any]], batches: di
 
     written = []
 
+    def save(fig: Any, ax: Any, title: str, filename: str) -> None:
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / filename, dpi=110)
+        plt.close(fig)
+        written.append(filename)
+
     def landmark_plot(scenario: str, filename: str, title: str) -> None:
         fig, ax = plt.subplots(figsize=(8, 4.5))
         for name in ESTIMATOR_NAMES:
@@ -485,13 +494,7 @@ def plot_all(out: Path, runs: dict[tuple[str, str], dict[str, Any]], batches: di
             ax.plot([r["iteration"] for r in b], [r["lm_rmse"] for r in b], "o--", color="black", label=LABELS["batch"])
         ax.set_xlabel("iteration")
         ax.set_ylabel("landmark RMSE (m)")
-        ax.set_title(title)
-        ax.grid(alpha=0.3)
-        ax.legend()
-        fig.tight_layout()
-        fig.savefig(out / filename, dpi=110)
-        plt.close(fig)
-        written.append(filename)
+        save(fig, ax, title, filename)
 
     def position_plot(scenario: str, filename: str, title: str, axis: int | None = None) -> None:
         fig, ax = plt.subplots(figsize=(8, 4.5))
@@ -508,13 +511,7 @@ def plot_all(out: Path, runs: dict[tuple[str, str], dict[str, Any]], batches: di
             ax.plot(np.arange(1, len(pe) + 1), np.linalg.norm(pe, axis=1), color="black", lw=0.8, label=LABELS["batch"])
         ax.set_xlabel("iteration")
         ax.set_ylabel("position error (m)" if axis is None else f"position error in {'xyz'[axis]} (m)")
-        ax.set_title(title)
-        ax.grid(alpha=0.3)
-        ax.legend()
-        fig.tight_layout()
-        fig.savefig(out / filename, dpi=110)
-        plt.close(fig)
-        written.append(filename)
+        save(fig, ax, title, filename)
 
     if any(s == "figure8" for s, _ in runs):
         landmark_plot("figure8", "fig8_landmark_error.png", "Figure eight, density 25, noise 0.3: landmark error")

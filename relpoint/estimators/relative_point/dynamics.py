@@ -127,14 +127,20 @@ def detect_dynamic(
     comparisons += len(first_a)
     rounds += 1
     threshold = gap_threshold(deviation, gap_ratio, noise_factor)
-    positive: set[int] = set()
-    for a, b, dev in zip(first_a.tolist(), first_b.tolist(), deviation.tolist(), strict=True):
-        if dev < threshold:
-            merge(a, b)
-            positive.add(a)
-        else:
-            compared[a].add(b)
-            compared[b].add(a)
+
+    def settle(pairs_a: list[int], pairs_b: list[int], deviation: FloatArray) -> set[int]:
+        """Merge the pairs below the threshold, remember the rest; the bins merged into."""
+        merged: set[int] = set()
+        for a, b, dev in zip(pairs_a, pairs_b, deviation.tolist(), strict=True):
+            if dev < threshold:
+                merge(a, b)
+                merged.add(a)
+            else:
+                compared[a].add(b)
+                compared[b].add(a)
+        return merged
+
+    positive = settle(first_a.tolist(), first_b.tolist(), deviation)
 
     majority = None
     while True:
@@ -163,14 +169,7 @@ def detect_dynamic(
         deviation = distance_deviation(observations, pairs_a, pairs_b)
         comparisons += len(pairs_a)
         rounds += 1
-        positive = set()
-        for a, b, dev in zip(pairs_a, pairs_b, deviation.tolist(), strict=True):
-            if dev < threshold:
-                merge(a, b)
-                positive.add(a)
-            else:
-                compared[a].add(b)
-                compared[b].add(a)
+        positive = settle(pairs_a, pairs_b, deviation)
 
     if majority is not None:
         # Last round: the majority bin against every bin it has not met; positives join it.
