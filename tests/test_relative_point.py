@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.estimators.base import POINTS, Estimator
@@ -241,6 +242,40 @@ def test_sparse_stretch_coasts_on_the_raw_point_motion() -> None:
         assert estimator.summary()["degenerate_iterations"] >= 10
         final_error[coast] = trajectory_errors(simulation, poses)[-1]
     assert final_error[True] < 8.0 < final_error[False]
+
+
+def test_far_points_are_matched_with_a_bound_that_grows_with_range() -> None:
+    # Four near points (10-20 m) and two far ones (65-70 m) seen twice by a still sensor. The
+    # near points' noise looks like a 2 degree turn, and the motion from before predicted the same
+    # turn: the far points are predicted 2.3-2.5 m off, beyond the 2 m bound of the first round.
+    near = np.array([[10.0, 3, 1], [12, -4, 0], [15, 6, -2], [20, -2, 3]])
+    far = np.array([[65.0, 5, 2], [70, -8, -1]])
+    turn = Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
+    first = PointObservation(0, np.concatenate([near, far]))
+    second = PointObservation(1, np.concatenate([near @ turn.T, far]))
+    new_points = {}
+    for angle in (0.03, 0.0):
+        estimator = RelativePointEstimator(RelativePointConfig(match_angle=angle))
+        estimator.step(first)
+        estimator.motion.T_curr_prev[:3, :3] = turn
+        estimator.step(second)
+        new_points[angle] = estimator.summary()["new_points"]
+        if angle:
+            assert estimator.summary()["far_matches"] == 2
+    assert new_points == {0.03: 6, 0.0: 8}
+
+
+def test_loop_is_closed_beyond_the_global_matching_bound() -> None:
+    # With 30 % of the landmarks moving, this figure eight has drifted about 4.5 m when it crosses
+    # its start (iteration ~470), beyond the 3 m global matching bound. The young points in view
+    # agree on the offset onto the old map; the drift is taken out along the loop.
+    config = SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=900, dynamic=0.3, seed=3)
+    rmse = {}
+    for search in (15.0, 0.0):
+        simulation, estimator, _ = run(config, RelativePointConfig(loop_search=search))
+        rmse[search] = float(np.sqrt(np.mean(static_landmark_errors(simulation, estimator) ** 2)))
+        assert (estimator.summary()["loop_closures"] >= 1) == (search > 0)
+    assert rmse[15.0] < 0.6 * rmse[0.0], rmse
 
 
 def test_memory_is_bounded_by_the_map_not_the_iterations() -> None:

@@ -19,9 +19,16 @@ from relpoint.estimators.relative_point.dynamics import (
 from relpoint.estimators.relative_point.estimator import quaternion_xyzw
 from relpoint.estimators.relative_point.grouping import select_members
 from relpoint.estimators.relative_point.groups import basis_rotation, choose_basis, relative_coordinates
+from relpoint.estimators.relative_point.loops import drift_share, vote_offset
 from relpoint.estimators.relative_point.lsf import apply, fit_transform, is_collinear
 from relpoint.estimators.relative_point.points import PointStore
-from relpoint.estimators.relative_point.registration import NO_MATCH, GlobalIndex, MotionModel, match_nearest
+from relpoint.estimators.relative_point.registration import (
+    NO_MATCH,
+    GlobalIndex,
+    MotionModel,
+    match_mutual,
+    match_nearest,
+)
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.geometry import fit_rigid
 
@@ -163,6 +170,37 @@ def test_matching_is_one_to_one_with_closest_winning() -> None:
     assert index[0] == NO_MATCH  # its second-nearest (reference 1) is 4.7 m away: beyond the bound
     assert index[2] == 1 and index[3] == NO_MATCH
     assert distance[1] == pytest.approx(0.1)
+
+
+def test_mutual_matching_keeps_only_mutual_nearest_pairs_within_each_bound() -> None:
+    reference = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [60.0, 0, 0]])
+    bounds = np.array([1.0, 1.0, 1.0, 4.0])  # the far reference gets a wider bound
+    query = np.array([[0.5, 0, 0], [0.9, 0, 0], [12.0, 0, 0], [63.0, 0, 0], [30.0, 0, 0]])
+    index = match_mutual(reference, query, bounds)
+    # 0.5 is reference 0's nearest; 0.9 is not (and not mutual); 12 is 2 m off a 1 m bound;
+    # 63 is within the far bound; 30 is nobody's nearest within a bound.
+    assert index.tolist() == [0, NO_MATCH, NO_MATCH, 3, NO_MATCH]
+    assert match_mutual(reference[:0], query, bounds[:0]).tolist() == [NO_MATCH] * 5
+
+
+def test_loop_vote_finds_the_shared_drift_and_ignores_chance_pairings() -> None:
+    rng = np.random.default_rng(3)
+    old = rng.uniform(-60, 60, (300, 3))
+    drift = np.array([-4.0, 2.5, 6.0])
+    returning = old[:8] - drift + rng.normal(0, 0.2, (8, 3))  # old points mapped again, off by the drift
+    clutter = rng.uniform(-60, 60, (12, 3))  # young points with no old counterpart
+    young = np.concatenate([returning, clutter])
+    offset = vote_offset(young, old, radius=15.0, tolerance=1.5, support=4)
+    assert offset is not None and np.linalg.norm(offset - drift) < 0.3
+    # Three agreeing young points are not enough, and unrelated points never agree.
+    assert vote_offset(np.concatenate([returning[:3], clutter]), old, radius=15.0, tolerance=1.5, support=4) is None
+    assert vote_offset(clutter, old, radius=15.0, tolerance=1.5, support=4) is None
+    # Beyond the search radius nothing is proposed.
+    assert vote_offset(young, old, radius=5.0, tolerance=1.5, support=4) is None
+
+
+def test_drift_share_ramps_from_the_last_visit_to_now() -> None:
+    assert drift_share([0, 100, 150, 200, 250], 100, 200).tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]
 
 
 def test_motion_model_predicts_by_age() -> None:

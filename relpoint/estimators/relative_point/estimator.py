@@ -5,6 +5,7 @@ Paper name -> Python name
     *Point*, *RltPoint*, *RltInterval*   :mod:`.points` (:class:`PointStore`)
     *RltPointCharting*  :mod:`.charting` (:class:`PointCharting`)
     *OVLQPQuadTree*     :mod:`.registration` (k-d tree locally, :class:`GlobalIndex` globally)
+    loop closure        :mod:`.loops` (global matching beyond its bound, an addition to section II-D)
     *RltLSF*            :mod:`.lsf` (:func:`fit_transform`)
     *RltGroup*, *RltGroupRef*   :mod:`.groups` (:class:`RelativeGroup`, :class:`GroupMap`)
     *RltUngroupedList*  :mod:`.grouping` (:class:`UngroupedList`; member heuristic :func:`select_members`)
@@ -47,6 +48,12 @@ Choices the paper leaves open, and where this implementation adds to it:
   the squared disagreement of its groups (inverse variance), and trim gross outliers.
 * A point in more than ``max_groups_per_point`` groups loses its lightest redundant closed group,
   so memory follows the map, not the number of passes.
+* Local matching gives the points a first round leaves over a second round whose bound grows with
+  range (``match_angle``): at low density the motion's rotation error otherwise keeps far points
+  entering view from matching, and they are registered as new points iteration after iteration.
+* Loop closure also works beyond the global matching bound (:mod:`.loops`): an offset of the young
+  points in view onto old mapped points that several of them agree on is taken out of the groups
+  and poses along the loop, and the young points are matched or merged to the old ones.
 * Observation ids are never used for association; they only label the output map (``gt_id``).
 """
 
@@ -74,9 +81,16 @@ from relpoint.estimators.relative_point.groups import (
     choose_basis,
     relative_coordinates,
 )
+from relpoint.estimators.relative_point.loops import drift_share, vote_offset
 from relpoint.estimators.relative_point.lsf import _median, apply, fit_transform
 from relpoint.estimators.relative_point.points import IntArray, PointStore
-from relpoint.estimators.relative_point.registration import NO_MATCH, GlobalIndex, MotionModel, match_nearest
+from relpoint.estimators.relative_point.registration import (
+    NO_MATCH,
+    GlobalIndex,
+    MotionModel,
+    match_mutual,
+    match_nearest,
+)
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings
@@ -101,10 +115,26 @@ class RelativePointConfig(Settings):
     """Predict recent observations into the current frame with the last inter-iteration motion
     (from raw matched points, not current position); False matches raw observations as in the paper
     (then use a bound above the motion per iteration)."""
+    match_angle: float = 0.03
+    """Points the first round of local matching leaves over get a second round in which a recent
+    point's bound grows by this angle (rad) times its predicted range: a prediction is off by the
+    motion estimate's rotation error times the range, and at low density that error keeps far points
+    entering view from ever matching (0 disables; needs ``predict_motion``)."""
     global_matching: bool = True
     """Match points that fail local matching against global positions through the current position."""
     global_match_bound: float = 3.0
     """Matching bound of global matching (m)."""
+    loop_search: float = 15.0
+    """Largest drift (m) that loop closure looks for when the sensor returns to mapped points and
+    global matching misses them (0 disables; see :mod:`.loops`)."""
+    loop_support: int = 4
+    """Distinct young points that must agree on a loop's offset (within half ``global_match_bound``)."""
+    loop_every: int = 5
+    """Look for a loop every this many iterations."""
+    loop_young: int = 20
+    """Points first seen within this many iterations are young: possibly old points mapped again."""
+    loop_gap: int = 50
+    """Mapped points unseen for this many iterations are old: what a loop returns to."""
     creation_delay: int = 4
     """A new point becomes a creation point after this many further iterations of observation."""
     max_creations_per_iteration: int = 2
@@ -121,8 +151,11 @@ class RelativePointConfig(Settings):
     """Regroupings per iteration."""
     min_basis_spread: float = 1.0
     """Smallest distance between basis points and of the third from the line of the first two (m)."""
-    collinear_tolerance: float = 0.05
-    """Point sets whose RMS distance from their best line is below this give no rotation (m)."""
+    collinear_tolerance: float = 2.0
+    """Anchor sets whose RMS distance from their best line is below this give no reliable rotation (m):
+    a fit's rotation about that line is uncertain by about the noise over this distance, and the
+    group carries that error into every point it places (0.3 m noise over 2 m is about 5 degrees
+    per fit, before the averaging over pairs and iterations)."""
     dynamic_detection: bool = True
     """Run dynamic point detection before a group is final."""
     dynamic_min_iterations: int = 15
@@ -191,7 +224,8 @@ class RelativePointConfig(Settings):
             "dynamic_min_iterations": self.dynamic_min_iterations, "max_groups_per_point": self.max_groups_per_point,
             "dynamic_window": self.dynamic_window, "dynamic_every": self.dynamic_every,
             "dynamic_references": self.dynamic_references, "dynamic_block": self.dynamic_block,
-            "stale_after": self.stale_after,
+            "stale_after": self.stale_after, "loop_every": self.loop_every, "loop_young": self.loop_young,
+            "loop_gap": self.loop_gap,
         }  # fmt: skip
         for name, value in positive_int.items():
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -210,7 +244,7 @@ class RelativePointConfig(Settings):
         }  # fmt: skip
         non_negative = {
             "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
-            "consensus_bound": self.consensus_bound,
+            "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
         }  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -223,6 +257,10 @@ class RelativePointConfig(Settings):
                 raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.unverified_weight > 1.0 or self.dynamic_spread_verify > 1.0:
             raise UsageError("unverified_weight and dynamic_spread_verify are fractions in (0, 1]")
+        if not (
+            isinstance(self.loop_support, int) and not isinstance(self.loop_support, bool) and self.loop_support >= 3
+        ):
+            raise UsageError(f"loop_support must be an integer >= 3, got {self.loop_support!r}")
         if self.seed_points < 3:
             raise UsageError(
                 f"seed_points must be at least 3 (a rigid fit needs three anchors), got {self.seed_points}"
@@ -276,7 +314,7 @@ class RelativePointEstimator(Estimator):
                 "degenerate_iterations", "empty_iterations", "nonfinite_points", "new_points", "local_matches",
                 "global_matches", "first_groups", "root_groups", "regroups", "failed_groupings",
                 "first_groups_retired", "groups_pruned", "merges", "dynamic_flagged", "dynamic_comparisons",
-                "dropped_points", "reabsorbed",
+                "dropped_points", "reabsorbed", "far_matches", "loop_closures",
             ),
             0,
         )  # fmt: skip
@@ -302,6 +340,8 @@ class RelativePointEstimator(Estimator):
         ids = self._register(points, k)
         if self.config.global_matching:
             self._match_globally(points, ids, k)
+            if self.config.loop_search > 0 and k % self.config.loop_every == 0:
+                self._close_loop(points, ids, k)
         ids = self._add_points(points, ids, k, gt_ids)
         self._dynamic_sweep(k)
 
@@ -395,10 +435,40 @@ class RelativePointEstimator(Estimator):
             if shift > 0.5 * config.match_bound:
                 # The prediction was off (a turn began): match again from the refreshed motion.
                 row, _ = match_nearest(self.motion.predict(reference, age), points, config.match_bound)
+        if config.predict_motion and config.match_angle > 0:
+            self._match_far(reference, age, points, row)
         matched = row != NO_MATCH
         ids[matched] = refs[row[matched]]
         self.counts["local_matches"] += int(np.count_nonzero(matched))
         return ids
+
+    def _match_far(self, reference: FloatArray, age: IntArray, points: FloatArray, row: IntArray) -> None:
+        """Second round of local matching, in place on ``row``: bounds grow with the predicted range.
+
+        The leftover observations and the recent points nobody matched are paired as mutual nearest
+        neighbours within ``match_bound + match_angle * range``; new pairs refresh the motion.
+        """
+        free_points = np.flatnonzero(row == NO_MATCH)
+        if len(free_points) == 0:
+            return
+        taken = np.zeros(len(reference), bool)
+        taken[row[row != NO_MATCH]] = True
+        free_refs = np.flatnonzero(~taken)
+        if len(free_refs) == 0:
+            return
+        predicted = self.motion.predict(reference[free_refs], age[free_refs])
+        bounds = self.config.match_bound + self.config.match_angle * np.sqrt(
+            np.einsum("ij,ij->i", predicted, predicted)
+        )
+        found = match_mutual(predicted, points[free_points], bounds)
+        matched = found != NO_MATCH
+        if not matched.any():
+            return
+        row[free_points[matched]] = free_refs[found[matched]]
+        self.counts["far_matches"] += int(np.count_nonzero(matched))
+        pairs = np.flatnonzero((row != NO_MATCH) & (age[np.maximum(row, 0)] == 1))
+        if self.motion.update(reference[row[pairs]], points[pairs], self.config.trim_floor) is not None:
+            self._motion_measured = True
 
     def _match_globally(self, points: FloatArray, ids: IntArray, k: int) -> None:
         """Global matching (paper II-D) of unmatched points through the provisional current position."""
@@ -430,6 +500,70 @@ class RelativePointEstimator(Estimator):
                 taken.add(point)
                 ids[q] = point
         self.counts["global_matches"] += len(taken)
+
+    def _close_loop(self, points: FloatArray, ids: IntArray, k: int) -> None:
+        """Loop closure beyond the global matching bound (see :mod:`.loops`), in place on ``ids``.
+
+        When the young points in view agree on an offset onto old mapped points, the drift is taken
+        out of the groups and poses since the old points were last seen (:meth:`_take_out_drift`),
+        and the young points are matched to the old ones: unmatched observations take them, young
+        points are merged into them (the paper's merging, observations copied to the older point).
+        """
+        config, store = self.config, self.store
+        known = ids != NO_MATCH
+        young_rows = np.flatnonzero(~known | (store.first_iter[np.where(known, ids, 0)] >= k - config.loop_young))
+        if len(young_rows) < config.loop_support:
+            return
+        n = store.high_water
+        old = np.flatnonzero(
+            store.alive[:n]
+            & (store.pos_weight[:n] > 0)
+            & ~store.dynamic[:n]
+            & (store.last_iter[:n] < k - config.loop_gap)
+        )
+        if len(old) < config.loop_support:
+            return
+        T_guess = self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
+        young = apply(T_guess, points[young_rows])
+        old_positions = store.positions(old)
+        tolerance = 0.5 * config.global_match_bound
+        offset = vote_offset(
+            young, old_positions, radius=config.loop_search, tolerance=tolerance, support=config.loop_support
+        )
+        if offset is None or float(np.linalg.norm(offset)) <= tolerance:  # within reach of global matching
+            return
+        row, _ = match_nearest(old_positions, young + offset, tolerance)
+        paired = np.flatnonzero(row != NO_MATCH)
+        if len(paired) < config.loop_support:
+            return
+        self._take_out_drift(offset, int(np.median(store.last_iter[old[row[paired]]])), k)
+        self.counts["loop_closures"] += 1
+        in_view = set(ids[known].tolist())
+        for i in paired.tolist():
+            older, r = int(old[row[i]]), int(young_rows[i])
+            if older in in_view:
+                continue
+            newer = int(ids[r])
+            if newer == NO_MATCH:
+                ids[r] = older
+            elif not store.co_observed(older, newer):
+                self._merge(older, newer, k)
+                ids[r] = older
+            else:
+                continue
+            in_view.add(older)
+
+    def _take_out_drift(self, offset: FloatArray, t0: int, k: int) -> None:
+        """Shift groups and poses by their share of a loop's drift ``offset`` (3,) m (:func:`.loops.drift_share`)."""
+        for group in list(self.groups.groups.values()):
+            share = float(drift_share(group.last_iteration, t0, k))
+            if share > 0:
+                self.groups.shift(group, share * offset)
+        ring = self.config.ring_size
+        iterations = np.arange(max(t0 + 1, k - ring + 1), k)
+        self._poses[iterations % ring, :3, 3] += drift_share(iterations, t0, k)[:, None] * offset
+        self._T_world_sensor = self._T_world_sensor.copy()
+        self._T_world_sensor[:3, 3] += offset
 
     def _add_points(self, points: FloatArray, ids: IntArray, k: int, gt_ids: IntArray | None) -> IntArray:
         """Create points for unmatched observations, then append every observation to its ring."""

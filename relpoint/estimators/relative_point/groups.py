@@ -270,6 +270,14 @@ class GroupMap:
         self._contribute(group, apply(fit.T, relative), float(group.count))
         return True
 
+    def shift(self, group: RelativeGroup, offset: FloatArray) -> None:
+        """Translate a placed group by ``offset`` (3,) m in ``world`` (loop closure), with its contribution."""
+        group.T_world_group = group.T_world_group.copy()
+        group.T_world_group[:3, 3] += offset
+        if group.anchor_targets is not None:
+            group.anchor_targets = group.anchor_targets + offset
+        self._contribute(group, group.placed + offset, group.weight)
+
     def _contribute(self, group: RelativeGroup, placed: FloatArray, weight: float) -> None:
         store = self.store
         members = group.members

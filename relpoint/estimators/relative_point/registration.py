@@ -12,6 +12,8 @@ Local matching uses no current position. It can predict the previous observation
 sensor frame with the inter-iteration motion estimated from the previous iteration's matched
 *untransformed* pairs (:class:`MotionModel`; ``predict_motion=False`` gives the paper's plain
 untransformed-to-untransformed matching), which keeps the matching bound tight at high point density.
+A predicted point is off by the motion's rotation error times its range, so the points a first round
+leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows with range.
 """
 
 from __future__ import annotations
@@ -76,6 +78,32 @@ def match_nearest(reference: FloatArray, query: FloatArray, bound: float) -> tup
         distance[pending[chosen]] = dist[chosen]
         taken[cand[chosen]] = True
     return index, distance
+
+
+def match_mutual(reference: FloatArray, query: FloatArray, bounds: FloatArray) -> IntArray:
+    """Pair ``query`` (Q, 3) and ``reference`` (R, 3) points that are each other's nearest, within ``bounds``.
+
+    ``bounds`` (R,) is each reference's matching bound (m). Mutual nearest neighbours only, so a
+    wide bound cannot take a point that another reference is closer to. Brute force: it serves the
+    few points the first round of local matching left over.
+
+    Returns
+    -------
+    (Q,) row of ``reference`` matched by each query, ``NO_MATCH`` if none.
+    """
+    index = np.full(len(query), NO_MATCH, np.int64)
+    if len(query) == 0 or len(reference) == 0:
+        return index
+    difference = query[:, None, :] - reference[None, :, :]
+    distance = np.sqrt(np.einsum("qrk,qrk->qr", difference, difference))
+    nearest_reference = distance.argmin(axis=1)
+    nearest_query = distance.argmin(axis=0)
+    rows = np.arange(len(query))
+    mutual = (nearest_query[nearest_reference] == rows) & (
+        distance[rows, nearest_reference] <= bounds[nearest_reference]
+    )
+    index[mutual] = nearest_reference[mutual]
+    return index
 
 
 class MotionModel:
