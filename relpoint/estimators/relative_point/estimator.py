@@ -434,16 +434,22 @@ class RelativePointEstimator(Estimator):
             shift = float(np.linalg.norm(change[:3, 3])) + angle * reach
             if shift > 0.5 * config.match_bound:
                 # The prediction was off (a turn began): match again from the refreshed motion.
-                row, _ = match_nearest(self.motion.predict(reference, age), points, config.match_bound)
+                predicted = self.motion.predict(reference, age)
+                row, _ = match_nearest(predicted, points, config.match_bound)
         if config.predict_motion and config.match_angle > 0:
-            self._match_far(reference, age, points, row)
+            self._match_far(reference, predicted, age, points, row)
         matched = row != NO_MATCH
         ids[matched] = refs[row[matched]]
         self.counts["local_matches"] += int(np.count_nonzero(matched))
         return ids
 
-    def _match_far(self, reference: FloatArray, age: IntArray, points: FloatArray, row: IntArray) -> None:
+    def _match_far(
+        self, reference: FloatArray, predicted: FloatArray, age: IntArray, points: FloatArray, row: IntArray
+    ) -> None:
         """Second round of local matching, in place on ``row``: bounds grow with the predicted range.
+
+        ``reference`` (R, 3) are the recent points' latest observations, ``predicted`` (R, 3) the same
+        carried into the current sensor frame, ``age`` (R,) iterations since each was observed.
 
         The leftover observations and the recent points nobody matched are paired as mutual nearest
         neighbours within ``match_bound + match_angle * range``; new pairs refresh the motion.
@@ -456,7 +462,7 @@ class RelativePointEstimator(Estimator):
         free_refs = np.flatnonzero(~taken)
         if len(free_refs) == 0:
             return
-        predicted = self.motion.predict(reference[free_refs], age[free_refs])
+        predicted = predicted[free_refs]
         bounds = self.config.match_bound + self.config.match_angle * np.sqrt(
             np.einsum("ij,ij->i", predicted, predicted)
         )
