@@ -75,7 +75,7 @@ def build(name: str) -> Any:
         return RelativePointEstimator(
             RelativePointConfig(
                 match_bound=0.1, global_match_bound=0.15, min_basis_spread=0.1, merge_bound=0.1,
-                trim_floor=0.05, spread_floor=0.02, collinear_tolerance=0.01, creation_delay=2,
+                trim_floor=0.05, spread_floor=0.02, collinear_tolerance=0.01, creation_delay=2, loop_search=0.75,
             )
         )  # fmt: skip
     raise ValueError(name)

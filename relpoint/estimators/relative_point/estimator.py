@@ -481,11 +481,8 @@ class RelativePointEstimator(Estimator):
         unmatched = np.flatnonzero(ids == NO_MATCH)
         if len(unmatched) == 0 or len(self.index) == 0:
             return
-        # Current position predicted from the last one and this iteration's raw-point motion: good
-        # to a fraction of the matching bound, and free (the final fit comes after grouping).
-        T_guess = self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
         store = self.store
-        world = apply(T_guess, points[unmatched])
+        world = apply(self._provisional_pose(), points[unmatched])
         recent = k - self.config.match_window
         bound2 = self.config.global_match_bound**2
         claims: list[tuple[float, int, int]] = []
@@ -529,8 +526,7 @@ class RelativePointEstimator(Estimator):
         )
         if len(old) < config.loop_support:
             return
-        T_guess = self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
-        young = apply(T_guess, points[young_rows])
+        young = apply(self._provisional_pose(), points[young_rows])
         old_positions = store.positions(old)
         tolerance = 0.5 * config.global_match_bound
         offset = vote_offset(
@@ -969,8 +965,15 @@ class RelativePointEstimator(Estimator):
         ``coast=False`` the pose is always held.
         """
         if self.config.coast and self._motion_measured:
-            return self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
+            return self._provisional_pose()
         return self._T_world_sensor
+
+    def _provisional_pose(self) -> FloatArray:
+        """``T_world_sensor`` of this iteration before its fit: the last pose moved by the raw-point motion.
+
+        Good to a fraction of the matching bound, and free; the fit to mapped points comes after grouping.
+        """
+        return self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
 
     def _refresh_index(self) -> None:
         """Move changed global positions in the global index."""
