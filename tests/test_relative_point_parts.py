@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
@@ -386,3 +388,225 @@ def test_world_scatter_flags_motion_across_the_line_of_sight() -> None:
     assert np.all(scatter[1:] < 0.35)
     valid[1, :30] = False  # two blocks only: not judged
     assert np.isnan(world_block_deviation(tracks, valid, poses, 5)[1])
+
+
+# -- compiled kernels against their numpy meaning ----------------------------------------------------
+# Each reference below is the numpy expression a kernel's docstring gives (several are the numpy
+# implementations the kernels replaced).
+
+
+def numpy_rigid_fit(source, target, weights):  # type: ignore[no-untyped-def]
+    mean_source, mean_target = weights @ source / weights.sum(), weights @ target / weights.sum()
+    centred = (source - mean_source) * weights[:, None]
+    U, _, Vt = np.linalg.svd(centred.T @ target)
+    if np.linalg.det(Vt.T @ U.T) < 0:
+        Vt[2] = -Vt[2]
+    R = Vt.T @ U.T
+    scatter = centred.T @ source / weights.sum()
+    spread = np.sqrt(max(np.linalg.eigvalsh(scatter)[:2].sum(), 0.0))
+    return R, mean_target - R @ mean_source, spread
+
+
+@pytest.mark.parametrize("case", ["plain", "mirrored", "coplanar", "noisy"])
+def test_rigid_fit_kernel_equals_numpy_svd_fit(case: str) -> None:
+    rng = np.random.default_rng(["plain", "mirrored", "coplanar", "noisy"].index(case))
+    for _ in range(200):
+        n = int(rng.integers(3, 60))
+        source = rng.normal(0, 1, (n, 3)) * rng.uniform(0.5, 30, 3)
+        if case == "coplanar":
+            source[:, 2] = 0.0
+        R_true = Rotation.random(random_state=rng).as_matrix()
+        if case == "mirrored":  # the best orthogonal map is a reflection: the fit must stay proper
+            R_true = R_true @ np.diag([1.0, 1.0, -1.0])
+        target = source @ R_true.T + rng.uniform(-20, 20, 3)
+        target += rng.normal(0, {"plain": 0.0, "noisy": 2.0}.get(case, 0.1), (n, 3))
+        weights = rng.uniform(0.1, 3.0, n)
+        use = rng.random(n) < 0.8
+        use[:3] = True
+        T, spread = _kernels.rigid_fit(source, target, weights, use)
+        R, t, spread_ref = numpy_rigid_fit(source[use], target[use], weights[use])
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
+        assert np.allclose(T[:3, :3], R, atol=1e-8) and np.allclose(T[:3, 3], t, atol=1e-6)
+        assert np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0])
+        assert spread == pytest.approx(spread_ref, rel=1e-6, abs=1e-9)
+        # Horn's quaternion rotation alone, on the raw cross-covariance.
+        H = rng.normal(size=(3, 3))
+        U, _, Vt = np.linalg.svd(H)
+        R_svd = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+        T = np.eye(4)
+        _kernels.best_rotation_into(T, H)
+        assert np.allclose(T[:3, :3], R_svd, atol=1e-9)
+
+
+def test_trimming_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        n = int(rng.integers(5, 80))
+        values = np.round(rng.exponential(1.0, n), int(rng.integers(0, 3)))  # with ties
+        use = rng.random(n) < 0.7
+        use[0] = True
+        assert _kernels._masked_median(values, use) == np.median(values[use])
+        source = rng.uniform(-30, 30, (n, 3))
+        T = random_pose(rng)
+        target = apply(T, source) + rng.normal(0, 0.3, (n, 3))
+        target[: n // 5] += rng.normal(0, 5.0, (n // 5, 3))
+        weights = rng.uniform(0.5, 2.0, n)
+        residual = np.linalg.norm(target - source @ T[:3, :3].T - T[:3, 3], axis=1)
+        assert np.allclose(_kernels.pair_residuals(source, target, T), residual, rtol=1e-12, atol=1e-12)
+        # Trimming rounds, as numpy.
+        allowed = rng.random(n) < 0.9
+        allowed[:5] = True
+        T_ref, inliers_ref = np.eye(4), allowed
+        for _ in range(2):
+            residual = np.linalg.norm(target - source @ T_ref[:3, :3].T - T_ref[:3, 3], axis=1)
+            keep = allowed & (residual <= max(3.0 * np.median(residual[allowed]), 0.5))
+            if np.array_equal(keep, inliers_ref) or keep.sum() < 3:
+                break
+            R, t, spread = numpy_rigid_fit(source[keep], target[keep], weights[keep])
+            if spread <= 0.05:
+                break
+            T_ref, inliers_ref = np.eye(4), keep
+            T_ref[:3, :3], T_ref[:3, 3] = R, t
+        T_fit, inliers = _kernels.trimmed_fit(source, target, weights, np.eye(4), allowed, 3.0, 0.5, 2, 0.05)
+        assert np.array_equal(inliers, inliers_ref) and np.allclose(T_fit, T_ref, atol=1e-7)
+
+
+def numpy_match_nearest(reference, query, bound):  # type: ignore[no-untyped-def]
+    """The k-d tree matching the kernels replaced."""
+    index, distance = np.full(len(query), NO_MATCH), np.full(len(query), np.inf)
+    k = 2 if len(reference) > 1 else 1
+    d, j = cKDTree(reference).query(query, k=k, distance_upper_bound=bound)
+    d, j = d.reshape(len(query), k), j.reshape(len(query), k)
+    taken = np.zeros(len(reference) + 1, bool)
+    taken[-1] = True
+    for column in range(k):
+        pending = np.flatnonzero(index == NO_MATCH)
+        cand = j[pending, column]
+        ok = ~taken[cand]
+        pending, cand, dist = pending[ok], cand[ok], d[pending[ok], column]
+        order = np.lexsort((dist, cand))
+        chosen = order[np.r_[True, cand[order][1:] != cand[order][:-1]]] if len(order) else order
+        index[pending[chosen]], distance[pending[chosen]] = cand[chosen], dist[chosen]
+        taken[cand[chosen]] = True
+    return index, distance
+
+
+def test_matching_kernels_equal_k_d_tree_matching() -> None:
+    rng = np.random.default_rng(12)
+    for _ in range(300):
+        m, n = int(rng.integers(1, 80)), int(rng.integers(1, 80))
+        reference = rng.uniform(-8, 8, (m, 3))
+        query = rng.uniform(-8, 8, (n, 3))
+        bound = float(rng.uniform(0.5, 4.0))
+        d, j = cKDTree(reference).query(query, k=2, distance_upper_bound=bound)
+        j_kernel, d_kernel = _kernels.nearest_two(reference, np.argsort(reference[:, 0]), query, bound)
+        if m > 1:
+            assert np.array_equal(j_kernel, j) and np.allclose(d_kernel, d, rtol=1e-12)
+        index, distance = match_nearest(reference, query, bound)
+        index_ref, distance_ref = numpy_match_nearest(reference, query, bound)
+        assert np.array_equal(index, index_ref) and np.allclose(distance, distance_ref, rtol=1e-12)
+
+
+def test_placement_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(13)
+    c = 50
+    pos_sum, pos_weight, pos_sq = rng.normal(0, 10, (c, 3)), rng.uniform(0, 5, c), rng.uniform(0, 500, c)
+    pos_weight[:5] = 0.0
+    ids = rng.permutation(c)[:30]
+    weight = pos_weight[ids]
+    expected = pos_sum[ids] / np.maximum(weight, 1e-300)[:, None]
+    expected[weight <= 0] = np.nan
+    assert np.allclose(_kernels.gather_positions(pos_sum, pos_weight, ids), expected, equal_nan=True)
+    w = np.maximum(weight, 1e-12)
+    mean = pos_sum[ids] / w[:, None]
+    expected = np.sqrt(np.maximum(pos_sq[ids] / w - np.sum(mean**2, axis=1), 0.0))
+    assert np.allclose(_kernels.gather_spread(pos_sum, pos_weight, pos_sq, ids), expected)
+    # Swapping a group's contribution.
+    old, new = rng.normal(0, 10, (30, 3)), rng.normal(0, 10, (30, 3))
+    sums, weights, squares = pos_sum.copy(), pos_weight + 2.0, pos_sq.copy()
+    expected_sum = sums.copy()
+    expected_sum[ids] += 1.5 * new - 2.0 * old
+    expected_weight = weights.copy()
+    expected_weight[ids] += 1.5 - 2.0
+    expected_sq = squares.copy()
+    expected_sq[ids] += 1.5 * np.sum(new**2, axis=1) - 2.0 * np.sum(old**2, axis=1)
+    _kernels.replace_contribution(sums, weights, squares, ids, old, 2.0, new, 1.5)
+    assert np.allclose(sums, expected_sum) and np.allclose(weights, expected_weight)
+    assert np.allclose(squares, expected_sq)
+    # Withdrawing the only contribution leaves no ghost weight.
+    _kernels.replace_contribution(sums, weights, squares, ids[:1], new[:1], weights[ids[0]], new[:1], 0.0)
+    assert weights[ids[0]] == 0.0 and not sums[ids[0]].any() and squares[ids[0]] == 0.0
+
+
+def test_motion_and_basis_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(14)
+    T = random_pose(rng, 2.0)
+    points, age = rng.normal(0, 10, (40, 3)), rng.integers(1, 5, 40)
+    powers = np.stack([np.linalg.matrix_power(T, a) for a in range(1, 5)])[age - 1]
+    expected = np.einsum("nij,nj->ni", powers[:, :3, :3], points) + powers[:, :3, 3]
+    assert np.allclose(_kernels.transform_by_age(T, points, age), expected)
+    observations = rng.normal(0, 5, (12, 9, 3))
+    observations[:, 4] = observations[0, 4]  # one degenerate iteration
+    R, valid = basis_rotation(observations[3], observations[7], observations[1], 1.0)
+    expected = np.matmul((observations - observations[3][None]).transpose(1, 0, 2), R).transpose(1, 0, 2)
+    relative, valid_kernel = _kernels.basis_coordinates(observations, 3, 7, 1, 1.0)
+    assert np.array_equal(valid_kernel, valid) and not valid[4]
+    assert np.allclose(relative, expected)
+    for _ in range(100):
+        m = int(rng.integers(3, 30))
+        cloud = rng.normal(0, 1, (m, 3)) * rng.uniform(0.1, 10, 3)
+        centred = cloud - cloud.mean(axis=0)
+        i0 = int(np.argmax(np.sum(centred**2, axis=1)))
+        squared = np.sum((cloud - cloud[i0]) ** 2, axis=1)
+        i1 = int(np.argmax(squared))
+        along = (cloud - cloud[i0]) @ ((cloud[i1] - cloud[i0]) / np.sqrt(squared[i1]))
+        i2 = int(np.argmax(squared - along**2))
+        ok = squared[i1] >= 1.0 and (squared - along**2)[i2] >= 1.0
+        assert choose_basis(cloud, 1.0) == ((i0, i1, i2) if ok else None)
+
+
+def numpy_select_members(presence, grouped, creation, seeds):  # type: ignore[no-untyped-def]
+    """The numpy interval x count heuristic the kernel replaced."""
+    order = np.argsort(-presence.sum(axis=1), kind="stable")
+    order = order[order != creation]
+    previous = order[grouped[order]]
+    previous = previous[(presence[previous] & presence[creation]).any(axis=1)]
+    if len(previous) < seeds:
+        return None
+    seed_rows = np.concatenate(([creation], previous[:seeds]))
+    interval = np.logical_and.reduce(presence[seed_rows], axis=0)
+    if not interval.any():
+        return None
+    rest = order[~np.isin(order, seed_rows)]
+    if len(rest) == 0:
+        return seed_rows, interval
+    running = np.logical_and.accumulate(presence[rest] & interval[None, :], axis=0)
+    scores = running.sum(axis=1) * (len(seed_rows) + 1 + np.arange(len(rest)))
+    failed = np.flatnonzero(scores <= np.concatenate(([interval.sum() * len(seed_rows)], scores[:-1])))
+    take = int(failed[0]) if len(failed) else len(rest)
+    return np.concatenate((seed_rows, rest[:take])), (running[take - 1] if take else interval)
+
+
+def test_member_selection_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(15)
+    for _ in range(500):
+        n, length = int(rng.integers(1, 40)), int(rng.integers(1, 30))
+        presence = rng.random((n, length)) < rng.uniform(0.3, 1.0)
+        grouped = rng.random(n) < rng.uniform(0.0, 1.0)
+        creation, seeds = int(rng.integers(0, n)), int(rng.integers(1, 5))
+        chosen = select_members(presence, grouped, creation, seeds)
+        expected = numpy_select_members(presence, grouped, creation, seeds)
+        assert (chosen is None) == (expected is None)
+        if chosen is not None:
+            assert np.array_equal(chosen[0], expected[0]) and np.array_equal(chosen[1], expected[1])
+
+
+def test_ring_kernels_equal_numpy_indexing() -> None:
+    rng = np.random.default_rng(16)
+    obs, obs_iter = rng.normal(size=(20, 8, 3)), rng.integers(-1, 30, (20, 8))
+    ids, iterations = rng.permutation(20)[:12], np.arange(-2, 25)
+    slots = iterations % 8
+    xyz, valid = _kernels.ring_observations(obs, obs_iter, ids, iterations)
+    assert np.array_equal(xyz, obs[ids[:, None], slots[None, :]])
+    assert np.array_equal(valid, obs_iter[ids[:, None], slots[None, :]] == iterations[None, :])
+    assert np.array_equal(_kernels.ring_presence(obs_iter, ids, -2, 24), valid)

@@ -4,9 +4,10 @@ Paper name -> Python name
     *RltMapper*         :class:`RelativePointEstimator` (entry point; group creation and regrouping)
     *Point*, *RltPoint*, *RltInterval*   :mod:`.points` (:class:`PointStore`)
     *RltPointCharting*  :mod:`.charting` (:class:`PointCharting`)
-    *OVLQPQuadTree*     :mod:`.registration` (k-d tree locally, :class:`GlobalIndex` globally)
+    *OVLQPQuadTree*     :mod:`.registration` (sorted sweep locally, :class:`GlobalIndex` globally)
     loop closure        :mod:`.loops` (global matching beyond its bound, an addition to section II-D)
     *RltLSF*            :mod:`.lsf` (:func:`fit_transform`)
+    compiled inner loops   :mod:`._kernels` (numba; each with its numpy meaning)
     *RltGroup*, *RltGroupRef*   :mod:`.groups` (:class:`RelativeGroup`, :class:`GroupMap`)
     *RltUngroupedList*  :mod:`.grouping` (:class:`UngroupedList`; member heuristic :func:`select_members`)
     dynamic detection   :mod:`.dynamics` (:func:`detect_dynamic`)
@@ -428,10 +429,10 @@ class RelativePointEstimator(Estimator):
         self._motion_measured = T_new is not None
         if config.predict_motion and T_new is not None:
             # Largest change of prediction over the references: translation plus angle x range.
-            change = T_new @ _rigid_inverse(before)
-            angle = math.acos(min(1.0, max(-1.0, (float(np.trace(change[:3, :3])) - 1.0) / 2.0)))
-            reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", reference, reference))))
-            shift = float(np.linalg.norm(change[:3, 3])) + angle * reach
+            (c00, _, _, x), (_, c11, _, y), (_, _, c22, z), _ = (T_new @ _rigid_inverse(before)).tolist()
+            angle = math.acos(min(1.0, max(-1.0, (c00 + c11 + c22 - 1.0) / 2.0)))
+            reach = math.sqrt(float(np.max(np.einsum("ij,ij->i", reference, reference))))
+            shift = math.sqrt(x * x + y * y + z * z) + angle * reach
             if shift > 0.5 * config.match_bound:
                 # The prediction was off (a turn began): match again from the refreshed motion.
                 predicted = self.motion.predict(reference, age)
@@ -898,7 +899,10 @@ class RelativePointEstimator(Estimator):
         d2 = np.where(older_than, d2, np.inf)
         bound2 = self.config.merge_bound**2
         taken: set[int] = set()
-        for row in np.argsort(d2.min(axis=1)).tolist():
+        nearest = d2.min(axis=1)
+        for row in np.argsort(nearest).tolist():
+            if nearest[row] > bound2:
+                break  # this and every later row have nothing within the bound
             for column in np.argsort(d2[row]).tolist():
                 if d2[row, column] > bound2:
                     break

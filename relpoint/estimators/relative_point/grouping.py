@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import interval_members
+
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
@@ -48,33 +50,13 @@ def select_members(
         of them are observed; ``None`` if fewer than ``seeds`` grouped candidates share an iteration
         with the creation point.
     """
-    coverage = presence.sum(axis=1)
+    presence = np.ascontiguousarray(presence, dtype=bool)
     # Ties keep candidate order (ascending id = older first): stable sort by descending coverage.
-    order = np.argsort(-coverage, kind="stable")
-    order = order[order != creation]
-    previous = order[grouped[order]]
-    overlap = presence[previous] & presence[creation]
-    previous = previous[overlap.any(axis=1)]
-    if len(previous) < seeds:
-        return None
-    seed_rows = np.concatenate(([creation], previous[:seeds]))
-    interval = np.logical_and.reduce(presence[seed_rows], axis=0)
-    if not interval.any():
-        return None
-    is_seed = np.zeros(len(presence), bool)
-    is_seed[seed_rows] = True
-    rest = order[~is_seed[order]]
-    if len(rest) == 0:
-        return seed_rows.astype(np.int64), interval
-    # Interval after adding each candidate in turn; score = interval length x member count.
-    running = np.logical_and.accumulate(presence[rest] & interval[None, :], axis=0)
-    lengths = running.sum(axis=1)
-    scores = lengths * (len(seed_rows) + 1 + np.arange(len(rest)))
-    previous_scores = np.concatenate(([interval.sum() * len(seed_rows)], scores[:-1]))
-    failed = np.flatnonzero(scores <= previous_scores)
-    take = int(failed[0]) if len(failed) else len(rest)
-    rows = np.concatenate((seed_rows, rest[:take])).astype(np.int64)
-    return rows, (running[take - 1] if take else interval)
+    order = np.argsort(-presence.sum(axis=1), kind="stable")
+    rows, interval = interval_members(
+        presence, np.ascontiguousarray(grouped, dtype=bool), order, int(creation), int(seeds)
+    )
+    return (rows, interval) if len(rows) else None
 
 
 class UngroupedList:

@@ -23,12 +23,12 @@ the squared disagreement between their groups) and gross outliers are trimmed.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import basis_coordinates, replace_contribution, spread_basis
 from relpoint.estimators.relative_point.lsf import apply, fit_transform
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.geometry import FloatArray
@@ -86,11 +86,8 @@ def relative_coordinates(
     relative, valid:
         (M, L, 3) coordinates in the basis frame (m) and (L,) whether the basis was usable.
     """
-    b0, b1, b2 = (observations[i] for i in basis)
-    R, valid = basis_rotation(b0, b1, b2, min_spread)
-    # Row vectors: p_basis = (p - b0) @ R_sensor_basis, batched over iterations.
-    relative = np.matmul((observations - b0[None]).transpose(1, 0, 2), R).transpose(1, 0, 2)
-    return relative, valid
+    i0, i1, i2 = basis
+    return basis_coordinates(np.ascontiguousarray(observations, dtype=np.float64), i0, i1, i2, float(min_spread))
 
 
 def choose_basis(points: FloatArray, min_spread: float) -> tuple[int, int, int] | None:
@@ -99,22 +96,8 @@ def choose_basis(points: FloatArray, min_spread: float) -> tuple[int, int, int] 
     The first is the point farthest from the centroid, the second the point farthest from the first,
     the third the point farthest from the line through both.
     """
-    if len(points) < 3:
-        return None
-    centred = points - points.sum(axis=0) / len(points)
-    i0 = int(np.argmax(np.einsum("ij,ij->i", centred, centred)))
-    d = points - points[i0]
-    squared = np.einsum("ij,ij->i", d, d)
-    i1 = int(np.argmax(squared))
-    length = math.sqrt(float(squared[i1]))
-    if length < min_spread:
-        return None
-    along = d @ (d[i1] / length)
-    off_line = squared - along * along  # squared distance from the line through both
-    i2 = int(np.argmax(off_line))
-    if off_line[i2] < min_spread * min_spread:
-        return None
-    return i0, i1, i2
+    i0, i1, i2 = spread_basis(np.ascontiguousarray(points, dtype=np.float64), float(min_spread))
+    return None if i0 < 0 else (i0, i1, i2)
 
 
 @dataclass(eq=False)
@@ -279,25 +262,14 @@ class GroupMap:
         self._contribute(group, group.placed + offset, group.weight)
 
     def _contribute(self, group: RelativeGroup, placed: FloatArray, weight: float) -> None:
+        """Replace the group's contribution to its members' positions by ``placed`` (M, 3) x ``weight``."""
         store = self.store
-        members = group.members
-        if group.weight > 0:
-            store.pos_sum[members] -= group.weight * group.placed
-            store.pos_weight[members] -= group.weight
-            store.pos_sq[members] -= group.weight * np.sum(group.placed**2, axis=1)
-        if weight > 0:
-            store.pos_sum[members] += weight * placed
-            store.pos_weight[members] += weight
-            store.pos_sq[members] += weight * np.sum(placed**2, axis=1)
-        # Guard against round-off leaving a ghost weight on points no group places any more.
-        empty = store.pos_weight[members] < 1e-9
-        if empty.any():
-            store.pos_weight[members[empty]] = 0.0
-            store.pos_sum[members[empty]] = 0.0
-            store.pos_sq[members[empty]] = 0.0
+        replace_contribution(
+            store.pos_sum, store.pos_weight, store.pos_sq, group.members, group.placed, group.weight, placed, weight
+        )
         group.placed = placed
         group.weight = weight
-        self._changed.append(members)
+        self._changed.append(group.members)
 
     # -- life cycle ------------------------------------------------------------------------------
 
@@ -386,6 +358,9 @@ class GroupMap:
         """Distinct ids whose combined position changed since the last call."""
         if not self._changed:
             return np.zeros(0, np.int64)
-        changed = np.unique(np.concatenate(self._changed))
+        changed = np.concatenate(self._changed)
         self._changed = []
-        return changed
+        # Mark and collect: ids are row numbers, so this is np.unique in linear time.
+        marked = np.zeros(int(changed.max()) + 1, bool)
+        marked[changed] = True
+        return np.flatnonzero(marked)

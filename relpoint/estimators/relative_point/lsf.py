@@ -6,17 +6,22 @@ Paper name -> Python name
               :func:`relpoint.geometry.fit_rigid`, lean enough to run several times per iteration),
               plus the checks the algorithm needs: at least three pairs, a non-collinear source, and
               trimming of gross outliers (mismatched or moving points) before the final fit.
+
+The fit and the trimming rounds run as compiled kernels (:func:`~._kernels.rigid_fit`,
+:func:`~._kernels.trimmed_fit`); their docstrings give the numpy they equal. The kernel finds the
+Arun / Umeyama rotation (the best proper rotation, reflections excluded) by Horn's quaternion method,
+which reaches the same optimum without a LAPACK call; the tests compare it with the SVD solution.
 """
 
 from __future__ import annotations
 
 import itertools
-import math
 from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import off_line_rms, pair_residuals, rigid_fit, trimmed_fit
 from relpoint.geometry import FloatArray
 
 
@@ -41,64 +46,7 @@ def is_collinear(points: FloatArray, tolerance: float) -> bool:
 def _off_line_rms(covariance: FloatArray) -> float:
     # The two smallest eigenvalues of the scatter are the mean squared distance off the best line.
     (a, d, e), (_, b, f), (_, _, c) = np.asarray(covariance, dtype=np.float64).tolist()
-    return _off_line_rms_of(a, b, c, d, e, f)
-
-
-def _off_line_rms_of(a: float, b: float, c: float, d: float, e: float, f: float) -> float:
-    """RMS distance off the best line of a scatter ``[[a, d, e], [d, b, f], [e, f, c]]`` (m^2 entries).
-
-    That is the square root of the sum of its two smallest eigenvalues, trace minus the largest,
-    found in closed form (trigonometric solution of the symmetric 3x3 eigenproblem; a numpy
-    ``eigvalsh`` call costs several times more at this size).
-    """
-    trace = a + b + c
-    p1 = d * d + e * e + f * f
-    q = trace / 3.0
-    p2 = (a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * p1
-    if p2 <= 1e-300:
-        return math.sqrt(max(trace - q, 0.0))  # isotropic: all three eigenvalues equal q
-    p = math.sqrt(p2 / 6.0)
-    ba, bb, bc, bd, be, bf = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
-    r = 0.5 * (ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be))
-    largest = q + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, r))) / 3.0)
-    return math.sqrt(max(trace - largest, 0.0))
-
-
-def _det3(M: FloatArray) -> float:
-    (a, b, c), (d, e, f), (g, h, i) = M.tolist()
-    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-
-
-def _kabsch(source: FloatArray, target: FloatArray, weights: FloatArray | None) -> tuple[FloatArray, float]:
-    """Arun / Umeyama rigid fit (4x4 ``T`` with ``target ≈ R source + t``) and the source's off-line RMS.
-
-    Same mathematics as :func:`relpoint.geometry.fit_rigid` (reflection case handled by flipping
-    the weakest singular direction), without its input checking: it runs several times per iteration.
-    The weighted-centred source sums to zero, so neither the cross-covariance nor the scatter needs a
-    centred target or a second centring of the source.
-    """
-    if weights is None:
-        total = float(len(source))
-        mean_source = source.sum(axis=0) / total
-        mean_target = target.sum(axis=0) / total
-        weighted = source - mean_source
-    else:
-        total = float(weights.sum())
-        mean_source = weights @ source / total
-        mean_target = weights @ target / total
-        weighted = (source - mean_source) * weights[:, None]
-    weighted_t = weighted.T
-    (a, d, e), (_, b, f), (_, _, c) = (weighted_t @ source).tolist()
-    U, _, Vt = np.linalg.svd(weighted_t @ target)
-    R = Vt.T @ U.T
-    if _det3(R) < 0:
-        Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
-    T = np.empty((4, 4))
-    T[:3, :3] = R
-    T[:3, 3] = mean_target - R @ mean_source
-    T[3] = (0.0, 0.0, 0.0, 1.0)
-    return T, _off_line_rms_of(a / total, b / total, c / total, d / total, e / total, f / total)
+    return off_line_rms(a, b, c, d, e, f)
 
 
 def _median(values: FloatArray) -> float:
@@ -157,33 +105,26 @@ def fit_transform(
     n = len(source)
     if n < 3:
         return None
-    T, spread = _kabsch(source, target, weights)
+    source = np.ascontiguousarray(source, dtype=np.float64)
+    target = np.ascontiguousarray(target, dtype=np.float64)
+    weights = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    inliers = np.ones(n, bool)
+    T, spread = rigid_fit(source, target, weights, inliers)
     if spread <= collinear_tolerance:
         return None
-    inliers = np.ones(n, bool)
     if consensus > 0 and n > 4:
-        difference = target - source @ T[:3, :3].T - T[:3, 3]
-        residual = np.sqrt(np.einsum("ij,ij->i", difference, difference))
+        residual = pair_residuals(source, target, T)
         # Only a group of far-off pairs calls for it (stray mismatches are left to trimming), which
         # also keeps its cost off the common case at high point counts.
         if np.count_nonzero(residual > consensus) >= max(2, _CONSENSUS_SHARE * n):
             agree = _consensus(source, target, weights, consensus, residual)
             if agree is not None:
-                T_agree, spread = _kabsch(source[agree], target[agree], None if weights is None else weights[agree])
+                T_agree, spread = rigid_fit(source, target, weights, agree)
                 if spread > collinear_tolerance:
                     T, inliers = T_agree, agree
-    allowed = inliers  # pairs the consensus kept (all without it); trimming only removes from them
     if trim > 0 and n > 4:
-        for _ in range(rounds):
-            difference = target - source @ T[:3, :3].T - T[:3, 3]
-            residual = np.sqrt(np.einsum("ij,ij->i", difference, difference))
-            keep = allowed & (residual <= max(trim * _median(residual[allowed]), floor))
-            if np.array_equal(keep, inliers) or np.count_nonzero(keep) < 3:
-                break
-            T_kept, spread = _kabsch(source[keep], target[keep], None if weights is None else weights[keep])
-            if spread <= collinear_tolerance:
-                break
-            T, inliers = T_kept, keep
+        # Trimming only removes pairs the consensus kept (all without it).
+        T, inliers = trimmed_fit(source, target, weights, T, inliers, trim, floor, rounds, collinear_tolerance)
     return Fit(T, inliers)
 
 
@@ -197,7 +138,7 @@ _TRIPLES = {
 
 
 def _consensus(
-    source: FloatArray, target: FloatArray, weights: FloatArray | None, bound: float, residual: FloatArray
+    source: FloatArray, target: FloatArray, w: FloatArray, bound: float, residual: FloatArray
 ) -> npt.NDArray[np.bool_] | None:
     """Pairs agreeing within ``bound`` with the best minimal (three-pair) fit, or ``None``.
 
@@ -206,7 +147,6 @@ def _consensus(
     unless it gathers more weight than the full fit's own agreeing pairs (``residual``, (N,)).
     """
     n = len(source)
-    w = np.ones(n) if weights is None else weights
     m = min(n, _CONSENSUS_ANCHORS)
     heaviest = np.argsort(-w, kind="stable")[:m] if m < n else np.arange(n)
     triples = heaviest[_TRIPLES[m]]  # (K, 3)

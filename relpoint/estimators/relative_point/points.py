@@ -21,6 +21,12 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import (
+    gather_positions,
+    gather_spread,
+    ring_observations,
+    ring_presence,
+)
 from relpoint.geometry import FloatArray
 
 IntArray = npt.NDArray[np.int64]
@@ -174,16 +180,11 @@ class PointStore:
 
     def observations(self, ids: IntArray, iterations: IntArray) -> tuple[FloatArray, BoolArray]:
         """Observations (N, L, 3) of points ``ids`` (N,) at ``iterations`` (L,), and their validity (N, L)."""
-        slots = np.asarray(iterations, dtype=np.int64) % self.ring_size
-        xyz = self.obs[ids[:, None], slots[None, :]]
-        valid = self.obs_iter[ids[:, None], slots[None, :]] == np.asarray(iterations)[None, :]
-        return xyz, valid
+        return ring_observations(self.obs, self.obs_iter, ids, np.asarray(iterations, dtype=np.int64))
 
     def presence(self, ids: IntArray, first: int, last: int) -> BoolArray:
         """*RltInterval* of each point restricted to ``[first, last]``: observed or not, (N, last-first+1)."""
-        iterations = np.arange(first, last + 1, dtype=np.int64)
-        slots = iterations % self.ring_size
-        return self.obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]
+        return ring_presence(self.obs_iter, ids, int(first), int(last))
 
     def co_observed(self, a: int, b: int) -> bool:
         """Whether points ``a`` and ``b`` were ever seen in the same iteration (within the ring)."""
@@ -198,12 +199,7 @@ class PointStore:
 
     def positions(self, ids: IntArray) -> FloatArray:
         """Least-squares global positions (N, 3) of mapped points (``world``, metres; NaN if unmapped)."""
-        weight = self.pos_weight[ids]
-        positions = self.pos_sum[ids] / np.maximum(weight, 1e-300)[:, None]
-        unmapped = weight <= 0.0
-        if unmapped.any():
-            positions[unmapped] = np.nan
-        return positions
+        return gather_positions(self.pos_sum, self.pos_weight, ids)
 
     def spread(self, ids: IntArray) -> FloatArray:
         """RMS disagreement (N,) between the global positions a point's groups give it (m).
@@ -211,10 +207,7 @@ class PointStore:
         Small for a static point (noise averaged per group); large when the point moved between
         groups, so it also serves as the inverse weight of the point as an anchor.
         """
-        weight = np.maximum(self.pos_weight[ids], 1e-12)
-        mean = self.pos_sum[ids] / weight[:, None]
-        variance = self.pos_sq[ids] / weight - np.sum(mean**2, axis=1)
-        return np.sqrt(np.maximum(variance, 0.0))
+        return gather_spread(self.pos_sum, self.pos_weight, self.pos_sq, ids)
 
     # -- merging ---------------------------------------------------------------------------------
 

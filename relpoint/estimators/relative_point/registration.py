@@ -1,12 +1,13 @@
 """Registering points: local matching of untransformed points and global matching (Kraut, II-A and II-D).
 
 Paper name -> Python name
-    *OVLQPQuadTree*  the spatial index of point matching. Locally: a :class:`scipy.spatial.cKDTree`
-                     rebuilt each iteration over the latest untransformed *Point* of every recently seen
-                     *RltPoint* (:func:`match_nearest`); ``benchmarks/relative_point.py`` times it against
-                     the alternatives at 100 and 540 observed points. Globally (backtracking, loop
-                     closure): :class:`GlobalIndex`, a hashed grid of global positions whose cell size
-                     is the matching bound, updated incrementally as positions change.
+    *OVLQPQuadTree*  the spatial index of point matching. Locally: the latest untransformed *Point*
+                     of every recently seen *RltPoint*, sorted along x each iteration and swept within
+                     the matching bound by a compiled kernel (:func:`match_nearest`);
+                     ``benchmarks/relative_point.py`` times it against k-d trees and brute force at
+                     100 and 540 observed points. Globally (backtracking, loop closure):
+                     :class:`GlobalIndex`, a hashed grid of global positions whose cell size is the
+                     matching bound, updated incrementally as positions change.
 
 Local matching uses no current position. It can predict the previous observations into the current
 sensor frame with the inter-iteration motion estimated from the previous iteration's matched
@@ -20,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
+from relpoint.estimators.relative_point._kernels import claim_one_to_one, nearest_two, transform_by_age
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.geometry import FloatArray
 
@@ -35,7 +36,9 @@ def match_nearest(reference: FloatArray, query: FloatArray, bound: float) -> tup
 
     Each query takes its nearest reference within ``bound`` (m); when several queries claim one
     reference the closest keeps it and the others fall back to their second-nearest reference if
-    that one is free. O(N log M) with a k-d tree.
+    that one is free. The neighbour search (:func:`~._kernels.nearest_two`) scans the references
+    sorted along one axis, which at these sizes beats building a k-d tree every iteration (see the
+    benchmark); the claims are settled by :func:`~._kernels.claim_one_to_one`.
 
     Returns
     -------
@@ -43,41 +46,12 @@ def match_nearest(reference: FloatArray, query: FloatArray, bound: float) -> tup
         (N,) row of ``reference`` matched by each query (``NO_MATCH`` if none) and its distance (inf).
     """
     n = len(query)
-    index = np.full(n, NO_MATCH, np.int64)
-    distance = np.full(n, np.inf)
     if n == 0 or len(reference) == 0:
-        return index, distance
-    # Unbalanced, non-compact trees build faster and query as fast at these sizes (see the benchmark).
-    tree = cKDTree(reference, balanced_tree=False, compact_nodes=False)
-    d1, j1 = tree.query(query, k=1, distance_upper_bound=bound)
-    found = j1 < len(reference)
-    claimed = j1[found]
-    if len(claimed) == 0 or np.bincount(claimed).max() == 1:  # no conflicts: the usual case
-        index[found] = j1[found]
-        distance[found] = d1[found]
-        return index, distance
-    k = 2 if len(reference) > 1 else 1
-    d, j = tree.query(query, k=k, distance_upper_bound=bound)
-    if k == 1:
-        d, j = d[:, None], j[:, None]
-    taken = np.zeros(len(reference) + 1, bool)  # last entry = "no neighbour" sentinel of cKDTree
-    taken[-1] = True
-    for column in range(k):
-        pending = np.flatnonzero(index == NO_MATCH)
-        cand = j[pending, column]
-        ok = ~taken[cand]
-        pending, cand, dist = pending[ok], cand[ok], d[pending[ok], column]
-        if len(pending) == 0:
-            continue
-        # Closest claim wins each reference.
-        order = np.lexsort((dist, cand))
-        cand_sorted = cand[order]
-        winner = np.r_[True, cand_sorted[1:] != cand_sorted[:-1]]
-        chosen = order[winner]
-        index[pending[chosen]] = cand[chosen]
-        distance[pending[chosen]] = dist[chosen]
-        taken[cand[chosen]] = True
-    return index, distance
+        return np.full(n, NO_MATCH, np.int64), np.full(n, np.inf)
+    reference = np.ascontiguousarray(reference, dtype=np.float64)
+    query = np.ascontiguousarray(query, dtype=np.float64)
+    j, d = nearest_two(reference, np.argsort(reference[:, 0]), query, float(bound))
+    return claim_one_to_one(j, d, len(reference))
 
 
 def match_mutual(reference: FloatArray, query: FloatArray, bounds: FloatArray) -> IntArray:
@@ -118,11 +92,7 @@ class MotionModel:
 
     def predict(self, points: FloatArray, age: IntArray) -> FloatArray:
         """Carry points (N, 3) last observed ``age`` (N,) iterations ago (1 or more) into the current frame."""
-        powers = [self.T_curr_prev]
-        for _ in range(1, int(age.max(initial=1))):
-            powers.append(self.T_curr_prev @ powers[-1])
-        T = np.stack(powers)[age - 1]
-        return np.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]
+        return transform_by_age(self.T_curr_prev, points, age)
 
     def update(self, previous: FloatArray, current: FloatArray, floor: float) -> FloatArray | None:
         """Re-estimate from pairs: ``previous`` (N, 3, previous frame) -> ``current`` (N, 3).

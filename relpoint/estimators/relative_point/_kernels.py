@@ -1,0 +1,690 @@
+"""Compiled inner loops of the Relative Point estimator (numba), each with a plain numpy meaning.
+
+At about 100 observed points an iteration runs several rigid fits and matchings over arrays of a
+few dozen rows, where the cost is numpy's per-call overhead rather than arithmetic. These kernels
+do the same arithmetic in compiled loops. Each docstring gives the numpy expression the kernel
+equals (up to floating-point rounding); ``tests/test_relative_point_parts.py`` checks every kernel
+against that expression on random inputs.
+
+``cache=True`` keeps the machine code beside this module (``__pycache__``, or ``NUMBA_CACHE_DIR``),
+so only the first run after installing or editing this module pays for compilation (about a quarter
+of a minute for all kernels; loading them from the cache takes under half a second). The kernels are
+plain loops over scalars: numpy's sorting, linear algebra and broadcasting inside a kernel cost
+seconds of compilation each, so the callers sort and the 3x3 rotation is solved by hand.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# -- RltLSF (section II-B): least-squares rigid fitting ------------------------------------------
+
+
+@njit(cache=True)
+def off_line_rms(a: float, b: float, c: float, d: float, e: float, f: float) -> float:
+    """RMS distance off the best line of a scatter ``[[a, d, e], [d, b, f], [e, f, c]]`` (m^2 entries).
+
+    numpy: ``sqrt(max(eigvalsh(S)[:2].sum(), 0))``, the square root of the sum of the two smallest
+    eigenvalues (trace minus the largest), found in closed form (trigonometric solution of the
+    symmetric 3x3 eigenproblem).
+    """
+    trace = a + b + c
+    p1 = d * d + e * e + f * f
+    q = trace / 3.0
+    p2 = (a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * p1
+    if p2 <= 1e-300:
+        return math.sqrt(max(trace - q, 0.0))  # isotropic: all three eigenvalues equal q
+    p = math.sqrt(p2 / 6.0)
+    ba, bb, bc, bd, be, bf = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
+    r = 0.5 * (ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be))
+    largest = q + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, r))) / 3.0)
+    return math.sqrt(max(trace - largest, 0.0))
+
+
+@njit(cache=True)
+def _largest_eigenvector4(N: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit eigenvector (4,) of the largest eigenvalue of a symmetric 4x4 matrix (cyclic Jacobi rotations).
+
+    numpy: ``eigh(N)[1][:, -1]`` (up to sign).
+    """
+    A = np.empty((4, 4))
+    V = np.zeros((4, 4))
+    for p in range(4):
+        V[p, p] = 1.0
+        for q in range(4):
+            A[p, q] = N[p, q]
+    for _ in range(50):
+        off = 0.0
+        diagonal = 0.0
+        for p in range(4):
+            diagonal += A[p, p] * A[p, p]
+            for q in range(p + 1, 4):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-34 * diagonal or off == 0.0:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(4):  # A <- A J (columns p, q)
+                    arp, arq = A[r, p], A[r, q]
+                    A[r, p] = c * arp - s * arq
+                    A[r, q] = s * arp + c * arq
+                for r in range(4):  # A <- J^T A (rows p, q)
+                    apr, aqr = A[p, r], A[q, r]
+                    A[p, r] = c * apr - s * aqr
+                    A[q, r] = s * apr + c * aqr
+                for r in range(4):
+                    vrp, vrq = V[r, p], V[r, q]
+                    V[r, p] = c * vrp - s * vrq
+                    V[r, q] = s * vrp + c * vrq
+    best = 0
+    for p in range(1, 4):
+        if A[p, p] > A[best, best]:
+            best = p
+    return V[0, best], V[1, best], V[2, best], V[3, best]
+
+
+@njit(cache=True)
+def best_rotation_into(T: np.ndarray, H: np.ndarray) -> None:
+    """``T[:3, :3] = R``, the proper rotation maximising ``trace(R H)`` for a cross-covariance ``H`` (3, 3).
+
+    ``H = sum_i s_i d_i^T`` (centred source x target), so ``R`` is the least-squares rotation with
+    ``d ≈ R s``. numpy (Arun / Umeyama, reflection case handled)::
+
+        U, _, Vt = svd(H);  R = Vt.T @ diag(1, 1, sign(det(Vt.T @ U.T))) @ U.T
+
+    found here by Horn's method, as the unit quaternion of the largest eigenvalue of a symmetric 4x4
+    built from ``H``: a few Jacobi sweeps over registers, where a LAPACK SVD of a 3x3 matrix costs
+    several times more once its code has left the cache between calls.
+    """
+    sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
+    syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
+    szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
+    N = np.empty((4, 4))
+    N[0, 0] = sxx + syy + szz
+    N[0, 1] = N[1, 0] = syz - szy
+    N[0, 2] = N[2, 0] = szx - sxz
+    N[0, 3] = N[3, 0] = sxy - syx
+    N[1, 1] = sxx - syy - szz
+    N[1, 2] = N[2, 1] = sxy + syx
+    N[1, 3] = N[3, 1] = szx + sxz
+    N[2, 2] = -sxx + syy - szz
+    N[2, 3] = N[3, 2] = syz + szy
+    N[3, 3] = -sxx - syy + szz
+    w, x, y, z = _largest_eigenvector4(N)
+    norm2 = w * w + x * x + y * y + z * z
+    w, x, y, z = w / math.sqrt(norm2), x / math.sqrt(norm2), y / math.sqrt(norm2), z / math.sqrt(norm2)
+    T[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    T[0, 1] = 2.0 * (x * y - w * z)
+    T[0, 2] = 2.0 * (x * z + w * y)
+    T[1, 0] = 2.0 * (x * y + w * z)
+    T[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    T[1, 2] = 2.0 * (y * z - w * x)
+    T[2, 0] = 2.0 * (x * z - w * y)
+    T[2, 1] = 2.0 * (y * z + w * x)
+    T[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@njit(cache=True)
+def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, float]:
+    """Arun / Umeyama fit of the pairs ``use`` (N,) bool: 4x4 ``T`` with ``target ≈ R source + t``, and spread.
+
+    numpy, with ``s, d, w = source[use], target[use], weights[use]``::
+
+        ms, md = w @ s / w.sum(), w @ d / w.sum()
+        U, _, Vt = svd(((s - ms) * w[:, None]).T @ d)          # cross-covariance H
+        R = Vt.T @ diag(1, 1, det(Vt.T @ U.T)) @ U.T             # reflection: flip the weakest direction
+        t = md - R @ ms
+        spread = off_line_rms(weighted scatter of s about ms)     # m, 0 for a collinear source
+
+    The weighted-centred source sums to zero, so the target needs no centring. ``R`` comes from
+    :func:`best_rotation_into`.
+    """
+    n = source.shape[0]
+    total = 0.0
+    mean_s = np.zeros(3)
+    mean_t = np.zeros(3)
+    for i in range(n):
+        if use[i]:
+            w = weights[i]
+            total += w
+            for a in range(3):
+                mean_s[a] += w * source[i, a]
+                mean_t[a] += w * target[i, a]
+    mean_s /= total
+    mean_t /= total
+    H = np.zeros((3, 3))  # cross-covariance (centred source x target)
+    S = np.zeros((3, 3))  # scatter of the source (upper triangle)
+    for i in range(n):
+        if use[i]:
+            w = weights[i]
+            c0 = w * (source[i, 0] - mean_s[0])
+            c1 = w * (source[i, 1] - mean_s[1])
+            c2 = w * (source[i, 2] - mean_s[2])
+            for b in range(3):
+                H[0, b] += c0 * target[i, b]
+                H[1, b] += c1 * target[i, b]
+                H[2, b] += c2 * target[i, b]
+            S[0, 0] += c0 * source[i, 0]
+            S[1, 1] += c1 * source[i, 1]
+            S[2, 2] += c2 * source[i, 2]
+            S[0, 1] += c0 * source[i, 1]
+            S[0, 2] += c0 * source[i, 2]
+            S[1, 2] += c1 * source[i, 2]
+    T = np.eye(4)
+    best_rotation_into(T, H)
+    for a in range(3):
+        T[a, 3] = mean_t[a] - (T[a, 0] * mean_s[0] + T[a, 1] * mean_s[1] + T[a, 2] * mean_s[2])
+    spread = off_line_rms(
+        S[0, 0] / total, S[1, 1] / total, S[2, 2] / total, S[0, 1] / total, S[0, 2] / total, S[1, 2] / total
+    )
+    return T, spread
+
+
+@njit(cache=True)
+def pair_residuals(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Distance (N,) between each target and its mapped source, m.
+
+    numpy: ``norm(target - source @ T[:3, :3].T - T[:3, 3], axis=1)``.
+    """
+    n = source.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        s0, s1, s2 = source[i, 0], source[i, 1], source[i, 2]
+        total = 0.0
+        for a in range(3):
+            r = target[i, a] - (T[a, 0] * s0 + T[a, 1] * s1 + T[a, 2] * s2) - T[a, 3]
+            total += r * r
+        out[i] = math.sqrt(total)
+    return out
+
+
+@njit(cache=True)
+def _kth_smallest(values: np.ndarray, k: int) -> float:
+    """The ``k``-th smallest entry (0-based) of ``values`` (reordered in place; quickselect).
+
+    numpy: ``np.partition(values, k)[k]``.
+    """
+    low, high = 0, values.shape[0] - 1
+    while low < high:
+        pivot = values[(low + high) // 2]
+        i, j = low, high
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            high = j
+        elif k >= i:
+            low = i
+        else:
+            break
+    return values[k]
+
+
+@njit(cache=True)
+def _masked_median(values: np.ndarray, use: np.ndarray) -> float:
+    """numpy: ``np.median(values[use])`` (finite values, at least one used)."""
+    selected = np.empty(values.shape[0])
+    n = 0
+    for i in range(values.shape[0]):
+        if use[i]:
+            selected[n] = values[i]
+            n += 1
+    selected = selected[:n]
+    half = n // 2
+    upper = _kth_smallest(selected, half)
+    if n % 2:
+        return upper
+    lower = selected[0]  # after selection every entry below position half is <= upper
+    for i in range(1, half):
+        lower = max(lower, selected[i])
+    return 0.5 * (lower + upper)
+
+
+@njit(cache=True)
+def trimmed_fit(
+    source: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    T: np.ndarray,
+    allowed: np.ndarray,
+    trim: float,
+    floor: float,
+    rounds: int,
+    collinear_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Trimming rounds of :func:`~relpoint.estimators.relative_point.lsf.fit_transform` from fit ``T``.
+
+    Each round keeps the pairs of ``allowed`` (N,) whose residual is at most
+    ``max(trim * median(residual[allowed]), floor)`` and refits them with :func:`rigid_fit`; it stops
+    when the kept set no longer changes, would leave fewer than three pairs, or a collinear source.
+    Returns the final ``T`` and the kept pairs (``allowed`` itself when no round changed anything).
+    """
+    inliers = allowed
+    for _ in range(rounds):
+        residual = pair_residuals(source, target, T)
+        bound = max(trim * _masked_median(residual, allowed), floor)
+        keep = np.empty(residual.shape[0], np.bool_)
+        kept = 0
+        same = True
+        for i in range(keep.shape[0]):
+            keep[i] = allowed[i] and residual[i] <= bound
+            kept += keep[i]
+            same = same and keep[i] == inliers[i]
+        if same or kept < 3:
+            break
+        T_kept, spread = rigid_fit(source, target, weights, keep)
+        if spread <= collinear_tolerance:
+            break
+        T, inliers = T_kept, keep
+    return T, inliers
+
+
+# -- OVLQPQuadTree (section II-A): local point matching -------------------------------------------
+
+
+@njit(cache=True)
+def nearest_two(
+    reference: np.ndarray, order: np.ndarray, query: np.ndarray, bound: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two nearest rows of ``reference`` (M, 3) within ``bound`` (m) of each row of ``query`` (N, 3).
+
+    numpy: ``cKDTree(reference).query(query, k=2, distance_upper_bound=bound)``: rows ``j`` (N, 2)
+    nearest first, ``M`` where there is none, and distances ``d`` (N, 2), ``inf`` there. ``order``
+    is ``argsort(reference[:, 0])``: each query scans only the references within ``bound`` along x.
+    """
+    m, n = reference.shape[0], query.shape[0]
+    xs = np.empty(m)
+    for p in range(m):
+        xs[p] = reference[order[p], 0]
+    bound2 = bound * bound
+    j = np.full((n, 2), m, np.int64)
+    d = np.full((n, 2), np.inf)
+    for i in range(n):
+        qx, qy, qz = query[i, 0], query[i, 1], query[i, 2]
+        low, high = 0, m  # first sorted reference with x >= qx - bound (binary search)
+        while low < high:
+            middle = (low + high) // 2
+            if xs[middle] < qx - bound:
+                low = middle + 1
+            else:
+                high = middle
+        best1, best2 = np.inf, np.inf
+        j1, j2 = m, m
+        for p in range(low, m):
+            if xs[p] > qx + bound:
+                break
+            r = order[p]
+            dx, dy, dz = reference[r, 0] - qx, reference[r, 1] - qy, reference[r, 2] - qz
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 >= bound2:
+                continue
+            if d2 < best1 or (d2 == best1 and r < j1):
+                best2, j2 = best1, j1
+                best1, j1 = d2, r
+            elif d2 < best2 or (d2 == best2 and r < j2):
+                best2, j2 = d2, r
+        if j1 < m:
+            j[i, 0], d[i, 0] = j1, math.sqrt(best1)
+        if j2 < m:
+            j[i, 1], d[i, 1] = j2, math.sqrt(best2)
+    return j, d
+
+
+@njit(cache=True)
+def claim_one_to_one(j: np.ndarray, d: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one assignment of queries to their nearest (then second-nearest) free reference.
+
+    ``j``, ``d`` (N, K) are each query's K nearest references and distances (``m``: none). Column by
+    column, every still unmatched query claims its reference in that column unless an earlier
+    column took it; of several claims on one reference the closest wins (ties: the lower query row).
+    numpy, per column: ``order = lexsort((dist, cand))`` over the pending claims, the first of
+    each ``cand`` wins. Returns the matched reference row per query (-1 if none) and its distance.
+    """
+    n, k = j.shape
+    index = np.full(n, -1, np.int64)
+    distance = np.full(n, np.inf)
+    taken = np.zeros(m, np.bool_)
+    winner = np.full(m, -1, np.int64)
+    for column in range(k):
+        for i in range(n):
+            c = j[i, column]
+            if index[i] >= 0 or c >= m or taken[c]:
+                continue
+            w = winner[c]
+            if w < 0 or d[i, column] < d[w, column]:
+                winner[c] = i
+        for i in range(n):
+            c = j[i, column]
+            if c < m and winner[c] == i:
+                index[i] = c
+                distance[i] = d[i, column]
+                taken[c] = True
+                winner[c] = -1
+    return index, distance
+
+
+@njit(cache=True)
+def transform_by_age(T_curr_prev: np.ndarray, points: np.ndarray, age: np.ndarray) -> np.ndarray:
+    """Points (N, 3) carried ``age`` (N,) steps (1 or more) of the motion ``T_curr_prev`` (4, 4).
+
+    numpy: ``P = stack([T^1, T^2, ...])[age - 1]; einsum("nij,nj->ni", P[:, :3, :3], points) + P[:, :3, 3]``.
+    """
+    n = points.shape[0]
+    steps = 1
+    for i in range(n):
+        steps = max(steps, age[i])
+    powers = np.empty((steps, 4, 4))
+    for a in range(4):
+        for b in range(4):
+            powers[0, a, b] = T_curr_prev[a, b]
+    for s in range(1, steps):  # T^(s+1) = T @ T^s
+        for a in range(4):
+            for b in range(4):
+                total = 0.0
+                for c in range(4):
+                    total += T_curr_prev[a, c] * powers[s - 1, c, b]
+                powers[s, a, b] = total
+    out = np.empty((n, 3))
+    for i in range(n):
+        s = age[i] - 1
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        for a in range(3):
+            out[i, a] = powers[s, a, 0] * x + powers[s, a, 1] * y + powers[s, a, 2] * z + powers[s, a, 3]
+    return out
+
+
+# -- RltGroup (section II-B): combination of the groups' placements --------------------------------
+
+
+@njit(cache=True)
+def gather_positions(pos_sum: np.ndarray, pos_weight: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Least-squares global positions (N, 3) of points ``ids`` (N,); NaN rows where unmapped.
+
+    numpy: ``pos_sum[ids] / maximum(pos_weight[ids], 1e-300)[:, None]``, NaN where ``pos_weight[ids] <= 0``.
+    """
+    n = ids.shape[0]
+    out = np.empty((n, 3))
+    for r in range(n):
+        i = ids[r]
+        w = pos_weight[i]
+        if w <= 0.0:
+            out[r] = np.nan
+        else:
+            w = max(w, 1e-300)
+            for a in range(3):
+                out[r, a] = pos_sum[i, a] / w
+    return out
+
+
+@njit(cache=True)
+def gather_spread(pos_sum: np.ndarray, pos_weight: np.ndarray, pos_sq: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """RMS disagreement (N,) between the global positions the groups of points ``ids`` give them (m).
+
+    numpy, with ``w = maximum(pos_weight[ids], 1e-12)`` and ``m = pos_sum[ids] / w[:, None]``:
+    ``sqrt(maximum(pos_sq[ids] / w - sum(m**2, axis=1), 0))``.
+    """
+    n = ids.shape[0]
+    out = np.empty(n)
+    for r in range(n):
+        i = ids[r]
+        w = max(pos_weight[i], 1e-12)
+        m0, m1, m2 = pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w
+        variance = pos_sq[i] / w - (m0 * m0 + m1 * m1 + m2 * m2)
+        out[r] = math.sqrt(max(variance, 0.0))
+    return out
+
+
+@njit(cache=True)
+def replace_contribution(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    pos_sq: np.ndarray,
+    members: np.ndarray,
+    old_placed: np.ndarray,
+    old_weight: float,
+    new_placed: np.ndarray,
+    new_weight: float,
+) -> None:
+    """Swap one group's contribution to its members' accumulators, in place.
+
+    numpy, for distinct ``members`` (M,), placements (M, 3) and weights (skipped when 0)::
+
+        pos_sum[members] += new_weight * new_placed - old_weight * old_placed     (each term separately)
+        pos_weight[members] += new_weight - old_weight
+        pos_sq[members] += new_weight * sum(new_placed**2, 1) - old_weight * sum(old_placed**2, 1)
+
+    then points left with ``pos_weight < 1e-9`` (round-off ghosts) are zeroed.
+    """
+    for r in range(members.shape[0]):
+        i = members[r]
+        if old_weight > 0.0:
+            p0, p1, p2 = old_placed[r, 0], old_placed[r, 1], old_placed[r, 2]
+            pos_sum[i, 0] -= old_weight * p0
+            pos_sum[i, 1] -= old_weight * p1
+            pos_sum[i, 2] -= old_weight * p2
+            pos_weight[i] -= old_weight
+            pos_sq[i] -= old_weight * (p0 * p0 + p1 * p1 + p2 * p2)
+        if new_weight > 0.0:
+            p0, p1, p2 = new_placed[r, 0], new_placed[r, 1], new_placed[r, 2]
+            pos_sum[i, 0] += new_weight * p0
+            pos_sum[i, 1] += new_weight * p1
+            pos_sum[i, 2] += new_weight * p2
+            pos_weight[i] += new_weight
+            pos_sq[i] += new_weight * (p0 * p0 + p1 * p1 + p2 * p2)
+        if pos_weight[i] < 1e-9:
+            pos_weight[i] = 0.0
+            pos_sum[i] = 0.0
+            pos_sq[i] = 0.0
+
+
+# -- RltGroup (section II-B): basis frames and relative maps ----------------------------------------
+
+
+@njit(cache=True)
+def basis_coordinates(
+    observations: np.ndarray, i0: int, i1: int, i2: int, min_spread: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Members' coordinates (M, L, 3) in the basis frame of rows ``i0, i1, i2`` in each of L iterations.
+
+    numpy, with ``b0, b1, b2 = observations[[i0, i1, i2]]`` and
+    :func:`~relpoint.estimators.relative_point.groups.basis_rotation`::
+
+        R, valid = basis_rotation(b0, b1, b2, min_spread)                     # (L, 3, 3), (L,)
+        relative = matmul((observations - b0).transpose(1, 0, 2), R).transpose(1, 0, 2)
+    """
+    m, length = observations.shape[0], observations.shape[1]
+    relative = np.empty((m, length, 3))
+    valid = np.empty(length, np.bool_)
+    for t in range(length):
+        o0, o1, o2 = observations[i0, t], observations[i1, t], observations[i2, t]
+        x0, x1, x2 = o0[0] - o1[0], o0[1] - o1[1], o0[2] - o1[2]
+        x_norm = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        scale = max(x_norm, 1e-12)
+        x0, x1, x2 = x0 / scale, x1 / scale, x2 / scale
+        v0, v1, v2 = o2[0] - o0[0], o2[1] - o0[1], o2[2] - o0[2]
+        along = v0 * x0 + v1 * x1 + v2 * x2
+        z0, z1, z2 = v0 - along * x0, v1 - along * x1, v2 - along * x2
+        z_norm = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
+        scale = max(z_norm, 1e-12)
+        z0, z1, z2 = z0 / scale, z1 / scale, z2 / scale
+        y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0  # y = z x x
+        valid[t] = x_norm >= min_spread and z_norm >= min_spread
+        for r in range(m):
+            d0 = observations[r, t, 0] - o0[0]
+            d1 = observations[r, t, 1] - o0[1]
+            d2 = observations[r, t, 2] - o0[2]
+            relative[r, t, 0] = d0 * x0 + d1 * x1 + d2 * x2
+            relative[r, t, 1] = d0 * y0 + d1 * y1 + d2 * y2
+            relative[r, t, 2] = d0 * z0 + d1 * z1 + d2 * z2
+    return relative, valid
+
+
+@njit(cache=True)
+def spread_basis(points: np.ndarray, min_spread: float) -> tuple[int, int, int]:
+    """Rows of three well-spread, non-collinear points of ``points`` (M, 3); ``(-1, -1, -1)`` if none.
+
+    numpy: ``i0 = argmax(|p - centroid|)``, ``i1 = argmax(|p - p[i0]|)``, ``i2 = argmax`` of the
+    distance off the line through both (squared); none when ``|p[i1] - p[i0]|`` or that distance
+    is below ``min_spread``. Ties go to the first row, as ``argmax``.
+    """
+    m = points.shape[0]
+    if m < 3:
+        return -1, -1, -1
+    c0 = c1 = c2 = 0.0
+    for r in range(m):
+        c0 += points[r, 0]
+        c1 += points[r, 1]
+        c2 += points[r, 2]
+    c0, c1, c2 = c0 / m, c1 / m, c2 / m
+    i0, best = 0, -1.0
+    for r in range(m):
+        d0, d1, d2 = points[r, 0] - c0, points[r, 1] - c1, points[r, 2] - c2
+        d = d0 * d0 + d1 * d1 + d2 * d2
+        if d > best:
+            i0, best = r, d
+    squared = np.empty(m)
+    i1, best = 0, -1.0
+    for r in range(m):
+        d0, d1, d2 = points[r, 0] - points[i0, 0], points[r, 1] - points[i0, 1], points[r, 2] - points[i0, 2]
+        squared[r] = d0 * d0 + d1 * d1 + d2 * d2
+        if squared[r] > best:
+            i1, best = r, squared[r]
+    length = math.sqrt(best)
+    if length < min_spread:
+        return -1, -1, -1
+    u0 = (points[i1, 0] - points[i0, 0]) / length
+    u1 = (points[i1, 1] - points[i0, 1]) / length
+    u2 = (points[i1, 2] - points[i0, 2]) / length
+    i2, best = 0, -np.inf
+    for r in range(m):
+        along = (points[r, 0] - points[i0, 0]) * u0 + (points[r, 1] - points[i0, 1]) * u1
+        along += (points[r, 2] - points[i0, 2]) * u2
+        off_line = squared[r] - along * along
+        if off_line > best:
+            i2, best = r, off_line
+    if best < min_spread * min_spread:
+        return -1, -1, -1
+    return i0, i1, i2
+
+
+# -- RltMapper (section II-C): member selection of a new group ------------------------------------
+
+
+@njit(cache=True)
+def interval_members(
+    presence: np.ndarray, grouped: np.ndarray, order: np.ndarray, creation: int, seeds: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The interval x count heuristic of :func:`~relpoint.estimators.relative_point.grouping.select_members`.
+
+    ``presence`` (N, L) bool, ``grouped`` (N,) bool, ``order`` the candidates by coverage
+    (``argsort(-presence.sum(1), kind="stable")``). The creation row and the first ``seeds`` grouped
+    candidates sharing an iteration with it seed the group; the other candidates are added in that
+    order while ``interval length x member count`` grows (numpy: ``logical_and.accumulate`` over
+    their rows, stopping at the first score not above the previous one). Returns the chosen rows
+    (creation first) and the interval mask (L,); no rows when fewer than ``seeds`` grouped
+    candidates overlap the creation row or the seeds share no iteration.
+    """
+    n, length = presence.shape
+    rows = np.empty(n, np.int64)
+    rows[0] = creation
+    chosen = 1
+    for r in order:
+        if chosen > seeds:
+            break
+        if r == creation or not grouped[r]:
+            continue
+        for t in range(length):
+            if presence[r, t] and presence[creation, t]:
+                rows[chosen] = r
+                chosen += 1
+                break
+    interval = np.empty(length, np.bool_)
+    covered = 0
+    for t in range(length):
+        interval[t] = True
+        for s in range(chosen):
+            interval[t] = interval[t] and presence[rows[s], t]
+        covered += interval[t]
+    if chosen <= seeds or covered == 0:
+        return rows[:0].copy(), interval
+    is_seed = np.zeros(n, np.bool_)
+    for s in range(chosen):
+        is_seed[rows[s]] = True
+    score = covered * chosen
+    for r in order:
+        if is_seed[r]:
+            continue
+        covered = 0
+        for t in range(length):
+            covered += interval[t] and presence[r, t]
+        if covered * (chosen + 1) <= score:
+            break
+        for t in range(length):
+            interval[t] = interval[t] and presence[r, t]
+        rows[chosen] = r
+        chosen += 1
+        score = covered * chosen
+    return rows[:chosen].copy(), interval
+
+
+# -- RltPoint / RltInterval (section II-A): reading the observation rings --------------------------
+
+
+@njit(cache=True)
+def ring_observations(
+    obs: np.ndarray, obs_iter: np.ndarray, ids: np.ndarray, iterations: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observations (N, L, 3) of points ``ids`` (N,) at ``iterations`` (L,) and their validity (N, L).
+
+    numpy, with ``slots = iterations % R`` for rings of R slots::
+
+        obs[ids[:, None], slots[None, :]], obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]
+    """
+    ring = obs_iter.shape[1]
+    n, length = ids.shape[0], iterations.shape[0]
+    xyz = np.empty((n, length, 3))
+    valid = np.empty((n, length), np.bool_)
+    for r in range(n):
+        i = ids[r]
+        for t in range(length):
+            slot = iterations[t] % ring
+            xyz[r, t, 0] = obs[i, slot, 0]
+            xyz[r, t, 1] = obs[i, slot, 1]
+            xyz[r, t, 2] = obs[i, slot, 2]
+            valid[r, t] = obs_iter[i, slot] == iterations[t]
+    return xyz, valid
+
+
+@njit(cache=True)
+def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) -> np.ndarray:
+    """Whether points ``ids`` (N,) were observed in each iteration of ``[first, last]`` (N, last - first + 1).
+
+    numpy: ``obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]`` with
+    ``iterations = arange(first, last + 1)`` and ``slots = iterations % R``.
+    """
+    ring = obs_iter.shape[1]
+    n, length = ids.shape[0], last - first + 1
+    present = np.empty((n, length), np.bool_)
+    for r in range(n):
+        i = ids[r]
+        for t in range(length):
+            present[r, t] = obs_iter[i, (first + t) % ring] == first + t
+    return present
