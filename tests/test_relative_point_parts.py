@@ -21,7 +21,7 @@ from relpoint.estimators.relative_point.dynamics import (
 from relpoint.estimators.relative_point.estimator import quaternion_xyzw
 from relpoint.estimators.relative_point.grouping import select_members
 from relpoint.estimators.relative_point.groups import basis_rotation, choose_basis, relative_coordinates
-from relpoint.estimators.relative_point.loops import drift_share, vote_offset
+from relpoint.estimators.relative_point.loops import drift_share, required_support, vote_offset
 from relpoint.estimators.relative_point.lsf import apply, fit_transform, is_collinear
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.estimators.relative_point.registration import (
@@ -199,6 +199,32 @@ def test_loop_vote_finds_the_shared_drift_and_ignores_chance_pairings() -> None:
     assert vote_offset(clutter, old, radius=15.0, tolerance=1.5, support=4) is None
     # Beyond the search radius nothing is proposed.
     assert vote_offset(young, old, radius=5.0, tolerance=1.5, support=4) is None
+
+
+def test_loop_vote_is_not_fooled_by_a_dense_map() -> None:
+    # Landmarks crowd along a path (a tube): new landmarks have dozens of old neighbours within the
+    # search radius, and chance offsets agree by the handful. Only a real drift is found.
+    # (7.5 landmarks per metre of path; without the chance test this vote closes a loop 8 m off.)
+    rng = np.random.default_rng(5)
+
+    def tube(n: int, start: float, end: float) -> np.ndarray:
+        return np.column_stack([rng.uniform(start, end, n), rng.uniform(-20, 20, n), rng.uniform(-5, 5, n)])
+
+    old = tube(3000, 0, 400)
+    assert vote_offset(tube(60, 180, 220), old, radius=15.0, tolerance=1.5, support=4) is None
+    drift = np.array([5.0, -2.0, 1.0])
+    returning = old[(old[:, 0] > 180) & (old[:, 0] < 220)][:60] - drift + rng.normal(0, 0.2, (60, 3))
+    offset = vote_offset(returning, old, radius=15.0, tolerance=1.5, support=4)
+    assert offset is not None and np.linalg.norm(offset - drift) < 0.3
+
+
+def test_required_support_grows_with_chance_agreement() -> None:
+    from scipy.stats import poisson
+
+    assert required_support(30, 0.03, 4) == 4
+    for proposals, chance in ((300, 1.0), (3000, 3.0)):
+        needed = required_support(proposals, chance, 4)
+        assert proposals * poisson.sf(needed - 2, chance) <= 0.01 < proposals * poisson.sf(needed - 3, chance)
 
 
 def test_drift_share_ramps_from_the_last_visit_to_now() -> None:

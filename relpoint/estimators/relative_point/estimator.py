@@ -518,6 +518,8 @@ class RelativePointEstimator(Estimator):
         young_rows = np.flatnonzero(~known | (store.first_iter[np.where(known, ids, 0)] >= k - config.loop_young))
         if len(young_rows) < config.loop_support:
             return
+        if len(young_rows) > _LOOP_YOUNG_MAX:  # a dense view: an even sample votes as well, for less
+            young_rows = young_rows[np.linspace(0, len(young_rows) - 1, _LOOP_YOUNG_MAX).astype(np.int64)]
         n = store.high_water
         old = np.flatnonzero(
             store.alive[:n]
@@ -529,6 +531,12 @@ class RelativePointEstimator(Estimator):
             return
         young = apply(self._provisional_pose(), points[young_rows])
         old_positions = store.positions(old)
+        near = np.all(
+            (old_positions >= young.min(axis=0) - config.loop_search)
+            & (old_positions <= young.max(axis=0) + config.loop_search),
+            axis=1,
+        )
+        old, old_positions = old[near], old_positions[near]
         tolerance = 0.5 * config.global_match_bound
         offset = vote_offset(
             young, old_positions, radius=config.loop_search, tolerance=tolerance, support=config.loop_support
@@ -1054,6 +1062,10 @@ def quaternion_xyzw(R: FloatArray) -> tuple[float, float, float, float]:
     sign = -1.0 if q[3] < 0.0 else 1.0
     x, y, z, w = (sign * c / norm for c in q)
     return x, y, z, w
+
+
+_LOOP_YOUNG_MAX = 64
+"""Young points that vote on a loop's offset at most (an even sample of them in a dense view)."""
 
 
 def _rigid_inverse(T: FloatArray) -> FloatArray:

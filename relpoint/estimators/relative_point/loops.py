@@ -10,7 +10,14 @@ plus this iteration's unmatched ones) are carried into ``world`` with the provis
 position; every pairing with an *old* mapped point (unseen for many iterations) within a search
 radius proposes an offset, old minus young. Drift moves a whole neighbourhood alike, so the true
 offset is proposed by many distinct young points, while chance pairings scatter. The offset that the
-most distinct young points agree on, within a tolerance, wins when enough of them agree.
+most distinct young points agree on, within a tolerance, wins when enough of them agree: at least
+``support``, and more than chance explains. Chance is measured on the vote itself: the proposals
+outside the winning cluster agree with ``lambda`` others on average (at least what ``P`` proposals
+spread evenly over the search ball would give, ``(P - 1) (tolerance / radius)^3``), and the winner
+must be beyond what the largest of ``P`` Poisson(``lambda``) counts reaches with probability 1 %.
+At low density that is the plain ``support``; in a dense map, where each young point has dozens of
+old neighbours and landmarks lie along the path, so that chance offsets crowd, it rises so that
+chance agreement does not close false loops.
 
 :func:`drift_share` then spreads the correction over the loop: drift builds up along the path, so a
 group or pose from iteration ``t`` moves by the share ``(t - t0) / (k - t0)`` of the offset, where
@@ -20,6 +27,8 @@ to the few points of one neighbourhood is too uncertain to be carried over the w
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import numpy.typing as npt
@@ -49,7 +58,7 @@ def vote_offset(
     Returns
     -------
     The mean of the agreeing proposals around the offset with the most distinct young points behind
-    it (ties: the smallest offset), or ``None`` if fewer than ``support`` agree.
+    it (ties: the smallest offset), or ``None`` if fewer than :func:`required_support` agree.
     """
     if len(young) < support or len(old) == 0:
         return None
@@ -67,10 +76,36 @@ def vote_offset(
     distinct = np.unique(first * len(young) + proposer[second])
     agreeing = np.bincount(distinct // len(young), minlength=len(offsets))
     best = int(np.lexsort((np.einsum("ij,ij->i", offsets, offsets), -agreeing))[0])
-    if agreeing[best] < support:
+    members = np.unique(second[first == best])  # includes ``best`` itself
+    background = np.ones(len(offsets), bool)
+    background[members] = False
+    chance = (len(offsets) - 1) * (tolerance / radius) ** 3
+    if background.any():
+        chance = max(chance, float(np.mean(agreeing[background] - 1)))
+    if agreeing[best] < required_support(len(offsets), chance, support):
         return None
-    members = np.concatenate(([best], second[first == best]))
-    return offsets[np.unique(members)].mean(axis=0)
+    return offsets[members].mean(axis=0)
+
+
+def required_support(proposals: int, chance: float, support: int, false_rate: float = 0.01) -> int:
+    """Agreeing young points needed for the best of ``proposals`` offsets.
+
+    The smallest ``s >= support`` with ``proposals * P(X >= s - 1) <= false_rate`` for
+    ``X ~ Poisson(chance)``, ``chance`` being the mean number of other proposals that agree with one
+    by chance: the best proposal gathers ``s - 1`` others by chance alone with probability at most
+    ``false_rate`` over all proposals (a union bound).
+    """
+    term = math.exp(-chance)  # P(X = 0)
+    tail = 1.0  # P(X >= 0)
+    for count in range(support - 1):  # tail of P(X >= support - 1)
+        tail -= term
+        term *= chance / (count + 1)
+    needed = support
+    while proposals * tail > false_rate:
+        tail -= term
+        term *= chance / needed
+        needed += 1
+    return needed
 
 
 def drift_share(iterations: npt.ArrayLike, t0: int, k: int) -> FloatArray:
