@@ -634,5 +634,10 @@ def test_ring_kernels_equal_numpy_indexing() -> None:
     slots = iterations % 8
     xyz, valid = _kernels.ring_observations(obs, obs_iter, ids, iterations)
     assert np.array_equal(xyz, obs[ids[:, None], slots[None, :]])
-    assert np.array_equal(valid, obs_iter[ids[:, None], slots[None, :]] == iterations[None, :])
+    expected = (obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]) & (iterations[None, :] >= 0)
+    assert np.array_equal(valid, expected)
     assert np.array_equal(_kernels.ring_presence(obs_iter, ids, -2, 24), valid)
+    # An unwritten slot (-1) is not an observation at iteration -1.
+    obs_iter[ids[0], -1 % 8] = -1
+    assert not _kernels.ring_observations(obs, obs_iter, ids, iterations)[1][0, 1]
+    assert not _kernels.ring_presence(obs_iter, ids, -2, 24)[0, 1]

@@ -656,7 +656,10 @@ def ring_observations(
 
     numpy, with ``slots = iterations % R`` for rings of R slots::
 
-        obs[ids[:, None], slots[None, :]], obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]
+        obs[ids[:, None], slots[None, :]],
+        (obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]) & (iterations[None, :] >= 0)
+
+    (An unwritten slot holds -1, so an iteration before the first is never observed.)
     """
     ring = obs_iter.shape[1]
     n, length = ids.shape[0], iterations.shape[0]
@@ -669,7 +672,7 @@ def ring_observations(
             xyz[r, t, 0] = obs[i, slot, 0]
             xyz[r, t, 1] = obs[i, slot, 1]
             xyz[r, t, 2] = obs[i, slot, 2]
-            valid[r, t] = obs_iter[i, slot] == iterations[t]
+            valid[r, t] = iterations[t] >= 0 and obs_iter[i, slot] == iterations[t]
     return xyz, valid
 
 
@@ -677,8 +680,8 @@ def ring_observations(
 def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) -> np.ndarray:
     """Whether points ``ids`` (N,) were observed in each iteration of ``[first, last]`` (N, last - first + 1).
 
-    numpy: ``obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]`` with
-    ``iterations = arange(first, last + 1)`` and ``slots = iterations % R``.
+    numpy: ``(obs_iter[ids[:, None], slots[None, :]] == iterations[None, :]) & (iterations[None, :] >= 0)``
+    with ``iterations = arange(first, last + 1)`` and ``slots = iterations % R``.
     """
     ring = obs_iter.shape[1]
     n, length = ids.shape[0], last - first + 1
@@ -686,5 +689,5 @@ def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) 
     for r in range(n):
         i = ids[r]
         for t in range(length):
-            present[r, t] = obs_iter[i, (first + t) % ring] == first + t
+            present[r, t] = first + t >= 0 and obs_iter[i, (first + t) % ring] == first + t
     return present
