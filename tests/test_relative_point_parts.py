@@ -251,6 +251,20 @@ def test_global_index_finds_neighbours_and_tracks_moves() -> None:
     assert index.candidates(np.array([1.0, 0, 0])) == [] and len(index) == 2
 
 
+def test_global_index_keys_find_every_point_within_a_cell() -> None:
+    # Packed cell keys: neighbours across every axis and sign, and far out (clipped keys) no misses.
+    rng = np.random.default_rng(19)
+    for scale in (10.0, 1e8):
+        positions = rng.uniform(-scale, scale, (300, 3))
+        index = GlobalIndex(3.0)
+        index.update(np.arange(300), positions)
+        for query in positions[:40] + rng.uniform(-3.0, 3.0, (40, 3)):
+            found = set(index.candidates(query))
+            near = np.flatnonzero(np.linalg.norm(positions - query, axis=1) <= 3.0)
+            assert set(near.tolist()) <= found
+            assert found == set(index.candidates_at(int(index.keys(query[None])[0])))
+
+
 def test_charting_detects_duplicates_and_enumerates_intervals() -> None:
     charting = PointCharting(4)
     assert not charting.chart(0, [3, 1, 2]).any()
@@ -533,6 +547,24 @@ def test_matching_kernels_equal_k_d_tree_matching() -> None:
         assert np.array_equal(index, index_ref) and np.allclose(distance, distance_ref, rtol=1e-12)
 
 
+def test_mutual_nearest_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(18)
+    for _ in range(200):
+        q_count, r_count = int(rng.integers(1, 30)), int(rng.integers(1, 30))
+        query = rng.uniform(-8, 8, (q_count, 3))
+        reference = np.round(rng.uniform(-8, 8, (r_count, 3)))  # rounded: some distance ties
+        bounds = rng.uniform(0.5, 6.0, r_count)
+        difference = query[:, None, :] - reference[None, :, :]
+        distance = np.sqrt(np.einsum("qrk,qrk->qr", difference, difference))
+        nearest_reference, nearest_query = distance.argmin(axis=1), distance.argmin(axis=0)
+        rows = np.arange(q_count)
+        mutual = (nearest_query[nearest_reference] == rows) & (
+            distance[rows, nearest_reference] <= bounds[nearest_reference]
+        )
+        expected = np.where(mutual, nearest_reference, -1)
+        assert np.array_equal(_kernels.mutual_nearest(reference, query, bounds), expected)
+
+
 def test_placement_kernels_equal_numpy() -> None:
     rng = np.random.default_rng(13)
     c = 50
@@ -641,3 +673,64 @@ def test_ring_kernels_equal_numpy_indexing() -> None:
     obs_iter[ids[0], -1 % 8] = -1
     assert not _kernels.ring_observations(obs, obs_iter, ids, iterations)[1][0, 1]
     assert not _kernels.ring_presence(obs_iter, ids, -2, 24)[0, 1]
+
+
+def _numpy_reference_deviations(
+    tracks: np.ndarray, valid: np.ndarray, references: np.ndarray, min_common: int, block: int
+) -> np.ndarray:
+    both = valid[:, None, :] & valid[references][None, :, :]  # (N, R, L)
+    difference = tracks[:, None, :, :] - tracks[references][None, :, :, :]
+    distance = np.where(both, np.sqrt(np.einsum("nrlk,nrlk->nrl", difference, difference)), 0.0)
+    usable = (both.sum(axis=2) >= min_common) & (np.arange(len(tracks))[:, None] != references[None, :])
+    if block > 1:
+        n, r, length = distance.shape
+        blocks = -(-length // block)
+        pad = blocks * block - length
+        distance = np.concatenate([np.zeros((n, r, pad)), distance], axis=2)
+        both = np.concatenate([np.zeros((n, r, pad), bool), both], axis=2)
+        sums = distance.reshape(n, r, blocks, block).sum(axis=3)
+        counts = both.reshape(n, r, blocks, block).sum(axis=3)
+        both = counts >= 2
+        distance = np.where(both, sums / np.maximum(counts, 1), 0.0)
+        usable &= both.sum(axis=2) >= 3
+    count = both.sum(axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = distance.sum(axis=2) / count
+        variance = np.where(both, (distance - mean[..., None]) ** 2, 0.0).sum(axis=2) / (count - 1)
+    return np.where(usable, np.sqrt(variance), np.nan)
+
+
+def _numpy_block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray, block: int) -> np.ndarray:
+    n, length = valid.shape
+    world = np.einsum("lab,nlb->nla", poses[:, :3, :3], tracks) + poses[None, :, :3, 3]
+    blocks = length // block
+    if blocks == 0:
+        return np.full(n, np.nan)
+    tail = slice(length - blocks * block, length)
+    sums = np.where(valid[:, tail, None], world[:, tail], 0.0).reshape(n, blocks, block, 3).sum(axis=2)
+    counts = valid[:, tail].reshape(n, blocks, block).sum(axis=2)
+    usable = counts >= 2
+    means = sums / np.maximum(counts, 1)[..., None]
+    used = usable.sum(axis=1)
+    centre = np.where(usable[..., None], means, 0.0).sum(axis=1) / np.maximum(used, 1)[:, None]
+    scatter = np.where(usable[..., None], (means - centre[:, None]) ** 2, 0.0).sum(axis=(1, 2))
+    return np.where(used >= 3, np.sqrt(scatter / np.maximum(used - 1, 1)), np.nan)
+
+
+@pytest.mark.parametrize("block", [1, 3, 5])
+def test_sweep_kernels_equal_numpy(block: int) -> None:
+    rng = np.random.default_rng(17 + block)
+    for length in (4, 13, 40):
+        tracks = rng.normal(0.0, 10.0, (9, length, 3))
+        valid = rng.random((9, length)) < 0.8
+        valid[0] = False  # never observed: never compared
+        references = np.array([1, 4, 2, 7])
+        expected = _numpy_reference_deviations(tracks, valid, references, 3, block)
+        kernel = _kernels.reference_deviations(tracks, valid, references, 3, block)
+        assert np.allclose(kernel, expected, rtol=1e-12, atol=1e-12, equal_nan=True)
+        assert np.isnan(kernel[0]).all() and np.isnan(kernel[4, 1]) and (length < 13 or np.isfinite(kernel).any())
+        poses = np.stack([random_pose(rng, 10.0) for _ in range(length)])
+        expected = _numpy_block_mean_scatter(tracks, valid, poses, block)
+        kernel = _kernels.block_mean_scatter(tracks, valid, poses, block)
+        assert np.allclose(kernel, expected, rtol=1e-12, atol=1e-12, equal_nan=True)
+        assert np.isnan(kernel[0])

@@ -382,6 +382,45 @@ def claim_one_to_one(j: np.ndarray, d: np.ndarray, m: int) -> tuple[np.ndarray, 
 
 
 @njit(cache=True)
+def mutual_nearest(reference: np.ndarray, query: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Row of ``reference`` (R, 3) each query (Q, 3) matches as mutual nearest neighbours within ``bounds`` (R,).
+
+    numpy, with ``distance = norm(query[:, None] - reference[None], axis=2)`` (Q, R)::
+
+        nearest_reference, nearest_query = distance.argmin(1), distance.argmin(0)
+        mutual = (nearest_query[nearest_reference] == arange(Q))
+                 & (distance[arange(Q), nearest_reference] <= bounds[nearest_reference])
+        where(mutual, nearest_reference, -1)
+
+    (ties go to the lower row, as ``argmin``).
+    """
+    q_count, r_count = query.shape[0], reference.shape[0]
+    distance = np.empty((q_count, r_count))
+    for q in range(q_count):
+        for r in range(r_count):
+            dx = query[q, 0] - reference[r, 0]
+            dy = query[q, 1] - reference[r, 1]
+            dz = query[q, 2] - reference[r, 2]
+            distance[q, r] = math.sqrt(dx * dx + dy * dy + dz * dz)
+    nearest_query = np.empty(r_count, np.int64)
+    for r in range(r_count):
+        nearest_query[r] = 0
+        for q in range(1, q_count):
+            if distance[q, r] < distance[nearest_query[r], r]:
+                nearest_query[r] = q
+    index = np.empty(q_count, np.int64)
+    for q in range(q_count):
+        index[q] = -1
+        best = 0
+        for r in range(1, r_count):
+            if distance[q, r] < distance[q, best]:
+                best = r
+        if nearest_query[best] == q and distance[q, best] <= bounds[best]:
+            index[q] = best
+    return index
+
+
+@njit(cache=True)
 def transform_by_age(T_curr_prev: np.ndarray, points: np.ndarray, age: np.ndarray) -> np.ndarray:
     """Points (N, 3) carried ``age`` (N,) steps (1 or more) of the motion ``T_curr_prev`` (4, 4).
 
@@ -691,3 +730,115 @@ def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) 
         for t in range(length):
             present[r, t] = first + t >= 0 and obs_iter[i, (first + t) % ring] == first + t
     return present
+
+
+# -- dynamic detection (section II-C): the periodic sweep against verified points -----------------
+
+
+@njit(cache=True)
+def reference_deviations(
+    tracks: np.ndarray, valid: np.ndarray, references: np.ndarray, min_common: int, block: int
+) -> np.ndarray:
+    """Deviation (N, R) of the distance of every track (N, L, 3) to each reference track, NaN if not compared.
+
+    numpy, with ``both = valid[:, None] & valid[references][None]`` (N, R, L) and
+    ``distance = where(both, norm(tracks[:, None] - tracks[references][None], axis=3), 0)``::
+
+        usable = (both.sum(2) >= min_common) & (arange(N)[:, None] != references[None, :])
+        # block > 1: distances averaged over blocks of ``block`` iterations counted from the
+        # latest (zero-padded at the start); blocks with under two common observations dropped:
+        #   sums, counts = block sums of distance and both;  both = counts >= 2
+        #   distance = where(both, sums / counts, 0);  usable &= both.sum(2) >= 3
+        count = both.sum(2);  mean = distance.sum(2) / count
+        variance = where(both, (distance - mean[..., None]) ** 2, 0).sum(2) / (count - 1)
+        where(usable, sqrt(variance), nan)
+    """
+    n, length = valid.shape
+    n_refs = references.shape[0]
+    blocks = (length + block - 1) // block
+    pad = blocks * block - length
+    deviation = np.empty((n, n_refs))
+    values = np.empty(blocks)
+    for i in range(n):
+        for j in range(n_refs):
+            deviation[i, j] = np.nan
+            ref = references[j]
+            if ref == i:
+                continue
+            common = 0
+            used = 0
+            for b in range(blocks):
+                total = 0.0
+                count = 0
+                for t in range(max(b * block - pad, 0), (b + 1) * block - pad):
+                    if valid[i, t] and valid[ref, t]:
+                        dx = tracks[i, t, 0] - tracks[ref, t, 0]
+                        dy = tracks[i, t, 1] - tracks[ref, t, 1]
+                        dz = tracks[i, t, 2] - tracks[ref, t, 2]
+                        total += math.sqrt(dx * dx + dy * dy + dz * dz)
+                        count += 1
+                common += count
+                if count >= (2 if block > 1 else 1):
+                    values[used] = total / count
+                    used += 1
+            if common < min_common or (block > 1 and used < 3) or used < 2:
+                continue
+            mean = 0.0
+            for u in range(used):
+                mean += values[u]
+            mean /= used
+            squares = 0.0
+            for u in range(used):
+                squares += (values[u] - mean) ** 2
+            deviation[i, j] = math.sqrt(squares / (used - 1))
+    return deviation
+
+
+@njit(cache=True)
+def block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray, block: int) -> np.ndarray:
+    """RMS scatter (N,) of each track's block-mean world position (NaN under three usable blocks).
+
+    numpy, with ``world = einsum("lab,nlb->nla", poses[:, :3, :3], tracks) + poses[None, :, :3, 3]``
+    and blocks of ``block`` iterations counted from the latest (iterations before the first full
+    block ignored)::
+
+        sums, counts = block sums of where(valid[..., None], world, 0) and of valid   # (N, B, 3), (N, B)
+        usable = counts >= 2;  means = sums / counts[..., None];  used = usable.sum(1)
+        centre = where(usable[..., None], means, 0).sum(1) / used[:, None]
+        scatter = where(usable[..., None], (means - centre[:, None]) ** 2, 0).sum((1, 2))
+        where(used >= 3, sqrt(scatter / (used - 1)), nan)
+    """
+    n, length = valid.shape
+    blocks = length // block
+    start = length - blocks * block
+    scatter = np.empty(n)
+    means = np.empty((blocks, 3))
+    for i in range(n):
+        scatter[i] = np.nan
+        used = 0
+        for b in range(blocks):
+            sx = sy = sz = 0.0
+            count = 0
+            for t in range(start + b * block, start + (b + 1) * block):
+                if valid[i, t]:
+                    x, y, z = tracks[i, t, 0], tracks[i, t, 1], tracks[i, t, 2]
+                    sx += poses[t, 0, 0] * x + poses[t, 0, 1] * y + poses[t, 0, 2] * z + poses[t, 0, 3]
+                    sy += poses[t, 1, 0] * x + poses[t, 1, 1] * y + poses[t, 1, 2] * z + poses[t, 1, 3]
+                    sz += poses[t, 2, 0] * x + poses[t, 2, 1] * y + poses[t, 2, 2] * z + poses[t, 2, 3]
+                    count += 1
+            if count >= 2:
+                means[used, 0], means[used, 1], means[used, 2] = sx / count, sy / count, sz / count
+                used += 1
+        if used < 3:
+            continue
+        cx = cy = cz = 0.0
+        for u in range(used):
+            cx += means[u, 0]
+            cy += means[u, 1]
+            cz += means[u, 2]
+        cx, cy, cz = cx / used, cy / used, cz / used
+        total = 0.0
+        for u in range(used):
+            total += (means[u, 0] - cx) ** 2 + (means[u, 1] - cy) ** 2 + (means[u, 2] - cz) ** 2
+        scatter[i] = math.sqrt(total / (used - 1))
+    return scatter

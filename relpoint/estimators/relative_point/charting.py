@@ -50,8 +50,10 @@ class PointCharting:
     def enumerate(self, first: int, last: int) -> IntArray:
         """Distinct ids charted in any iteration of ``[first, last]`` (clipped to the ring), ascending."""
         first = max(first, last - self.ring_size + 1)
-        lists = [self.seen(t) for t in range(first, last + 1)]
-        lists = [ids for ids in lists if len(ids)]
+        iterations = np.arange(first, last + 1)
+        slots = iterations % self.ring_size
+        charted_slots = slots[self._iteration[slots] == iterations].tolist()
+        lists = [ids for ids in (self._ids[slot] for slot in charted_slots) if len(ids)]
         if not lists:
             return np.zeros(0, np.int64)
         if len(lists) == 1:

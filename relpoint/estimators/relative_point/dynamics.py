@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import block_mean_scatter, reference_deviations
 from relpoint.geometry import FloatArray
 
 BoolArray = npt.NDArray[np.bool_]
@@ -221,20 +222,12 @@ def world_block_deviation(tracks: FloatArray, valid: BoolArray, poses: FloatArra
         Iterations per block (blocks count from the latest iteration; blocks with fewer than two
         observations are ignored).
     """
-    n, length = valid.shape
-    world = np.einsum("lab,nlb->nla", poses[:, :3, :3], tracks) + poses[None, :, :3, 3]
-    blocks = length // block
-    if n == 0 or blocks < 3:
-        return np.full(n, np.nan)
-    tail = slice(length - blocks * block, length)
-    world = np.where(valid[:, tail, None], world[:, tail], 0.0).reshape(n, blocks, block, 3).sum(axis=2)
-    counts = valid[:, tail].reshape(n, blocks, block).sum(axis=2)
-    usable = counts >= 2
-    means = world / np.maximum(counts, 1)[..., None]
-    used = usable.sum(axis=1)
-    centre = np.where(usable[..., None], means, 0.0).sum(axis=1) / np.maximum(used, 1)[:, None]
-    scatter = np.where(usable[..., None], (means - centre[:, None]) ** 2, 0.0).sum(axis=(1, 2))
-    return np.where(used >= 3, np.sqrt(scatter / np.maximum(used - 1, 1)), np.nan)
+    return block_mean_scatter(
+        np.ascontiguousarray(tracks, dtype=np.float64),
+        np.ascontiguousarray(valid, dtype=np.bool_),
+        np.ascontiguousarray(poses, dtype=np.float64),
+        int(block),
+    )
 
 
 def deviation_to_references(
@@ -274,31 +267,15 @@ def deviation_to_references(
     references = np.asarray(references, dtype=np.int64)
     if len(references) == 0 or len(tracks) == 0:
         return np.full(len(tracks), np.nan)
-    both = valid[:, None, :] & valid[references][None, :, :]  # (N, R, L)
-    difference = tracks[:, None, :, :] - tracks[references][None, :, :, :]
-    distance = np.where(both, np.sqrt(np.einsum("nrlk,nrlk->nrl", difference, difference)), 0.0)
-    count = both.sum(axis=2)
-    usable = (count >= min_common) & (np.arange(len(tracks))[:, None] != references[None, :])
-    if block > 1:
-        n, r, length = distance.shape
-        blocks = -(-length // block)
-        pad = blocks * block - length
-        if pad:
-            # Pad at the start so the latest iterations form full blocks.
-            distance = np.concatenate([np.zeros((n, r, pad)), distance], axis=2)
-            both = np.concatenate([np.zeros((n, r, pad), bool), both], axis=2)
-        sums = distance.reshape(n, r, blocks, block).sum(axis=3)
-        counts = both.reshape(n, r, blocks, block).sum(axis=3)
-        both = counts >= 2
-        distance = np.where(both, sums / np.maximum(counts, 1), 0.0)
-        count = both.sum(axis=2)
-        usable &= count >= 3
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = distance.sum(axis=2) / count
-        variance = np.where(both, (distance - mean[..., None]) ** 2, 0.0).sum(axis=2) / (count - 1)
-    deviation = np.where(usable, np.sqrt(variance), np.nan)
+    deviation = reference_deviations(
+        np.ascontiguousarray(tracks, dtype=np.float64),
+        np.ascontiguousarray(valid, dtype=np.bool_),
+        references,
+        int(min_common),
+        int(block),
+    )
     out = np.full(len(tracks), np.nan)
-    any_usable = usable.any(axis=1)
+    any_usable = np.isfinite(deviation).any(axis=1)
     if any_usable.any():
         out[any_usable] = row_nanmedian(deviation[any_usable])
     return out

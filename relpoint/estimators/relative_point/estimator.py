@@ -487,8 +487,9 @@ class RelativePointEstimator(Estimator):
         recent = k - self.config.match_window
         bound2 = self.config.global_match_bound**2
         claims: list[tuple[float, int, int]] = []
-        for q, position in zip(unmatched.tolist(), world, strict=True):
-            candidates = np.asarray(self.index.candidates(position), np.int64)
+        keys = self.index.keys(world).tolist()
+        for q, position, key in zip(unmatched.tolist(), world, keys, strict=True):
+            candidates = np.asarray(self.index.candidates_at(key), np.int64)
             if len(candidates) == 0:
                 continue
             candidates = candidates[store.last_iter[candidates] < recent]
@@ -1006,7 +1007,7 @@ class RelativePointEstimator(Estimator):
             group = groups.groups.get(gid)
             if group is None:
                 continue
-            if not group.is_open and np.all(store.n_later_groups[group.members] >= 1):
+            if not group.is_open and store.n_later_groups[group.members].min() >= 1:
                 groups.remove(gid)
                 self.counts["first_groups_retired"] += 1
             else:
@@ -1018,7 +1019,7 @@ class RelativePointEstimator(Estimator):
                 continue
             closed = [groups.groups[g] for g in refs if not groups.groups[g].is_open and groups.groups[g].kind != ROOT]
             for group in sorted(closed, key=lambda g: g.weight):
-                if np.all(store.n_groups[group.members] >= 2):
+                if store.n_groups[group.members].min() >= 2:
                     groups.remove(group.gid)
                     self.counts["groups_pruned"] += 1
                     break

@@ -277,9 +277,15 @@ class GroupMap:
         """Place a new group and register it with its members; False if it cannot be placed."""
         if not self.place(group):
             return False
-        self.groups[group.gid] = group
+        gid = group.gid
+        self.groups[gid] = group
+        refs = self.refs
         for point in group.members.tolist():
-            self.refs.setdefault(point, []).append(group.gid)
+            listed = refs.get(point)
+            if listed is None:
+                refs[point] = [gid]
+            else:
+                listed.append(gid)
         self.store.n_groups[group.members] += 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] += 1
@@ -292,12 +298,13 @@ class GroupMap:
         """Delete a group and withdraw its contribution from its members' positions."""
         group = self.groups.pop(gid)
         self._contribute(group, group.placed, 0.0)
+        refs = self.refs
         for point in group.members.tolist():
-            refs = self.refs.get(point)
-            if refs is not None:
-                refs.remove(gid)
-                if not refs:
-                    del self.refs[point]
+            listed = refs.get(point)
+            if listed is not None:
+                listed.remove(gid)
+                if not listed:
+                    del refs[point]
         self.store.n_groups[group.members] -= 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] -= 1

@@ -19,10 +19,12 @@ leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import claim_one_to_one, nearest_two, transform_by_age
+from relpoint.estimators.relative_point._kernels import claim_one_to_one, mutual_nearest, nearest_two, transform_by_age
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.geometry import FloatArray
 
@@ -59,25 +61,19 @@ def match_mutual(reference: FloatArray, query: FloatArray, bounds: FloatArray) -
 
     ``bounds`` (R,) is each reference's matching bound (m). Mutual nearest neighbours only, so a
     wide bound cannot take a point that another reference is closer to. Brute force: it serves the
-    few points the first round of local matching left over.
+    few points the first round of local matching left over (:func:`~._kernels.mutual_nearest`).
 
     Returns
     -------
     (Q,) row of ``reference`` matched by each query, ``NO_MATCH`` if none.
     """
-    index = np.full(len(query), NO_MATCH, np.int64)
     if len(query) == 0 or len(reference) == 0:
-        return index
-    difference = query[:, None, :] - reference[None, :, :]
-    distance = np.sqrt(np.einsum("qrk,qrk->qr", difference, difference))
-    nearest_reference = distance.argmin(axis=1)
-    nearest_query = distance.argmin(axis=0)
-    rows = np.arange(len(query))
-    mutual = (nearest_query[nearest_reference] == rows) & (
-        distance[rows, nearest_reference] <= bounds[nearest_reference]
+        return np.full(len(query), NO_MATCH, np.int64)
+    return mutual_nearest(
+        np.ascontiguousarray(reference, dtype=np.float64),
+        np.ascontiguousarray(query, dtype=np.float64),
+        np.ascontiguousarray(bounds, dtype=np.float64),
     )
-    index[mutual] = nearest_reference[mutual]
-    return index
 
 
 class MotionModel:
@@ -106,30 +102,52 @@ class MotionModel:
         return None
 
 
+_KEY_SCALE = 1 << 21
+"""Cell coordinates per axis a packed cell key keeps apart (see :class:`GlobalIndex`)."""
+_KEY_LIMIT = _KEY_SCALE // 2 - 1
+"""Largest cell coordinate (in magnitude) with a key of its own."""
+
+
 class GlobalIndex:
     """Hashed grid over global positions (``world``, m): the paper's global overlapping quadtree.
 
     Cells are ``cell`` metres on a side; a query looks in the 27 cells around the query point, so any
     point within ``cell`` metres is found. Positions are updated incrementally: cell keys are
     compared in one vectorised step and only points that change cell touch the hash table.
+
+    The cell with integer coordinates ``(x, y, z)`` has the key ``(x * S + y) * S + z``, ``S = 2**21``:
+    one integer, linear in the coordinates (a neighbour's key is the key plus a constant) and distinct
+    for every cell within ``2**20`` cells of the origin (thousands of kilometres). Coordinates are
+    clipped to that range, so cells farther out share the keys of the border cells, which only adds
+    candidates (callers compare distances anyway).
     """
 
     def __init__(self, cell: float) -> None:
         self.cell = float(cell)
-        self._cells: dict[tuple[int, int, int], set[int]] = {}
-        self._key = np.zeros((0, 3), np.int64)
+        self._cells: dict[int, set[int]] = {}
+        self._key = np.zeros(0, np.int64)
         self._indexed = np.zeros(0, bool)
         self._size = 0
-        self._offsets = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+        self._offsets = [
+            (a * _KEY_SCALE + b) * _KEY_SCALE + c for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+        ]
 
     def __len__(self) -> int:
         return self._size
+
+    def keys(self, positions: FloatArray) -> IntArray:
+        """Cell keys (N,) of positions (N, 3) m."""
+        cell = np.floor(positions / self.cell)
+        np.maximum(cell, -_KEY_LIMIT, out=cell)
+        np.minimum(cell, _KEY_LIMIT, out=cell)
+        cell = cell.astype(np.int64)
+        return (cell[:, 0] * _KEY_SCALE + cell[:, 1]) * _KEY_SCALE + cell[:, 2]
 
     def _reserve(self, largest_id: int) -> None:
         if largest_id < len(self._indexed):
             return
         capacity = max(2 * len(self._indexed), largest_id + 1, 64)
-        self._key = np.concatenate([self._key, np.zeros((capacity - len(self._key), 3), np.int64)])
+        self._key = np.concatenate([self._key, np.zeros(capacity - len(self._key), np.int64)])
         self._indexed = np.concatenate([self._indexed, np.zeros(capacity - len(self._indexed), bool)])
 
     def update(self, ids: IntArray, positions: FloatArray) -> None:
@@ -137,21 +155,23 @@ class GlobalIndex:
         if len(ids) == 0:
             return
         self._reserve(int(ids.max()))
-        keys = np.floor(positions / self.cell).astype(np.int64)
-        moved = ~self._indexed[ids] | np.any(keys != self._key[ids], axis=1)
+        keys = self.keys(positions)
+        indexed = self._indexed[ids]
+        moved = ~indexed | (keys != self._key[ids])
         if not moved.any():
             return
-        self.remove(ids[moved & self._indexed[ids]])
+        self.remove(ids[moved & indexed])
         cells = self._cells
-        for i, key in zip(ids[moved].tolist(), map(tuple, keys[moved].tolist()), strict=True):
+        ids, keys = ids[moved], keys[moved]
+        for i, key in zip(ids.tolist(), keys.tolist(), strict=True):
             members = cells.get(key)
             if members is None:
                 cells[key] = {i}
             else:
                 members.add(i)
-        self._key[ids[moved]] = keys[moved]
-        self._indexed[ids[moved]] = True
-        self._size += int(np.count_nonzero(moved))
+        self._key[ids] = keys
+        self._indexed[ids] = True
+        self._size += len(ids)
 
     def remove(self, ids: npt.ArrayLike) -> None:
         """Drop points from the index (unknown ids are ignored)."""
@@ -161,7 +181,7 @@ class GlobalIndex:
         if len(ids) == 0:
             return
         cells = self._cells
-        for i, key in zip(ids.tolist(), map(tuple, self._key[ids].tolist()), strict=True):
+        for i, key in zip(ids.tolist(), self._key[ids].tolist(), strict=True):
             members = cells[key]
             members.discard(i)
             if not members:
@@ -171,11 +191,15 @@ class GlobalIndex:
 
     def candidates(self, position: FloatArray) -> list[int]:
         """Ids in the 27 cells around one position (3,)."""
-        x, y, z = (int(v) for v in np.floor(position / self.cell))
+        x, y, z = (min(max(math.floor(v / self.cell), -_KEY_LIMIT), _KEY_LIMIT) for v in position.tolist())
+        return self.candidates_at((x * _KEY_SCALE + y) * _KEY_SCALE + z)
+
+    def candidates_at(self, key: int) -> list[int]:
+        """Ids in the 27 cells around the cell with key ``key`` (from :meth:`keys`)."""
         found: list[int] = []
         cells = self._cells
-        for a, b, c in self._offsets:
-            members = cells.get((x + a, y + b, z + c))
+        for offset in self._offsets:
+            members = cells.get(key + offset)
             if members:
                 found.extend(members)
         return found
