@@ -21,7 +21,7 @@ from relpoint.estimators.relative_point.dynamics import (
 from relpoint.estimators.relative_point.estimator import quaternion_xyzw
 from relpoint.estimators.relative_point.grouping import select_members
 from relpoint.estimators.relative_point.groups import basis_rotation, choose_basis, relative_coordinates
-from relpoint.estimators.relative_point.loops import drift_share, required_support, vote_offset
+from relpoint.estimators.relative_point.loops import drift_profile, drift_share, required_support, vote_offset
 from relpoint.estimators.relative_point.lsf import apply, fit_transform, is_collinear
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.estimators.relative_point.registration import (
@@ -225,6 +225,33 @@ def test_required_support_grows_with_chance_agreement() -> None:
     for proposals, chance in ((300, 1.0), (3000, 3.0)):
         needed = required_support(proposals, chance, 4)
         assert proposals * poisson.sf(needed - 2, chance) <= 0.01 < proposals * poisson.sf(needed - 3, chance)
+
+
+def test_drift_profile_follows_heading_drift_along_the_path() -> None:
+    # A circular loop mapped with a heading error growing at a constant rate: the position error
+    # peaks half way round and is smaller at the end. Knowing only the end offset, the profile
+    # recovers the error along the path; the linear share cannot.
+    n = 400
+    angle = np.linspace(0.0, 2 * np.pi, n)
+    true_path = 50.0 * np.column_stack([np.sin(angle), 1.0 - np.cos(angle), np.zeros(n)])
+    heading_error = np.linspace(0.0, np.radians(3.0), n)
+    steps = np.diff(true_path, axis=0)
+    drifted_steps = np.column_stack(
+        [
+            np.cos(heading_error[:-1]) * steps[:, 0] - np.sin(heading_error[:-1]) * steps[:, 1],
+            np.sin(heading_error[:-1]) * steps[:, 0] + np.cos(heading_error[:-1]) * steps[:, 1],
+            steps[:, 2],
+        ]
+    )
+    drifted = np.concatenate([true_path[:1], true_path[0] + np.cumsum(drifted_steps, axis=0)])
+    error = true_path - drifted  # the correction each iteration needs
+    profile = drift_profile(drifted, error[-1], max_angle=0.2)
+    assert np.allclose(profile[[0, -1]], error[[0, -1]])
+    linear = drift_share(np.arange(n), 0, n - 1)[:, None] * error[-1]
+    assert np.abs(profile - error).max() < 0.1 * np.abs(error).max()
+    assert np.abs(linear - error).max() > 0.5 * np.abs(error).max()
+    # An offset a rotation within the limit cannot explain is spread linearly.
+    assert np.allclose(drift_profile(drifted, 100 * error[-1], max_angle=0.2), 100 * linear)
 
 
 def test_drift_share_ramps_from_the_last_visit_to_now() -> None:

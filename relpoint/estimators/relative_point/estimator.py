@@ -82,7 +82,7 @@ from relpoint.estimators.relative_point.groups import (
     choose_basis,
     relative_coordinates,
 )
-from relpoint.estimators.relative_point.loops import drift_share, vote_offset
+from relpoint.estimators.relative_point.loops import drift_profile, vote_offset
 from relpoint.estimators.relative_point.lsf import _median, apply, fit_transform
 from relpoint.estimators.relative_point.points import IntArray, PointStore
 from relpoint.estimators.relative_point.registration import (
@@ -136,6 +136,9 @@ class RelativePointConfig(Settings):
     """Points first seen within this many iterations are young: possibly old points mapped again."""
     loop_gap: int = 50
     """Mapped points unseen for this many iterations are old: what a loop returns to."""
+    loop_max_rotation: float = 0.2
+    """A loop's drift is explained by heading drift growing steadily along the path up to this total
+    angle (rad); beyond it, or for the part a rotation cannot explain, it is spread linearly in time."""
     creation_delay: int = 4
     """A new point becomes a creation point after this many further iterations of observation."""
     max_creations_per_iteration: int = 2
@@ -246,6 +249,7 @@ class RelativePointConfig(Settings):
         non_negative = {
             "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
             "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
+            "loop_max_rotation": self.loop_max_rotation,
         }  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -303,6 +307,7 @@ class RelativePointEstimator(Estimator):
         self.tally = IdTally()
         self._poses = np.repeat(np.eye(4)[None], config.ring_size, axis=0)
         self._T_world_sensor = np.eye(4)
+        self._path = np.zeros((256, 3))  # position of every iteration (world, m): loop corrections follow it
         self._motion_measured = False
         self._iteration = 0
         self._regroup_queue: deque[int] = deque()
@@ -566,14 +571,20 @@ class RelativePointEstimator(Estimator):
             in_view.add(older)
 
     def _take_out_drift(self, offset: FloatArray, t0: int, k: int) -> None:
-        """Shift groups and poses by their share of a loop's drift ``offset`` (3,) m (:func:`.loops.drift_share`)."""
+        """Shift groups and poses by their part of a loop's drift ``offset`` (3,) m (:func:`.loops.drift_profile`).
+
+        The correction of iteration ``t`` follows the path from ``t0`` (when the old points were last
+        seen, no correction) to now (``offset``); a group takes that of its last iteration.
+        """
+        path = np.concatenate([self._path[t0:k], self._T_world_sensor[None, :3, 3]])
+        correction = drift_profile(path, offset, self.config.loop_max_rotation)
         for group in list(self.groups.groups.values()):
-            share = float(drift_share(group.last_iteration, t0, k))
-            if share > 0:
-                self.groups.shift(group, share * offset)
+            if group.last_iteration > t0:
+                self.groups.shift(group, correction[min(group.last_iteration, k) - t0])
         ring = self.config.ring_size
         iterations = np.arange(max(t0 + 1, k - ring + 1), k)
-        self._poses[iterations % ring, :3, 3] += drift_share(iterations, t0, k)[:, None] * offset
+        self._poses[iterations % ring, :3, 3] += correction[iterations - t0]
+        self._path[t0 + 1 : k] += correction[1 : k - t0]
         self._T_world_sensor = self._T_world_sensor.copy()
         self._T_world_sensor[:3, 3] += offset
 
@@ -1035,6 +1046,9 @@ class RelativePointEstimator(Estimator):
     def _finish(self, k: int, stamp_ns: int, T_world_sensor: FloatArray) -> Pose:
         self._T_world_sensor = T_world_sensor
         self._poses[k % self.config.ring_size] = T_world_sensor
+        if k >= len(self._path):
+            self._path = np.concatenate([self._path, np.zeros((max(len(self._path), 256), 3))])
+        self._path[k] = T_world_sensor[:3, 3]
         x, y, z = T_world_sensor[:3, 3].tolist()
         return Pose(int(stamp_ns), (x, y, z), quaternion_xyzw(T_world_sensor[:3, :3]))
 

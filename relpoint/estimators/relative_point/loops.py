@@ -21,9 +21,13 @@ chance agreement does not close false loops.
 
 :func:`drift_share` then spreads the correction over the loop: drift builds up along the path, so a
 group or pose from iteration ``t`` moves by the share ``(t - t0) / (k - t0)`` of the offset, where
-``t0`` is when the old points were last seen and ``k`` is now. This is the linear distribution of a
-loop's error used by early pose-graph relaxation, applied to the translation only: a rotation fitted
-to the few points of one neighbourhood is too uncertain to be carried over the whole map.
+``t0`` is when the old points were last seen and ``k`` is now: the linear distribution of a loop's
+error of early pose-graph relaxation. :func:`drift_profile` refines it with the path's shape: drift is
+mostly heading drift, which moves the path by a rotation that grows along it, so the error can peak
+far from the loop's ends. Only the offset is measured (a rotation fitted to the few points of one
+neighbourhood is too uncertain to carry over the whole map), so the profile assumes the heading
+error grows at a constant rate (the mean course of a random walk known to start at zero and
+end at some value is a straight line).
 """
 
 from __future__ import annotations
@@ -112,3 +116,31 @@ def drift_share(iterations: npt.ArrayLike, t0: int, k: int) -> FloatArray:
     """Share of a loop's drift accumulated by ``iterations``: 0 up to ``t0``, rising linearly to 1 at ``k``."""
     span = max(k - t0, 1)
     return np.clip((np.asarray(iterations, dtype=np.float64) - t0) / span, 0.0, 1.0)
+
+
+def drift_profile(path: FloatArray, offset: FloatArray, max_angle: float) -> FloatArray:
+    """Correction (N, 3) m for each iteration of a loop whose path is ``path`` (N, 3), ending in ``offset``.
+
+    Heading drift builds up along a path: with a rotation error growing at a constant rate ``w``
+    (rad per iteration, 3-vector) from the loop's start, the position error at iteration ``t`` is
+    ``w x W(t)``, ``W(t) = sum over tau < t of (tau - t0) * v(tau)``, ``v`` the displacement per
+    iteration. The part of ``offset`` across ``W`` at the end is explained that way (minimum-norm
+    ``w``); the part along it, and all of it when the implied rotation exceeds ``max_angle``, is
+    spread linearly in time. Row 0 is 0, the last row ``offset``.
+    """
+    n = len(path)
+    linear = drift_share(np.arange(n), 0, n - 1)[:, None] * offset
+    if n < 3:
+        return linear
+    steps = np.diff(path, axis=0)
+    W = np.concatenate([np.zeros((1, 3)), np.cumsum(np.arange(n - 1)[:, None] * steps, axis=0)])
+    end = W[-1]
+    norm2 = float(end @ end)
+    if norm2 <= 1e-12:
+        return linear
+    across = offset - (offset @ end) / norm2 * end
+    w = np.cross(end, across) / norm2
+    if np.linalg.norm(w) * (n - 1) > max_angle:
+        return linear
+    along = offset - across
+    return np.cross(w, W) + drift_share(np.arange(n), 0, n - 1)[:, None] * along
