@@ -577,6 +577,17 @@ def basis_coordinates(
 
 
 @njit(cache=True)
+def _row_mean(points: np.ndarray, m: int) -> tuple[float, float, float]:
+    """Mean of the first ``m`` rows of ``points`` (N, 3). numpy: ``points[:m].mean(axis=0)``."""
+    c0 = c1 = c2 = 0.0
+    for r in range(m):
+        c0 += points[r, 0]
+        c1 += points[r, 1]
+        c2 += points[r, 2]
+    return c0 / m, c1 / m, c2 / m
+
+
+@njit(cache=True)
 def spread_basis(points: np.ndarray, min_spread: float) -> tuple[int, int, int]:
     """Rows of three well-spread, non-collinear points of ``points`` (M, 3); ``(-1, -1, -1)`` if none.
 
@@ -587,12 +598,7 @@ def spread_basis(points: np.ndarray, min_spread: float) -> tuple[int, int, int]:
     m = points.shape[0]
     if m < 3:
         return -1, -1, -1
-    c0 = c1 = c2 = 0.0
-    for r in range(m):
-        c0 += points[r, 0]
-        c1 += points[r, 1]
-        c2 += points[r, 2]
-    c0, c1, c2 = c0 / m, c1 / m, c2 / m
+    c0, c1, c2 = _row_mean(points, m)
     i0, best = 0, -1.0
     for r in range(m):
         d0, d1, d2 = points[r, 0] - c0, points[r, 1] - c1, points[r, 2] - c2
@@ -831,12 +837,7 @@ def block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray,
                 used += 1
         if used < 3:
             continue
-        cx = cy = cz = 0.0
-        for u in range(used):
-            cx += means[u, 0]
-            cy += means[u, 1]
-            cz += means[u, 2]
-        cx, cy, cz = cx / used, cy / used, cz / used
+        cx, cy, cz = _row_mean(means, used)
         total = 0.0
         for u in range(used):
             total += (means[u, 0] - cx) ** 2 + (means[u, 1] - cy) ** 2 + (means[u, 2] - cz) ** 2
