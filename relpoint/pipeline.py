@@ -108,14 +108,20 @@ def run(
                 on_iteration(len(stamps) - 1, pose)
     if not stamps:
         raise EstimatorError("the log holds no observation to run on")
-    if map_every > 0 and (not snapshots or snapshots[-1][0] != len(stamps) - 1):
-        snapshots.append((len(stamps) - 1, stamps[-1], estimator.landmark_map()))
-    return RunResult(
-        trajectory=Trajectory(
+    trajectory = estimator.finish(
+        Trajectory(
             np.frombuffer(stamps, dtype=np.int64),
             np.frombuffer(positions, dtype=np.float64).reshape(-1, 3),
             np.frombuffer(quats, dtype=np.float64).reshape(-1, 4),
-        ),
+        )
+    )
+    if map_every > 0:
+        # The last snapshot is the final map (after any final adjustment).
+        if snapshots and snapshots[-1][0] == len(stamps) - 1:
+            snapshots.pop()
+        snapshots.append((len(stamps) - 1, stamps[-1], estimator.landmark_map()))
+    return RunResult(
+        trajectory=trajectory,
         landmarks=estimator.landmark_map(),
         observed=np.asarray(observed, dtype=np.int64),
         map_size=np.asarray(map_size, dtype=np.int64),

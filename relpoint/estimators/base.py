@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from relpoint.errors import UsageError
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
 POINTS = "points"
@@ -48,6 +48,14 @@ class Estimator(abc.ABC):
     @abc.abstractmethod
     def landmark_map(self) -> LandmarkMap:
         """The current map of landmarks in ``world``."""
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        """Called once after the last iteration with the poses :meth:`step` returned, in order.
+
+        Returns the final trajectory. An estimator that refines its map when the log ends (a final
+        adjustment) corrects the trajectory here too; the default returns it unchanged.
+        """
+        return trajectory
 
     @property
     def map_size(self) -> int:

@@ -62,14 +62,18 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
+from relpoint.estimators.relative_point.adjustment import adjust_network
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references, world_block_deviation
 from relpoint.estimators.relative_point.grouping import UngroupedList, select_members
@@ -95,7 +99,7 @@ from relpoint.estimators.relative_point.registration import (
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings
-from relpoint.types import LandmarkMap, PointObservation, Pose
+from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -139,6 +143,21 @@ class RelativePointConfig(Settings):
     loop_max_rotation: float = 0.2
     """A loop's drift is explained by heading drift growing steadily along the path up to this total
     angle (rad); beyond it, or for the part a rotation cannot explain, it is spread linearly in time."""
+    final_adjustment: bool = True
+    """When the log ends, solve every group pose and point position jointly by least squares
+    (:mod:`.adjustment`) and move each pose with the groups of its iterations; False keeps the
+    paper's incremental solution."""
+    adjustment_prior: float = 0.005
+    """Weight (in iterations averaged) of each point's pull towards its incremental position in the
+    final adjustment: it settles the directions the relative maps leave almost free."""
+    adjustment_robust: float = 0.5
+    """Cauchy scale of the final adjustment (m; 0: plain least squares)."""
+    adjustment_iterations: int = 10
+    """Largest number of Levenberg-Marquardt iterations of the final adjustment."""
+    relocate_points: int = 32
+    """Observations of mapped points each iteration keeps (sensor frame, with the point) so that the
+    final adjustment can locate the iteration again on the adjusted map (bounds memory: about 20 bytes
+    each)."""
     creation_delay: int = 4
     """A new point becomes a creation point after this many further iterations of observation."""
     max_creations_per_iteration: int = 2
@@ -229,7 +248,8 @@ class RelativePointConfig(Settings):
             "dynamic_window": self.dynamic_window, "dynamic_every": self.dynamic_every,
             "dynamic_references": self.dynamic_references, "dynamic_block": self.dynamic_block,
             "stale_after": self.stale_after, "loop_every": self.loop_every, "loop_young": self.loop_young,
-            "loop_gap": self.loop_gap,
+            "loop_gap": self.loop_gap, "adjustment_iterations": self.adjustment_iterations,
+            "relocate_points": self.relocate_points,
         }  # fmt: skip
         for name, value in positive_int.items():
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -249,7 +269,8 @@ class RelativePointConfig(Settings):
         non_negative = {
             "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
             "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
-            "loop_max_rotation": self.loop_max_rotation,
+            "loop_max_rotation": self.loop_max_rotation, "adjustment_prior": self.adjustment_prior,
+            "adjustment_robust": self.adjustment_robust,
         }  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -257,7 +278,7 @@ class RelativePointConfig(Settings):
         for name, value in non_negative.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise UsageError(f"{name} must be a number >= 0, got {value!r}")
-        for name in ("predict_motion", "global_matching", "dynamic_detection", "coast"):
+        for name in ("predict_motion", "global_matching", "dynamic_detection", "coast", "final_adjustment"):
             if not isinstance(getattr(self, name), bool):
                 raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.unverified_weight > 1.0 or self.dynamic_spread_verify > 1.0:
@@ -315,6 +336,11 @@ class RelativePointEstimator(Estimator):
         self._over_grouped: set[int] = set()
         self._newly_mapped: list[IntArray] = []
         self._next_creation_try: dict[int, int] = {}
+        self.adjustment_report: dict[str, Any] | None = None
+        # Per iteration: uids and sensor-frame observations of mapped points, to locate it again
+        # after the final adjustment; and where merged points' uids went.
+        self._support: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
+        self._merged_uid: dict[int, int] = {}
         self.counts: dict[str, int] = dict.fromkeys(
             (
                 "degenerate_iterations", "empty_iterations", "nonfinite_points", "new_points", "local_matches",
@@ -340,6 +366,7 @@ class RelativePointEstimator(Estimator):
             self.counts["empty_iterations"] += 1
             self.counts["degenerate_iterations"] += 1
             self.charting.chart(k, np.zeros(0, np.int64))
+            self._support.append(None)
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)
 
         self._motion_measured = False
@@ -357,6 +384,7 @@ class RelativePointEstimator(Estimator):
         ids = self._merge_duplicates(ids, k)
 
         T_world_sensor = np.eye(4) if k == 0 else self._locate(points, ids)
+        self._keep_support(k, points, ids, located=T_world_sensor is not None)
         if T_world_sensor is None:
             logger.debug("iteration %d: fewer than three usable non-collinear mapped points, pose coasted", k)
             self.counts["degenerate_iterations"] += 1
@@ -365,6 +393,114 @@ class RelativePointEstimator(Estimator):
         self._housekeeping(k)
         self._refresh_index()
         return self._finish(k, observation.stamp_ns, T_world_sensor)
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        """Adjust the whole map by least squares and locate every iteration again on it.
+
+        With ``final_adjustment`` (the default) every group pose and point position is solved jointly
+        (:meth:`adjust`), then each iteration's pose is fitted again, as :meth:`_locate` fitted it, from
+        the observations it kept (``relocate_points``) to the adjusted global positions. An iteration
+        that cannot be fitted again (too few of its points still mapped) keeps the correction of the
+        nearest iteration before it. ``trajectory`` holds the poses :meth:`step` returned.
+        """
+        if not self.config.final_adjustment or len(trajectory) != self._iteration or not self.adjust():
+            return trajectory
+        store = self.store
+        live = store.live_ids()
+        row_of = dict(zip(store.uid[live].tolist(), live.tolist(), strict=True))
+        for newer, older in self._merged_uid.items():
+            while older not in row_of and older in self._merged_uid:
+                older = self._merged_uid[older]
+            if older in row_of:
+                row_of.setdefault(newer, row_of[older])
+        T_before = trajectory_matrices(trajectory)
+        T_after = T_before.copy()
+        correction = np.eye(4)
+        relocated = 0
+        for k, support in enumerate(self._support):
+            fit = None
+            if support is not None:
+                uids, observed = support
+                rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
+                usable = rows >= 0
+                usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
+                fit = self._fit_pose(observed[usable].astype(np.float64), rows[usable])
+            if fit is not None:
+                T_after[k] = fit
+                correction = fit @ _rigid_inverse(T_before[k])
+                relocated += 1
+            else:
+                T_after[k] = correction @ T_before[k]
+        assert self.adjustment_report is not None
+        self.adjustment_report["relocated_iterations"] = relocated
+        orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
+        return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
+
+    def _keep_support(self, k: int, points: FloatArray, ids: IntArray, *, located: bool) -> None:
+        """Keep up to ``relocate_points`` of this iteration's observations of mapped points."""
+        if not self.config.final_adjustment or not located or k == 0:
+            # The first iteration defines ``world``; a coasted one had no usable fit.
+            self._support.append(None)
+            return
+        store = self.store
+        safe = np.where(ids != NO_MATCH, ids, 0)
+        use = np.flatnonzero((ids != NO_MATCH) & (store.pos_weight[safe] > 0) & ~store.dynamic[safe])
+        if len(use) > self.config.relocate_points:
+            use = use[np.linspace(0, len(use) - 1, self.config.relocate_points).round().astype(np.int64)]
+        self._support.append((store.uid[ids[use]].copy(), points[use].astype(np.float32)))
+
+    def adjust(self) -> bool:
+        """Joint least-squares adjustment of every placed group and mapped point (:mod:`.adjustment`).
+
+        Flagged dynamic points take no part; groups with fewer than three such members keep their
+        pose. The root group stays where it is: it carries ``world``. Returns whether anything was
+        adjusted; the figures go to :meth:`summary` under ``final_adjustment``.
+        """
+        config, store = self.config, self.store
+        start = time.perf_counter()
+        groups, members, relative, weights = [], [], [], []
+        for group in self.groups.groups.values():
+            usable = store.alive[group.members] & ~store.dynamic[group.members]
+            if group.weight <= 0 or np.count_nonzero(usable) < 3:
+                continue
+            groups.append(group)
+            members.append(group.members[usable])
+            relative.append(group.relative_map[usable])
+            weights.append(np.full(np.count_nonzero(usable), float(group.count)))
+        if not groups:
+            return False
+        group_rows = np.repeat(np.arange(len(groups)), [len(m) for m in members])
+        points, point_rows = np.unique(np.concatenate(members), return_inverse=True)
+        T_before = np.array([group.T_world_group for group in groups])
+        result = adjust_network(
+            group_rows,
+            point_rows,
+            np.concatenate(relative),
+            np.concatenate(weights),
+            T_before[:, :3, :3],
+            T_before[:, :3, 3],
+            store.positions(points),
+            np.array([group.kind == ROOT for group in groups]),
+            prior=config.adjustment_prior,
+            robust=config.adjustment_robust,
+            iterations=config.adjustment_iterations,
+        )
+        T_after = np.repeat(np.eye(4)[None], len(groups), axis=0)
+        T_after[:, :3, :3] = result.R_world_group
+        T_after[:, :3, 3] = result.t_world_group
+        for group, T_world_group in zip(groups, T_after, strict=True):
+            self.groups.move(group, T_world_group)
+        self._refresh_index()
+        self.adjustment_report = {
+            "groups": len(groups),
+            "points": len(points),
+            "memberships": len(group_rows),
+            "iterations": result.iterations,
+            "cost_before": round(result.cost_before, 3),
+            "cost_after": round(result.cost_after, 3),
+            "seconds": round(time.perf_counter() - start, 3),
+        }
+        return True
 
     def landmark_map(self) -> LandmarkMap:
         """Mapped points (static: least-squares global position) and dynamic points (mean position)."""
@@ -408,6 +544,7 @@ class RelativePointEstimator(Estimator):
             "groups_created": self.groups.created,
             "groups_removed": self.groups.removed,
             "group_fit_failures": self.groups.failed_fits,
+            **({"final_adjustment": self.adjustment_report} if self.adjustment_report else {}),
         }
 
     # -- the phases of one iteration -------------------------------------------------------------
@@ -713,6 +850,7 @@ class RelativePointEstimator(Estimator):
             basis=basis,
             rel_sum=relative[:, valid].sum(axis=1),
             count=int(valid.sum()),
+            first_iteration=int(iterations[0]),
             last_iteration=int(iterations[-1]),
             is_open=bool(iterations[-1] == k),
             anchor_targets=anchor_targets,
@@ -943,6 +1081,7 @@ class RelativePointEstimator(Estimator):
         self.groups.transfer(newer, older)
         self.charting.replace(newer, older, first, min(last, k))
         self.tally.relabel(int(store.uid[newer]), int(store.uid[older]))
+        self._merged_uid[int(store.uid[newer])] = int(store.uid[older])
         self.index.remove(newer)
         self.ungrouped.discard(newer)
         self._over_grouped.discard(newer)
@@ -953,29 +1092,41 @@ class RelativePointEstimator(Estimator):
         """Current position (paper II-D): LSF of this iteration's observations to their global positions."""
         store = self.store
         known = ids != NO_MATCH
-        if len(self.groups) == 0:
-            # Before the first group: the first observations are global positions (world = first frame).
-            slot_zero = store.obs_iter[np.where(known, ids, 0), 0] == 0
-            use = known & slot_zero
-            targets = store.obs[ids[use], 0]
-            weights = None
-        else:
-            safe = np.where(known, ids, 0)
+        safe = np.where(known, ids, 0)
+        if len(self.groups):
             use = known & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
-            targets = store.positions(ids[use])
-            # Points whose groups disagree about their position (slow movers) and points not yet
-            # verified static count for less.
-            weights = 1.0 / (store.spread(ids[use]) ** 2 + self.config.spread_floor**2)
-            weights *= np.where(store.verified[ids[use]] >= 0, 1.0, self.config.unverified_weight)
+            return self._fit_pose(points[use], ids[use])
+        # Before the first group: the first observations are global positions (world = first frame).
+        use = known & (store.obs_iter[safe, 0] == 0)
         fit = fit_transform(
             points[use],
-            targets,
+            store.obs[ids[use], 0],
             trim=self.config.trim,
             floor=self.config.trim_floor,
             collinear_tolerance=self.config.collinear_tolerance,
-            weights=weights,
             rounds=self.config.trim_rounds,
             consensus=self.config.consensus_bound,
+        )
+        return None if fit is None else fit.T
+
+    def _fit_pose(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
+        """``T_world_sensor`` fitting observations (N, 3) (sensor frame) to their points' global positions.
+
+        Points whose groups disagree about their position (slow movers) and points not yet verified
+        static count for less; gross outliers are trimmed. ``None`` if the fit is degenerate.
+        """
+        store, config = self.store, self.config
+        weights = 1.0 / (store.spread(ids) ** 2 + config.spread_floor**2)
+        weights *= np.where(store.verified[ids] >= 0, 1.0, config.unverified_weight)
+        fit = fit_transform(
+            points,
+            store.positions(ids),
+            trim=config.trim,
+            floor=config.trim_floor,
+            collinear_tolerance=config.collinear_tolerance,
+            weights=weights,
+            rounds=config.trim_rounds,
+            consensus=config.consensus_bound,
         )
         return None if fit is None else fit.T
 
@@ -1051,6 +1202,14 @@ class RelativePointEstimator(Estimator):
         self._path[k] = T_world_sensor[:3, 3]
         x, y, z = T_world_sensor[:3, 3].tolist()
         return Pose(int(stamp_ns), (x, y, z), quaternion_xyzw(T_world_sensor[:3, :3]))
+
+
+def trajectory_matrices(trajectory: Trajectory) -> FloatArray:
+    """Poses (N, 4, 4) ``T_world_sensor`` of a trajectory."""
+    T = np.repeat(np.eye(4)[None], len(trajectory), axis=0)
+    T[:, :3, :3] = Rotation.from_quat(trajectory.quats_xyzw).as_matrix()
+    T[:, :3, 3] = trajectory.positions
+    return T
 
 
 def quaternion_xyzw(R: FloatArray) -> tuple[float, float, float, float]:

@@ -112,6 +112,7 @@ class RelativeGroup:
     basis: rows of ``members`` used as basis points.
     rel_sum: (M, 3) sum of relative positions over ``count`` iterations (basis frame, m).
     count: iterations averaged.
+    first_iteration: first iteration of the calculation interval.
     last_iteration: last iteration averaged.
     is_open: still averaging (every member was observed in every iteration since creation).
     anchor_targets: (M, 3) world positions a root group is fitted to, else ``None``.
@@ -128,6 +129,7 @@ class RelativeGroup:
     count: int
     last_iteration: int
     is_open: bool
+    first_iteration: int = -1
     anchor_targets: FloatArray | None = None
     T_world_group: FloatArray = field(default_factory=lambda: np.eye(4))
     placed: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -252,6 +254,11 @@ class GroupMap:
         group.T_world_group = fit.T
         self._contribute(group, apply(fit.T, relative), float(group.count))
         return True
+
+    def move(self, group: RelativeGroup, T_world_group: FloatArray) -> None:
+        """Give a placed group the pose ``T_world_group`` (4, 4) (the final adjustment), with its contribution."""
+        group.T_world_group = T_world_group
+        self._contribute(group, apply(T_world_group, group.relative_map), group.weight)
 
     def shift(self, group: RelativeGroup, offset: FloatArray) -> None:
         """Translate a placed group by ``offset`` (3,) m in ``world`` (loop closure), with its contribution."""

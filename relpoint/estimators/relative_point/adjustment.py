@@ -1,0 +1,207 @@
+"""Joint least-squares adjustment of the relative maps (an addition to Kraut, section II-B).
+
+The paper joins relative maps one at a time: each group is fitted to the global positions its
+members already have, once, when it is created (and while it is still averaging), and a point in
+several groups gets the weighted mean of the positions its groups give it. Each fit is a least-squares
+fit, but the sequence is not the least-squares solution of the whole network: a group placed early is
+never moved by what later groups learn about its members, and a group fitted while a moving point
+was still among its anchors keeps that error after the point is flagged.
+
+:func:`adjust_network` solves for every group pose and every point position at once::
+
+    minimise   sum_(g, m)  w_gm rho(|| R_g p_gm + t_g - X_m ||)  +  mu sum_m || X_m - X0_m ||^2
+
+over the memberships ``(g, m)`` of point ``m`` in group ``g``: ``p_gm`` is the member's averaged
+relative position in the group's basis frame, ``(R_g, t_g)`` the group's pose ``T_world_group`` and
+``X_m`` the point's global position, all in metres. ``w_gm`` is the number of iterations the group
+averaged (a relative map's noise variance falls with it), and ``rho`` the Cauchy loss with scale
+``robust``, so that a moving point the detection missed, or a mismatched one, pulls with bounded
+force. The second term ties each point weakly to its position before the adjustment, ``X0``: the
+network of relative maps leaves some directions almost free (two groups sharing only two points
+hinge about the line through them; a stretch where few points are shared bends at no cost), and
+``mu``, a small fraction of one iteration's weight, settles those where the incremental solution had
+them instead of letting round-off choose. Groups marked ``fixed`` (the root group, which defines the
+world frame) do not move.
+
+The solver is Levenberg-Marquardt over the poses' tangent space (``R <- exp([dtheta]x) R``) with
+the points eliminated by the Schur complement: a point's block of the normal equations is a multiple
+of the identity, so the reduced system over the 6 G pose unknowns is formed exactly, and it is as
+sparse as the groups' sharing of points. It is solved by a sparse LU factorisation (SuperLU through
+:func:`scipy.sparse.linalg.spsolve`). The Cauchy loss enters by iteratively reweighted least squares.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sparse
+from scipy.sparse.linalg import spsolve
+from scipy.spatial.transform import Rotation
+
+from relpoint.geometry import FloatArray
+
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class Adjustment:
+    """The result of :func:`adjust_network`.
+
+    Attributes
+    ----------
+    R_world_group: (G, 3, 3) adjusted group rotations.
+    t_world_group: (G, 3) adjusted group translations, metres.
+    positions: (P, 3) adjusted point positions in ``world``, metres.
+    cost_before, cost_after: the objective at the start and at the end.
+    iterations: Levenberg-Marquardt iterations run (accepted or not).
+    """
+
+    R_world_group: FloatArray
+    t_world_group: FloatArray
+    positions: FloatArray
+    cost_before: float
+    cost_after: float
+    iterations: int
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    """Cross-product matrices (N, 3, 3) of vectors (N, 3): ``_skew(v) @ u == cross(v, u)``."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def _objective(residual: FloatArray, weight: FloatArray, robust: float, prior: float, shift: FloatArray) -> float:
+    squared = np.einsum("ni,ni->n", residual, residual)
+    if robust > 0:
+        fit = float(np.sum(weight * robust**2 * np.log1p(squared / robust**2)))
+    else:
+        fit = float(np.sum(weight * squared))
+    return fit + prior * float(np.sum(shift * shift))
+
+
+_SIX = np.arange(6)
+_THREE = np.arange(3)
+
+
+def _block_diagonal(blocks: FloatArray) -> sparse.csr_matrix:
+    """Sparse matrix with the (G, 6, 6) ``blocks`` along its diagonal."""
+    return sparse.block_diag(list(blocks), format="csr") if len(blocks) else sparse.csr_matrix((0, 0))
+
+
+def adjust_network(
+    group: IntArray,
+    point: IntArray,
+    relative: FloatArray,
+    weight: FloatArray,
+    R_world_group: FloatArray,
+    t_world_group: FloatArray,
+    positions: FloatArray,
+    fixed: BoolArray,
+    *,
+    prior: float,
+    robust: float,
+    iterations: int,
+) -> Adjustment:
+    """Least-squares poses of all groups and positions of all points (see the module docstring).
+
+    Parameters
+    ----------
+    group, point:
+        (N,) group row and point row of each membership.
+    relative:
+        (N, 3) the member's averaged position in its group's basis frame, metres.
+    weight:
+        (N,) weight of each membership (iterations averaged), > 0.
+    R_world_group, t_world_group:
+        (G, 3, 3) and (G, 3): the groups' poses before the adjustment (the starting point).
+    positions:
+        (P, 3) the points' positions before the adjustment (starting point and prior), metres.
+    fixed:
+        (G,) groups whose pose stays as it is.
+    prior:
+        ``mu``, weight of a point's pull towards its position before the adjustment (>= 0; > 0 is
+        needed when no group is fixed).
+    robust:
+        Cauchy scale (m); 0 for plain least squares.
+    iterations:
+        Largest number of Levenberg-Marquardt iterations.
+    """
+    n_groups, n_points = len(R_world_group), len(positions)
+    R = np.array(R_world_group, dtype=np.float64)
+    t = np.array(t_world_group, dtype=np.float64)
+    X = np.array(positions, dtype=np.float64)
+    X0 = X.copy()
+    free = ~np.asarray(fixed, bool)
+
+    def residuals(R: FloatArray, t: FloatArray, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        rotated = np.einsum("nij,nj->ni", R[group], relative)
+        return rotated, rotated + t[group] - X[point]
+
+    rotated, residual = residuals(R, t, X)
+    cost = cost_before = _objective(residual, weight, robust, prior, X - X0)
+    damping = 1e-4
+    done = 0
+    for done in range(1, iterations + 1):  # noqa: B007 - the count is reported
+        # Cauchy loss by reweighting: rho'(e) / e = 1 / (1 + e^2 / c^2).
+        omega = weight / (1.0 + np.einsum("ni,ni->n", residual, residual) / robust**2) if robust > 0 else weight
+        # Jacobian of a residual: d/d(dtheta, dt) = [-[q]x, I] with q = R p; d/dX = -I.
+        J_pose = np.concatenate([-_skew(rotated), np.broadcast_to(np.eye(3), (len(group), 3, 3))], axis=2)
+        A_blocks = np.einsum("n,nki,nkj->nij", omega, J_pose, J_pose)
+        B = -omega[:, None, None] * np.transpose(J_pose, (0, 2, 1))  # (N, 6, 3): pose-point coupling
+        g_pose = np.zeros((n_groups, 6))
+        np.add.at(g_pose, group, -np.einsum("n,nki,nk->ni", omega, J_pose, residual))
+        C = np.bincount(point, omega, minlength=n_points) + prior
+        g_point = np.zeros((n_points, 3))
+        np.add.at(g_point, point, omega[:, None] * residual)
+        g_point -= prior * (X - X0)
+
+        A_diag = np.zeros((n_groups, 6, 6))
+        np.add.at(A_diag, group, A_blocks)
+        A_diag += damping * np.einsum("gii->gi", A_diag)[:, :, None] * np.eye(6)[None]
+        C_damped = C * (1.0 + damping)
+        # Schur complement S = A - B C^-1 B^T, with B as a sparse (6 G, 3 P) matrix of 6 x 3 blocks.
+        B_sparse = sparse.csr_matrix(
+            (
+                B.ravel(),
+                (
+                    np.repeat(6 * group[:, None] + _SIX, 3, axis=1).ravel(),
+                    (3 * point[:, None, None] + _THREE).repeat(6, axis=1).ravel(),
+                ),
+            ),
+            shape=(6 * n_groups, 3 * n_points),
+        )
+        S = _block_diagonal(A_diag) - B_sparse @ sparse.diags(np.repeat(1.0 / C_damped, 3)) @ B_sparse.T
+        BCg = np.zeros((n_groups, 6))
+        np.add.at(BCg, group, np.einsum("nij,nj->ni", B, g_point[point] / C_damped[point, None]))
+        rhs = (g_pose - BCg).ravel()
+        keep = np.repeat(free, 6)
+        step_pose = np.zeros(6 * n_groups)
+        if keep.any():
+            step_pose[keep] = spsolve(S.tocsr()[keep][:, keep].tocsc(), rhs[keep])
+        step_pose = step_pose.reshape(n_groups, 6)
+        BT_step = np.zeros((n_points, 3))
+        np.add.at(BT_step, point, np.einsum("nji,nj->ni", B, step_pose[group]))
+        step_point = (g_point - BT_step) / C_damped[:, None]
+
+        R_new = np.einsum("gij,gjk->gik", Rotation.from_rotvec(step_pose[:, :3]).as_matrix(), R)
+        t_new = t + step_pose[:, 3:]
+        X_new = X + step_point
+        rotated_new, residual_new = residuals(R_new, t_new, X_new)
+        cost_new = _objective(residual_new, weight, robust, prior, X_new - X0)
+        if np.isfinite(cost_new) and cost_new < cost:
+            converged = cost - cost_new < 1e-6 * cost
+            R, t, X, rotated, residual, cost = R_new, t_new, X_new, rotated_new, residual_new, cost_new
+            damping = max(damping / 10.0, 1e-8)
+            if converged:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e4:
+                break
+    return Adjustment(R, t, X, cost_before, cost, done)
