@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.relative_point import _kernels
+from relpoint.estimators.relative_point.adjustment import adjust_network
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
@@ -252,6 +253,77 @@ def test_drift_profile_follows_heading_drift_along_the_path() -> None:
     assert np.abs(linear - error).max() > 0.5 * np.abs(error).max()
     # An offset a rotation within the limit cannot explain is spread linearly.
     assert np.allclose(drift_profile(drifted, 100 * error[-1], max_angle=0.2), 100 * linear)
+
+
+def _chain_network(rng: np.random.Generator, n_groups: int = 12, per_group: int = 12, step: int = 6):
+    """Groups along a corridor of points, each sharing half its members with the next.
+
+    Returns true group poses (G, 4, 4), true points (P, 3) and the memberships (group, point,
+    relative position in the group's frame), noise-free.
+    """
+    n_points = step * (n_groups - 1) + per_group
+    points = np.column_stack(
+        [np.linspace(0.0, 150.0, n_points), rng.uniform(-10, 10, n_points), rng.uniform(-3, 3, n_points)]
+    )
+    poses = np.array([random_pose(rng, 100.0) for _ in range(n_groups)])
+    group = np.repeat(np.arange(n_groups), per_group)
+    point = np.concatenate([np.arange(g * step, g * step + per_group) for g in range(n_groups)])
+    # relative = T_world_group^-1 applied to the point
+    relative = np.einsum("nji,nj->ni", poses[group, :3, :3], points[point] - poses[group, :3, 3])
+    return poses, points, group, point, relative
+
+
+def _perturbed(rng: np.random.Generator, poses: np.ndarray, points: np.ndarray):
+    turns = Rotation.from_rotvec(rng.normal(0.0, 0.03, (len(poses), 3))).as_matrix()
+    R = np.einsum("gij,gjk->gik", turns, poses[:, :3, :3])
+    t = poses[:, :3, 3] + rng.normal(0.0, 1.0, (len(poses), 3))
+    R[0], t[0] = poses[0, :3, :3], poses[0, :3, 3]  # the fixed group starts (and stays) right
+    return R, t, points + rng.normal(0.0, 1.0, points.shape)
+
+
+def test_adjustment_recovers_a_perturbed_network_of_relative_maps() -> None:
+    rng = np.random.default_rng(5)
+    poses, points, group, point, relative = _chain_network(rng)
+    R, t, X = _perturbed(rng, poses, points)
+    fixed = np.zeros(len(poses), bool)
+    fixed[0] = True
+    result = adjust_network(
+        group, point, relative, np.full(len(group), 10.0), R, t, X, fixed, prior=0.0, robust=0.0, iterations=20
+    )
+    assert result.cost_before > 1e3 and result.cost_after < 1e-12
+    assert np.abs(result.positions - points).max() < 1e-6
+    assert np.abs(result.R_world_group - poses[:, :3, :3]).max() < 1e-8
+    assert np.abs(result.t_world_group - poses[:, :3, 3]).max() < 1e-6
+    # A weak pull towards the start (1 m off here) holds back only the chain's softest bending.
+    held = adjust_network(
+        group, point, relative, np.full(len(group), 10.0), R, t, X, fixed, prior=0.005, robust=0.0, iterations=20
+    )
+    start_error = np.linalg.norm(X - points, axis=1).max()
+    assert np.linalg.norm(held.positions - points, axis=1).max() < 0.15 * start_error
+
+
+def test_adjustment_bounds_the_pull_of_a_wrong_relative_position() -> None:
+    rng = np.random.default_rng(6)
+    poses, points, group, point, relative = _chain_network(rng)
+    noisy = relative + rng.normal(0.0, 0.05, relative.shape)
+    wrong = 40  # a mismatched or moving member, 5 m off in its group's map
+    R, t, X = _perturbed(rng, poses, points)
+    fixed = np.zeros(len(poses), bool)
+    fixed[0] = True
+    weight = np.full(len(group), 10.0)
+    others = np.ones(len(points), bool)
+    others[point[wrong]] = False
+
+    def worst_error(relative: np.ndarray, robust: float) -> float:
+        result = adjust_network(
+            group, point, relative, weight, R, t, X, fixed, prior=0.005, robust=robust, iterations=30
+        )
+        return float(np.linalg.norm(result.positions[others] - points[others], axis=1).max())
+
+    clean = worst_error(noisy, 0.5)  # 5 cm noise over a 150 m chain: ~0.7 m at its far end
+    noisy[wrong] += (3.0, 4.0, 0.0)
+    assert worst_error(noisy, 0.5) < 1.1 * clean
+    assert worst_error(noisy, 0.0) > 2.0 * clean
 
 
 def test_drift_share_ramps_from_the_last_visit_to_now() -> None:
