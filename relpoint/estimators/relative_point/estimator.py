@@ -154,6 +154,10 @@ class RelativePointConfig(Settings):
     """Cauchy scale of the final adjustment (m; 0: plain least squares)."""
     adjustment_iterations: int = 10
     """Largest number of Levenberg-Marquardt iterations of the final adjustment."""
+    adjustment_members: int = 32
+    """Members per group the final adjustment solves the group poses with, those in the most groups
+    first (every member still takes its position from the adjusted poses): in a dense map a point is
+    in dozens of groups and the joint solution would grow with the square of that."""
     relocate_points: int = 32
     """Observations of mapped points each iteration keeps (sensor frame, with the point) so that the
     final adjustment can locate the iteration again on the adjusted map (bounds memory: about 20 bytes
@@ -249,7 +253,7 @@ class RelativePointConfig(Settings):
             "dynamic_references": self.dynamic_references, "dynamic_block": self.dynamic_block,
             "stale_after": self.stale_after, "loop_every": self.loop_every, "loop_young": self.loop_young,
             "loop_gap": self.loop_gap, "adjustment_iterations": self.adjustment_iterations,
-            "relocate_points": self.relocate_points,
+            "relocate_points": self.relocate_points, "adjustment_members": self.adjustment_members,
         }  # fmt: skip
         for name, value in positive_int.items():
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -287,6 +291,8 @@ class RelativePointConfig(Settings):
             isinstance(self.loop_support, int) and not isinstance(self.loop_support, bool) and self.loop_support >= 3
         ):
             raise UsageError(f"loop_support must be an integer >= 3, got {self.loop_support!r}")
+        if self.adjustment_members < 3:
+            raise UsageError(f"adjustment_members must be at least 3, got {self.adjustment_members}")
         if self.seed_points < 3:
             raise UsageError(
                 f"seed_points must be at least 3 (a rigid fit needs three anchors), got {self.seed_points}"
@@ -459,14 +465,19 @@ class RelativePointEstimator(Estimator):
         config, store = self.config, self.store
         start = time.perf_counter()
         groups, members, relative, weights = [], [], [], []
+        cap = config.adjustment_members
         for group in self.groups.groups.values():
-            usable = store.alive[group.members] & ~store.dynamic[group.members]
-            if group.weight <= 0 or np.count_nonzero(usable) < 3:
+            usable = np.flatnonzero(store.alive[group.members] & ~store.dynamic[group.members])
+            if group.weight <= 0 or len(usable) < 3:
                 continue
+            if len(usable) > cap:
+                # Points in the most groups tie the network together; the same points win in every
+                # group, so the groups stay coupled through them.
+                usable = usable[np.argsort(-store.n_groups[group.members[usable]], kind="stable")[:cap]]
             groups.append(group)
             members.append(group.members[usable])
             relative.append(group.relative_map[usable])
-            weights.append(np.full(np.count_nonzero(usable), float(group.count)))
+            weights.append(np.full(len(usable), float(group.count)))
         if not groups:
             return False
         group_rows = np.repeat(np.arange(len(groups)), [len(m) for m in members])
