@@ -203,6 +203,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
         click.echo(
             f"{spec.name}: {timing['iterations']} iterations, {len(result.landmarks)} landmarks, "
             f"{timing['seconds_median'] * 1e3:.2f} ms median per iteration"
+            + (f", {timing['seconds_finish']:.2f} s final adjustment" if timing["seconds_finish"] >= 0.01 else "")
             + (f", {skipped} unusable items skipped" if skipped else "")
             + f" -> {output}",
             err=True,

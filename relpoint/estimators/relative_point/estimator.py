@@ -48,13 +48,18 @@ Choices the paper leaves open, and where this implementation adds to it:
 * Least-squares fits weight each anchor by the iterations averaged into its global position over
   the squared disagreement of its groups (inverse variance), and trim gross outliers.
 * A point in more than ``max_groups_per_point`` groups loses its lightest redundant closed group,
-  so memory follows the map, not the number of passes.
+  so memory follows the map, not the number of passes (but for the few observations each iteration
+  keeps for the final adjustment, below: about 0.4 kB an iteration at 20 points in view).
 * Local matching gives the points a first round leaves over a second round whose bound grows with
   range (``match_angle``): at low density the motion's rotation error otherwise keeps far points
   entering view from matching, and they are registered as new points iteration after iteration.
 * Loop closure also works beyond the global matching bound (:mod:`.loops`): an offset of the young
   points in view onto old mapped points that several of them agree on is taken out of the groups
   and poses along the loop, and the young points are matched or merged to the old ones.
+* When the log ends (:meth:`RelativePointEstimator.finish`, ``final_adjustment``), every group pose and
+  point position is solved jointly by least squares (:mod:`.adjustment`) instead of group by group,
+  and every iteration's pose is fitted again to the adjusted map from observations it kept for that
+  (``relocate_points``). ``step`` returns the online poses; the pipeline writes the final ones.
 * Observation ids are never used for association; they only label the output map (``gt_id``).
 """
 
@@ -62,7 +67,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -463,7 +467,6 @@ class RelativePointEstimator(Estimator):
         adjusted; the figures go to :meth:`summary` under ``final_adjustment``.
         """
         config, store = self.config, self.store
-        start = time.perf_counter()
         groups, members, relative, weights = [], [], [], []
         cap = config.adjustment_members
         for group in self.groups.groups.values():
@@ -509,7 +512,6 @@ class RelativePointEstimator(Estimator):
             "iterations": result.iterations,
             "cost_before": round(result.cost_before, 3),
             "cost_after": round(result.cost_after, 3),
-            "seconds": round(time.perf_counter() - start, 3),
         }
         return True
 
