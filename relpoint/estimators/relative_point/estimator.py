@@ -149,7 +149,7 @@ class RelativePointConfig(Settings):
     angle (rad); beyond it, or for the part a rotation cannot explain, it is spread linearly in time."""
     final_adjustment: bool = True
     """When the log ends, solve every group pose and point position jointly by least squares
-    (:mod:`.adjustment`) and move each pose with the groups of its iterations; False keeps the
+    (:mod:`.adjustment`) and fit every iteration's pose again to the adjusted map; False keeps the
     paper's incremental solution."""
     adjustment_prior: float = 0.005
     """Weight (in iterations averaged) of each point's pull towards its incremental position in the
@@ -453,8 +453,7 @@ class RelativePointEstimator(Estimator):
             self._support.append(None)
             return
         store = self.store
-        safe = np.where(ids != NO_MATCH, ids, 0)
-        use = np.flatnonzero((ids != NO_MATCH) & (store.pos_weight[safe] > 0) & ~store.dynamic[safe])
+        use = np.flatnonzero(self._mapped_static(ids))
         if len(use) > self.config.relocate_points:
             use = use[np.linspace(0, len(use) - 1, self.config.relocate_points).round().astype(np.int64)]
         self._support.append((store.uid[ids[use]].copy(), points[use].astype(np.float32)))
@@ -863,7 +862,6 @@ class RelativePointEstimator(Estimator):
             basis=basis,
             rel_sum=relative[:, valid].sum(axis=1),
             count=int(valid.sum()),
-            first_iteration=int(iterations[0]),
             last_iteration=int(iterations[-1]),
             is_open=bool(iterations[-1] == k),
             anchor_targets=anchor_targets,
@@ -1104,13 +1102,12 @@ class RelativePointEstimator(Estimator):
     def _locate(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
         """Current position (paper II-D): LSF of this iteration's observations to their global positions."""
         store = self.store
-        known = ids != NO_MATCH
-        safe = np.where(known, ids, 0)
         if len(self.groups):
-            use = known & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
+            use = self._mapped_static(ids)
             return self._fit_pose(points[use], ids[use])
         # Before the first group: the first observations are global positions (world = first frame).
-        use = known & (store.obs_iter[safe, 0] == 0)
+        known = ids != NO_MATCH
+        use = known & (store.obs_iter[np.where(known, ids, 0), 0] == 0)
         fit = fit_transform(
             points[use],
             store.obs[ids[use], 0],
@@ -1121,6 +1118,12 @@ class RelativePointEstimator(Estimator):
             consensus=self.config.consensus_bound,
         )
         return None if fit is None else fit.T
+
+    def _mapped_static(self, ids: IntArray) -> npt.NDArray[np.bool_]:
+        """Which of this iteration's point ids (NO_MATCH for none) have a global position and are static."""
+        store = self.store
+        safe = np.where(ids != NO_MATCH, ids, 0)
+        return (ids != NO_MATCH) & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
 
     def _fit_pose(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
         """``T_world_sensor`` fitting observations (N, 3) (sensor frame) to their points' global positions.

@@ -112,7 +112,6 @@ class RelativeGroup:
     basis: rows of ``members`` used as basis points.
     rel_sum: (M, 3) sum of relative positions over ``count`` iterations (basis frame, m).
     count: iterations averaged.
-    first_iteration: first iteration of the calculation interval.
     last_iteration: last iteration averaged.
     is_open: still averaging (every member was observed in every iteration since creation).
     anchor_targets: (M, 3) world positions a root group is fitted to, else ``None``.
@@ -129,7 +128,6 @@ class RelativeGroup:
     count: int
     last_iteration: int
     is_open: bool
-    first_iteration: int = -1
     anchor_targets: FloatArray | None = None
     T_world_group: FloatArray = field(default_factory=lambda: np.eye(4))
     placed: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
