@@ -158,6 +158,11 @@ class RelativePointConfig(Settings):
     """Cauchy scale of the final adjustment (m; 0: plain least squares)."""
     adjustment_iterations: int = 10
     """Largest number of Levenberg-Marquardt iterations of the final adjustment."""
+    adjustment_dynamic_factor: float = 2.0
+    """After the final adjustment, a point in three or more groups that disagree about its position
+    by more than this times the median disagreement is flagged dynamic, and the adjustment runs again
+    without it: the moving points the detection missed stand out once the groups sit where the whole
+    network puts them (0 disables)."""
     adjustment_members: int = 32
     """Members per group the final adjustment solves the group poses with, those in the most groups
     first (every member still takes its position from the adjusted poses): in a dense map a point is
@@ -278,6 +283,7 @@ class RelativePointConfig(Settings):
             "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
             "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
             "loop_max_rotation": self.loop_max_rotation, "adjustment_prior": self.adjustment_prior,
+            "adjustment_dynamic_factor": self.adjustment_dynamic_factor,
             "adjustment_robust": self.adjustment_robust,
         }  # fmt: skip
         for name, value in positive.items():
@@ -408,13 +414,20 @@ class RelativePointEstimator(Estimator):
         """Adjust the whole map by least squares and locate every iteration again on it.
 
         With ``final_adjustment`` (the default) every group pose and point position is solved jointly
-        (:meth:`adjust`), then each iteration's pose is fitted again, as :meth:`_locate` fitted it, from
+        (:meth:`adjust`); points whose groups still disagree are flagged dynamic and the solve is
+        repeated without them (:meth:`_flag_disagreeing`). Then each iteration's pose is fitted
+        again, as :meth:`_locate` fitted it, from
         the observations it kept (``relocate_points``) to the adjusted global positions. An iteration
         that cannot be fitted again (too few of its points still mapped) keeps the correction of the
         nearest iteration before it. ``trajectory`` holds the poses :meth:`step` returned.
         """
         if not self.config.final_adjustment or len(trajectory) != self._iteration or not self.adjust():
             return trajectory
+        flagged = self._flag_disagreeing()
+        if len(flagged):
+            self.adjust()
+        assert self.adjustment_report is not None
+        self.adjustment_report["dynamic_flagged"] = len(flagged)
         store = self.store
         live = store.live_ids()
         row_of = dict(zip(store.uid[live].tolist(), live.tolist(), strict=True))
@@ -441,10 +454,29 @@ class RelativePointEstimator(Estimator):
                 relocated += 1
             else:
                 T_after[k] = correction @ T_before[k]
-        assert self.adjustment_report is not None
         self.adjustment_report["relocated_iterations"] = relocated
         orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
         return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
+
+    def _flag_disagreeing(self) -> IntArray:
+        """Flag the points whose groups still disagree about their position after the adjustment.
+
+        Once every group is where the whole network puts it, a static point's groups agree on it to
+        within the noise, while a moving point the detection missed is placed where it stood during
+        each group's interval. A point in at least three groups whose disagreement (RMS, m) exceeds
+        ``adjustment_dynamic_factor`` times the median of such points is flagged dynamic. Returns
+        the ids flagged.
+        """
+        factor = self.config.adjustment_dynamic_factor
+        store = self.store
+        live = store.live_ids()
+        judged = live[(store.pos_weight[live] > 0) & ~store.dynamic[live] & (store.n_groups[live] >= 3)]
+        if factor <= 0 or len(judged) == 0:
+            return np.zeros(0, np.int64)
+        spread = store.spread(judged)
+        flagged = judged[spread > factor * _median(spread)]
+        self._flag_dynamic(flagged)
+        return flagged
 
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, *, located: bool) -> None:
         """Keep up to ``relocate_points`` of this iteration's observations of mapped points."""
