@@ -108,7 +108,7 @@ def starry_night() -> StarryNight:
 # measured over the first 400 observations (ATE, rotation, landmark RMSE, mapped fraction):
 #   ekf       0.117 m,  9.5 deg, 0.280 m, 0.95
 #   fastslam  0.155 m, 16.5 deg, 0.544 m, 1.00  (before its discard band: 0.192 m, 42.8 deg, 0.341 m)
-#   relpoint  0.550 m, 39.9 deg, 0.542 m, 0.90  (before the final adjustment: 0.557 m, 40.9 deg, 0.554 m;
+#   relpoint  0.545 m, 40.5 deg, 0.536 m, 0.90  (before the final adjustment: 0.557 m, 40.9 deg, 0.554 m;
 #             before the range-scaled second round of local matching:
 #             0.622 m, 45.5 deg, 0.555 m, 0.95; before coasting on raw-point motion: 0.642 m, 52.1 deg, 0.884 m)
 BOUNDS = {
