@@ -301,8 +301,11 @@ class RelativePointConfig(Settings):
             isinstance(self.loop_support, int) and not isinstance(self.loop_support, bool) and self.loop_support >= 3
         ):
             raise UsageError(f"loop_support must be an integer >= 3, got {self.loop_support!r}")
-        if self.adjustment_members < 3:
-            raise UsageError(f"adjustment_members must be at least 3, got {self.adjustment_members}")
+        for name in ("adjustment_members", "relocate_points"):
+            if getattr(self, name) < 3:
+                raise UsageError(
+                    f"{name} must be at least 3 (a rigid fit needs three points), got {getattr(self, name)}"
+                )
         if self.seed_points < 3:
             raise UsageError(
                 f"seed_points must be at least 3 (a rigid fit needs three anchors), got {self.seed_points}"
@@ -399,8 +402,9 @@ class RelativePointEstimator(Estimator):
         self._regroup(k)
         ids = self._merge_duplicates(ids, k)
 
-        T_world_sensor = np.eye(4) if k == 0 else self._locate(points, ids)
-        self._keep_support(k, points, ids, located=T_world_sensor is not None)
+        mapped = self._mapped_static(ids)
+        T_world_sensor = np.eye(4) if k == 0 else self._locate(points, ids, mapped)
+        self._keep_support(k, points, ids, mapped if T_world_sensor is not None else None)
         if T_world_sensor is None:
             logger.debug("iteration %d: fewer than three usable non-collinear mapped points, pose coasted", k)
             self.counts["degenerate_iterations"] += 1
@@ -478,17 +482,17 @@ class RelativePointEstimator(Estimator):
         self._flag_dynamic(flagged)
         return flagged
 
-    def _keep_support(self, k: int, points: FloatArray, ids: IntArray, *, located: bool) -> None:
-        """Keep up to ``relocate_points`` of this iteration's observations of mapped points."""
-        if not self.config.final_adjustment or not located or k == 0:
+    def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
+        """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not located)."""
+        if not self.config.final_adjustment or mapped is None or k == 0:
             # The first iteration defines ``world``; a coasted one had no usable fit.
             self._support.append(None)
             return
-        store = self.store
-        use = np.flatnonzero(self._mapped_static(ids))
-        if len(use) > self.config.relocate_points:
-            use = use[np.linspace(0, len(use) - 1, self.config.relocate_points).round().astype(np.int64)]
-        self._support.append((store.uid[ids[use]].copy(), points[use].astype(np.float32)))
+        use = np.flatnonzero(mapped)
+        keep = self.config.relocate_points
+        if len(use) > keep:
+            use = use[np.arange(keep) * (len(use) - 1) // (keep - 1)]  # evenly spread
+        self._support.append((self.store.uid[ids[use]], points[use].astype(np.float32)))
 
     def adjust(self) -> bool:
         """Joint least-squares adjustment of every placed group and mapped point (:mod:`.adjustment`).
@@ -1131,12 +1135,14 @@ class RelativePointEstimator(Estimator):
         store.delete(newer)
         self.counts["merges"] += 1
 
-    def _locate(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
-        """Current position (paper II-D): LSF of this iteration's observations to their global positions."""
+    def _locate(self, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_]) -> FloatArray | None:
+        """Current position (paper II-D): LSF of this iteration's observations to their global positions.
+
+        ``mapped`` marks the observations of static points with a global position.
+        """
         store = self.store
         if len(self.groups):
-            use = self._mapped_static(ids)
-            return self._fit_pose(points[use], ids[use])
+            return self._fit_pose(points[mapped], ids[mapped])
         # Before the first group: the first observations are global positions (world = first frame).
         known = ids != NO_MATCH
         use = known & (store.obs_iter[np.where(known, ids, 0), 0] == 0)
