@@ -352,6 +352,14 @@ def test_config_is_validated() -> None:
         RelativePointConfig(seed_points=2)
     with pytest.raises(UsageError):
         RelativePointConfig(regroup_after=500)
+    for bad in (
+        {"relocate_points": 2},
+        {"adjustment_members": 1},
+        {"final_adjustment": "yes"},
+        {"adjustment_prior": -1.0},
+    ):
+        with pytest.raises(UsageError):
+            RelativePointConfig(**bad)
     with pytest.raises(UsageError):
         RelativePointConfig.from_mapping({"match-bound": 2.0, "no_such_setting": 1})
     config = RelativePointConfig.from_mapping({"match-bound": 2.5})
