@@ -1146,16 +1146,7 @@ class RelativePointEstimator(Estimator):
         # Before the first group: the first observations are global positions (world = first frame).
         known = ids != NO_MATCH
         use = known & (store.obs_iter[np.where(known, ids, 0), 0] == 0)
-        fit = fit_transform(
-            points[use],
-            store.obs[ids[use], 0],
-            trim=self.config.trim,
-            floor=self.config.trim_floor,
-            collinear_tolerance=self.config.collinear_tolerance,
-            rounds=self.config.trim_rounds,
-            consensus=self.config.consensus_bound,
-        )
-        return None if fit is None else fit.T
+        return self._fit_sensor(points[use], store.obs[ids[use], 0], None)
 
     def _mapped_static(self, ids: IntArray) -> npt.NDArray[np.bool_]:
         """Which of this iteration's point ids (NO_MATCH for none) have a global position and are static."""
@@ -1172,9 +1163,14 @@ class RelativePointEstimator(Estimator):
         store, config = self.store, self.config
         weights = 1.0 / (store.spread(ids) ** 2 + config.spread_floor**2)
         weights *= np.where(store.verified[ids] >= 0, 1.0, config.unverified_weight)
+        return self._fit_sensor(points, store.positions(ids), weights)
+
+    def _fit_sensor(self, points: FloatArray, targets: FloatArray, weights: FloatArray | None) -> FloatArray | None:
+        """``T_world_sensor`` by the trimmed least-squares fit of ``points`` (sensor) onto ``targets`` (world)."""
+        config = self.config
         fit = fit_transform(
             points,
-            store.positions(ids),
+            targets,
             trim=config.trim,
             floor=config.trim_floor,
             collinear_tolerance=config.collinear_tolerance,
