@@ -121,14 +121,15 @@ def run(
         )
     )
     seconds_finish = time.perf_counter() - start
+    landmarks = estimator.landmark_map()
     if map_every > 0:
         # The last snapshot is the final map (after any final adjustment).
         if snapshots and snapshots[-1][0] == len(stamps) - 1:
             snapshots.pop()
-        snapshots.append((len(stamps) - 1, stamps[-1], estimator.landmark_map()))
+        snapshots.append((len(stamps) - 1, stamps[-1], landmarks))
     return RunResult(
         trajectory=trajectory,
-        landmarks=estimator.landmark_map(),
+        landmarks=landmarks,
         observed=np.asarray(observed, dtype=np.int64),
         map_size=np.asarray(map_size, dtype=np.int64),
         seconds=np.asarray(seconds, dtype=np.float64),

@@ -95,7 +95,10 @@ _THREE = np.arange(3)
 
 def _block_diagonal(blocks: FloatArray) -> sparse.csr_matrix:
     """Sparse matrix with the (G, 6, 6) ``blocks`` along its diagonal."""
-    return sparse.block_diag(list(blocks), format="csr") if len(blocks) else sparse.csr_matrix((0, 0))
+    n = 6 * len(blocks)
+    rows = np.repeat(np.arange(n), 6)
+    cols = (rows // 6 * 6).reshape(-1, 6) + _SIX
+    return sparse.csr_matrix((blocks.ravel(), (rows, cols.ravel())), shape=(n, n))
 
 
 def _solve_positive_definite(S: sparse.csr_matrix, rhs: FloatArray, order: IntArray) -> FloatArray:
