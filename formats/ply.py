@@ -27,9 +27,15 @@ def write_ply(path: str | os.PathLike[str], vertices: np.ndarray, *, comments: l
     packed = np.empty(len(vertices), dtype=fields)
     for name in vertices.dtype.names:
         packed[name] = vertices[name]
-    data = PlyData([PlyElement.describe(packed, "vertex")], text=False, byte_order="<", comments=comments or [])
+    data = PlyData([PlyElement.describe(packed, "vertex")], text=False, byte_order="<", comments=_marked(comments))
     with atomic_path(path) as tmp, tmp.open("wb") as stream:
         data.write(stream)
+
+
+def _marked(comments: list[str] | None) -> list[str]:
+    """The comments, with one naming relpoint (what lets a later run recognise and replace the file)."""
+    comments = list(comments or [])
+    return comments if any("relpoint" in c for c in comments) else ["written by relpoint", *comments]
 
 
 def read_ply(path: str | os.PathLike[str]) -> np.ndarray:

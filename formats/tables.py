@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from formats.atomic import write_text
+from formats.outputs import register_csv_header
 from relpoint.errors import InputError
 from relpoint.types import LandmarkMap, Trajectory
 
@@ -89,6 +90,8 @@ def write_timing_csv(
 
 
 MAP_HISTORY_HEADER = ["iteration", "timestamp", "landmark", "x", "y", "z", "dynamic", "gt_id"]
+for _header in (TRAJECTORY_HEADER, MAP_HEADER, TIMING_HEADER, MAP_HISTORY_HEADER):
+    register_csv_header(_header)
 
 
 def write_map_history_csv(path: str | os.PathLike[str], history: tuple[tuple[int, int, LandmarkMap], ...]) -> None:

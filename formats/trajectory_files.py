@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+import relpoint
 from formats.atomic import write_text
 from relpoint.errors import InputError
 from relpoint.geometry import matrix_to_position_quat
@@ -231,7 +232,10 @@ def write_tum(path: str | os.PathLike[str], trajectory: Trajectory, header: str 
     ``header`` lines are written as ``#`` comments before the column legend.
     """
     path = Path(path)
-    out = [f"# {line}\n" for line in (header.splitlines() if header else [])]
+    header = header or f"relpoint {relpoint.__version__}"
+    if "relpoint" not in header:  # the mark that lets a later run replace the file
+        header = f"{header}\nrelpoint {relpoint.__version__}"
+    out = [f"# {line}\n" for line in header.splitlines()]
     out.append("# timestamp tx ty tz qx qy qz qw\n")
     for stamp, p, q in zip(
         trajectory.stamps_ns.tolist(), trajectory.positions.tolist(), trajectory.quats_xyzw.tolist(), strict=True

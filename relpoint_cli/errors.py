@@ -12,6 +12,7 @@ from typing import Any, TypeVar
 
 import click
 
+from formats.outputs import OUTPUT_ERRNOS, os_error_message
 from relpoint.errors import Interrupted, RelpointError
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -55,6 +56,15 @@ def handle_errors(command: F) -> F:
             raise
         except click.exceptions.Exit:
             raise
+        except BrokenPipeError:
+            quiet_broken_pipe()
+        except OSError as error:  # the file system refused a path (full disk, read-only, permissions)
+            if logging.getLogger().isEnabledFor(logging.DEBUG):
+                traceback.print_exc()
+            _fail(os_error_message(error), EXIT_USAGE if error.errno in OUTPUT_ERRNOS else EXIT_INPUT)
+        except MemoryError:
+            _fail("out of memory; the input is too large for this machine (see the size limits in the README)",
+                  EXIT_INPUT)  # fmt: skip
         except Exception as error:  # a bug: still one line, the traceback only with --verbose
             if logging.getLogger().isEnabledFor(logging.DEBUG):
                 traceback.print_exc()
@@ -67,6 +77,21 @@ def handle_errors(command: F) -> F:
                 signal.signal(signal.SIGTERM, previous)
 
     return wrapper  # type: ignore[return-value]
+
+
+def quiet_broken_pipe() -> None:
+    """The reader of stdout went away (``relpoint info LOG | head -1``): stop quietly, exit 0.
+
+    Python would otherwise report the broken pipe again when it flushes stdout at exit.
+    """
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # no real stdout (a test runner's capture)
+        pass
+    sys.exit(EXIT_OK)
 
 
 def _fail(message: str, code: int) -> None:

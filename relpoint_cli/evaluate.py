@@ -16,7 +16,9 @@ from typing import Any
 import click
 import numpy as np
 
+import relpoint
 from formats.atomic import atomic_path, write_text
+from formats.outputs import check_output_file, register_csv_header
 from formats.ply import read_ply
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.tables import read_map_history_csv
@@ -34,6 +36,7 @@ from relpoint.evaluation import (
 from relpoint.evaluation.dense import dense_metrics
 from relpoint.types import Trajectory
 from relpoint_cli.errors import handle_errors
+from relpoint_cli.options import overwrite_option, read_paths
 
 EXAMPLES = """\b
 Examples:
@@ -134,7 +137,8 @@ def _json_value(value: Any) -> Any:
 
 def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
     """The summary (NaN/inf written as null), settings and inputs as JSON, atomically."""
-    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs}
+    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
+                "relpoint_version": relpoint.__version__}
     write_text(path, json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n")
 
 
@@ -154,6 +158,12 @@ def dense_map_summary(
     return dense_metrics(points, reference_points, threshold=threshold).summary()
 
 
+ERRORS_CSV_HEADER = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m"
+register_csv_header(ERRORS_CSV_HEADER)
+
+PLOT_FILES = ("trajectory_top.png", "trajectory_side.png", "errors.png")
+
+
 def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
     """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
     the landmark RMSE at poses where the run recorded its map (``--map-every``).
@@ -168,7 +178,7 @@ def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[i
         rpe_t[result.rpe_translation.second] = result.rpe_translation.errors
         rpe_r[result.rpe_rotation_deg.second] = result.rpe_rotation_deg.errors
     landmark_rmse = landmark_rmse or {}
-    header = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m\n"
+    header = ERRORS_CSV_HEADER + "\n"
     body = []
     for i, stamp in enumerate(result.stamps_ns.tolist()):
         seconds, nanos = divmod(int(stamp), 1_000_000_000)
@@ -226,7 +236,8 @@ def _save(fig: Any, path: Path) -> Path:
 
     try:
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight",
+                        metadata={"Software": f"relpoint {relpoint.__version__}"})
     finally:
         plt.close(fig)
     return path
@@ -294,13 +305,14 @@ def _save(fig: Any, path: Path) -> Path:
     "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",
     help="Exit 5 if summary KEY exceeds VALUE or is NaN (repeatable).",
 )  # fmt: skip
+@overwrite_option
 @click.pass_context
 @handle_errors
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
              estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
-             **options: Any) -> None:  # fmt: skip
+             overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
 
     ESTIMATE is a `relpoint run` output directory, a TUM file, KITTI poses (--times) or an MCAP file
@@ -311,6 +323,11 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     """
     gates = parse_gates(fail_above)
     settings = EvaluationSettings(**options)
+    read = read_paths(estimate, reference, reference_cloud, times, reference_times)
+    outputs = [json_path, csv_path, *([plot_dir / name for name in PLOT_FILES] if plot_dir is not None else [])]
+    for path in outputs:
+        if path is not None:
+            check_output_file(path, inputs=read, overwrite=overwrite)
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
     result = evaluate_trajectory(ref, est, settings)

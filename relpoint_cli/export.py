@@ -32,6 +32,7 @@ import click
 import numpy as np
 
 from formats.atomic import write_text
+from formats.outputs import check_output_file, resolve_output
 from formats.ply import landmark_vertices, read_ply, write_ply
 from formats.reference_trajectories import is_mcap, load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.tables import write_map_csv, write_trajectory_csv
@@ -39,6 +40,7 @@ from formats.trajectory_files import write_kitti, write_tum
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Trajectory
 from relpoint_cli.errors import handle_errors
+from relpoint_cli.options import overwrite_option, read_paths
 
 log = logging.getLogger(__name__)
 
@@ -278,10 +280,12 @@ def export_file(
 @click.option(
     "--out-times", type=click.Path(dir_okay=False, path_type=Path), help="KITTI output: also write its times file."
 )
+@overwrite_option
 @click.pass_context
 @handle_errors
 def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: str | None, topic: str | None,
-           parent: str | None, child: str | None, times: Path | None, out_times: Path | None) -> None:  # fmt: skip
+           parent: str | None, child: str | None, times: Path | None, out_times: Path | None,
+           overwrite: bool) -> None:  # fmt: skip
     """Export a trajectory, landmarks or a map from SOURCE to OUT (TUM, KITTI, CSV or binary PLY).
 
     SOURCE is a relpoint log (ground-truth trajectory and landmarks), a `relpoint run` output directory
@@ -292,6 +296,12 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
         raise InputError(f"{source}: no such file or directory")
     if out.is_dir():
         raise UsageError(f"{out} is a directory; give an output file name")
+    read = read_paths(source, times)
+    for path in (out, out_times):
+        if path is not None:
+            check_output_file(path, inputs=read, overwrite=overwrite)
+    if out_times is not None and resolve_output(out_times) == resolve_output(out):
+        raise UsageError(f"--out-times {out_times} is the output file itself", "give the times file another name")
     out_format = output_format(out, fmt)
     kind = What(what) if what is not None else default_what(source, out_format)
     description = export_file(

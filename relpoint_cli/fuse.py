@@ -20,6 +20,7 @@ import numpy as np
 import relpoint
 from formats.atomic import atomic_directory
 from formats.log import LogReader
+from formats.outputs import check_output_directory
 from formats.run_output import file_sha256, write_run_directory
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_tum, write_tum
@@ -30,6 +31,7 @@ from relpoint.fusion.segmented import run_segmented
 from relpoint.pipeline import RunResult
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
+from relpoint_cli.options import overwrite_option
 from relpoint_cli.run import estimator_inputs, parse_value
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -83,10 +85,11 @@ def fusion_config(params: tuple[str, ...]) -> FusionConfig:
               help="Re-run the run's estimator (name, parameters and seed from run.json) over LOG, starting a "
               "fresh local map at every break (Algorithm 3), instead of splitting the finished run.")  # fmt: skip
 @topic_options
+@overwrite_option
 @click.pass_context
 @handle_errors
 def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path, params: tuple[str, ...],
-                 restart: bool, **topic_names: str) -> None:  # fmt: skip
+                 restart: bool, overwrite: bool, **topic_names: str) -> None:  # fmt: skip
     """Fuse RUN_DIR (a `relpoint run` output) with the fixes of LOG into a global path and map.
 
     By default the finished run is split into local maps where matched features fail (matched =
@@ -95,6 +98,7 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
     local map is fitted to the fixes and mapped into their frame.
     """
     config = fusion_config(params)
+    output = check_output_directory(output, command="fuse", inputs=[run_dir, log_path], overwrite=overwrite)
     previous = _read_run(run_dir, need_outputs=not restart)
     reader = LogReader(log_path, topics_from(topic_names))
     reader.require("fix")
@@ -150,7 +154,7 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
         "input": {"path": str(log_path), "sha256": file_sha256(log_path), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
     }  # fmt: skip
-    with atomic_directory(output) as tmp:
+    with atomic_directory(output, command="fuse") as tmp:
         write_run_directory(tmp, run_result, run_info)
         folder = tmp / "segments"
         folder.mkdir()

@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 import relpoint
-from relpoint_cli.errors import EXIT_INTERRUPTED, EXIT_USAGE
+from relpoint_cli.errors import EXIT_INTERRUPTED, EXIT_USAGE, quiet_broken_pipe
 
 EPILOG = """\b
 Examples:
@@ -70,6 +70,8 @@ class RelpointGroup(click.Group):
             sys.exit(EXIT_INTERRUPTED)
         except click.exceptions.Exit as exit_:
             sys.exit(exit_.exit_code)
+        except BrokenPipeError:
+            quiet_broken_pipe()
 
 
 class _Formatter(logging.Formatter):
@@ -123,6 +125,8 @@ def main() -> None:
     """
     try:
         cli(prog_name="relpoint")
+    except BrokenPipeError:
+        quiet_broken_pipe()
     except KeyboardInterrupt:
         click.echo("relpoint: error: interrupted; no output was written", err=True)
         sys.exit(EXIT_INTERRUPTED)

@@ -54,3 +54,28 @@ def explicit_options(ctx: click.Context, names: list[str]) -> dict[str, Any]:
         for name in names
         if name in ctx.params and ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, None)
     }
+
+
+def overwrite_option(command: Any) -> Any:
+    """``--overwrite``: replace an output that relpoint did not recognisably write (never an input)."""
+    return click.option(
+        "--overwrite",
+        is_flag=True,
+        help="Replace an existing output file, or another relpoint command's output directory. "
+        "Inputs and directories holding other files are never replaced.",
+    )(command)
+
+
+def read_paths(*paths: Any) -> list[Any]:
+    """The files a command reads: each path given, and the files directly inside a directory given."""
+    import os
+
+    found: list[Any] = []
+    for path in paths:
+        if path is None:
+            continue
+        found.append(path)
+        if os.path.isdir(path):
+            with os.scandir(path) as entries:
+                found.extend(entry.path for entry in entries if entry.is_file())
+    return found

@@ -16,6 +16,7 @@ from threadpoolctl import threadpool_limits
 import relpoint
 from formats.config_files import load_settings
 from formats.log import LogReader, Record
+from formats.outputs import check_output_directory
 from formats.run_output import file_sha256, write_run_directory
 from relpoint import pipeline
 from relpoint.errors import EstimatorError, InputError, UsageError
@@ -23,6 +24,7 @@ from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint.types import DepthFrame, Intrinsics
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
+from relpoint_cli.options import overwrite_option
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -159,7 +161,7 @@ def execute_run(
     "--output",
     type=click.Path(file_okay=False, path_type=Path),
     required=True,
-    help="Output directory (replaced atomically).",
+    help="Output directory (written atomically; an earlier `relpoint run` output there is replaced, nothing else is).",
 )
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE", help="Estimator parameter (repeatable).")
 @click.option(
@@ -179,17 +181,19 @@ def execute_run(
 @click.option("--no-odometry", is_flag=True, help="Ignore /odom even if the log has it.")
 @click.option("--no-fixes", is_flag=True, help="Ignore /fix even if the log has it.")
 @topic_options
+@overwrite_option
 @click.pass_context
 @handle_errors
 def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params: tuple[str, ...],
         config_file: Path | None, seed: int, map_every: int, no_odometry: bool, no_fixes: bool,
-        **topic_names: str) -> None:  # fmt: skip
+        overwrite: bool, **topic_names: str) -> None:  # fmt: skip
     """Run an estimator over LOG and write trajectory, map, timing and run.json to OUTPUT."""
     if estimator_name not in ESTIMATORS:
         known = ", ".join(sorted(ESTIMATORS)) or "none installed"
         raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {known}")
     spec = ESTIMATORS[estimator_name]
     config = build_config(spec, config_file, params)
+    output = check_output_directory(output, command="run", inputs=[log, config_file], overwrite=overwrite)
     reader = LogReader(log, topics_from(topic_names))
     total = reader.topic_infos.get(reader.topics.depth if "depth" in spec.needs else reader.topics.points)
     with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:

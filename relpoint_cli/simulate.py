@@ -10,12 +10,13 @@ import click
 
 from formats.config_files import load_settings
 from formats.log import COMPRESSIONS
+from formats.outputs import check_output_file
 from formats.simulation_log import write_simulation
 from relpoint.errors import UsageError
 from relpoint.simulation import SCENARIOS, SimulationConfig
 from relpoint.simulation import simulate as make_simulation
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import config_options, explicit_options
+from relpoint_cli.options import config_options, explicit_options, overwrite_option
 from relpoint_cli.progress import progress_bar
 
 EXAMPLES = """\b
@@ -53,6 +54,7 @@ A config file holds the same settings by name (dashes or underscores), e.g. in T
 )
 @click.option("--resolution", type=click.Choice(["320x240", "640x480"]), help="Image size (scenario room only).")
 @config_options(SimulationConfig, choices={"scenario": (*SCENARIOS, "room")})
+@overwrite_option
 @click.pass_context
 @handle_errors
 def simulate(
@@ -61,6 +63,7 @@ def simulate(
     config_file: Path | None,
     compression: str,
     resolution: str | None,
+    overwrite: bool,
     **settings: Any,
 ) -> None:
     """Write a simulated run (observations, ground truth, odometry, fixes) to an MCAP log.
@@ -68,6 +71,7 @@ def simulate(
     The scenario room renders depth and colour images of a furnished room instead (for the dense
     estimator) and writes the room's surface samples beside the log as LOG.scene.ply.
     """
+    check_output_file(output, inputs=[config_file], overwrite=overwrite)
     values: dict[str, Any] = {}
     if config_file is not None:
         values.update(load_settings(config_file, section="simulate"))
@@ -89,6 +93,11 @@ def simulate(
         f"({int(simulation.landmarks.dynamic.sum())} dynamic), {size / 1e6:.2f} MB",
         err=True,
     ) if not ctx.find_root().obj.get("quiet") else None
+
+
+def explicit_overwrite(ctx: click.Context) -> bool:
+    """Whether ``--overwrite`` was given."""
+    return bool(ctx.params.get("overwrite"))
 
 
 #: Point-scenario options that carry over to the room scenario, under the room's own names.
@@ -114,6 +123,7 @@ def simulate_room(
     if resolution is not None:
         values["resolution"] = resolution
     config = RgbdConfig.from_mapping(values)
+    check_output_file(output.with_suffix(".scene.ply"), inputs=[output], overwrite=explicit_overwrite(ctx))
     simulation = simulate_rgbd(config)
     with progress_bar(len(simulation), "render", unit="frame") as bar:
         counts = write_rgbd_simulation(simulation, output, compression=compression, on_frame=lambda _: bar.update(1))

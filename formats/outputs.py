@@ -1,0 +1,224 @@
+"""Where a command may write: the checks that keep relpoint from destroying a user's files.
+
+Every output path goes through :func:`check_output_directory` or :func:`check_output_file` before any
+work starts. The rules (README, "Outputs"):
+
+- An output is never one of the command's inputs, and a directory output never contains one.
+- An existing directory is replaced only when relpoint wrote it: it holds the marker file
+  :data:`MARKER` (or, for outputs written before the marker existed, a relpoint ``run.json``) and
+  nothing that relpoint did not write. An output of another relpoint command is replaced only with
+  ``overwrite``. A directory of anything else is refused, ``overwrite`` or not.
+- An existing file is replaced when relpoint recognisably wrote it (its header names relpoint), or
+  with ``overwrite``; never when it is one of the command's inputs.
+- A symbolic link is written through (its target is replaced); a dangling one is refused.
+- The place is writable: a probe file is made and removed before the work starts, so a read-only
+  or missing destination fails at once, not after the run.
+
+Each failure is a :class:`~relpoint.errors.UsageError` (exit 2) naming the path and the way out.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from relpoint.errors import UsageError
+
+#: Name of the file that marks a directory as a relpoint output; JSON ``{"command", "files"}``.
+MARKER = ".relpoint-output"
+
+#: Header lines of the CSV tables relpoint writes; a CSV file starting with one is relpoint's.
+_CSV_HEADERS: set[str] = set()
+
+_SNIFF_BYTES = 8192
+
+
+class OutputError(UsageError):
+    """An output path that cannot or must not be written (exit 2)."""
+
+
+def register_csv_header(header: Iterable[str] | str) -> None:
+    """Declare a CSV header line that relpoint writes, so its files are recognised as relpoint's."""
+    _CSV_HEADERS.add(header if isinstance(header, str) else ",".join(header))
+
+
+def resolve_output(path: str | os.PathLike[str]) -> Path:
+    """The absolute path an output is written to: a symlink is followed; a dangling one is refused."""
+    path = Path(path)
+    if path.is_symlink():
+        target = Path(os.path.realpath(path))
+        if not target.exists() and not target.parent.is_dir():
+            raise OutputError(f"{path} is a symbolic link to {target}, whose directory does not exist",
+                              "remove the link or point it somewhere that exists")  # fmt: skip
+        if not target.exists():
+            raise OutputError(f"{path} is a dangling symbolic link (to {target})", "remove it or choose another output")
+        return target
+    return Path(os.path.abspath(path))
+
+
+def _resolved_inputs(inputs: Iterable[str | os.PathLike[str] | None]) -> list[tuple[str, Path]]:
+    return [(str(p), Path(os.path.realpath(p))) for p in inputs if p is not None and os.path.lexists(p)]
+
+
+def _refuse_inputs(shown: str | os.PathLike[str], target: Path, inputs: list[tuple[str, Path]], *, directory: bool):
+    for name, resolved in inputs:
+        if resolved == target:
+            raise OutputError(f"output {shown} is the input {name}", "write to another path; relpoint never overwrites its input")
+        if directory and target in resolved.parents:
+            raise OutputError(
+                f"output directory {shown} contains the input {name}", "choose an output directory outside the input's"
+            )
+
+
+def _first_existing(path: Path) -> Path:
+    while not path.exists():
+        if path.parent == path:
+            break
+        path = path.parent
+    return path
+
+
+def probe_writable(directory: Path, shown: str | os.PathLike[str]) -> None:
+    """Make and remove a file in ``directory`` (or its first existing ancestor); OutputError if refused."""
+    where = _first_existing(directory)
+    if not where.is_dir():
+        raise OutputError(f"cannot write {shown}: {where} is not a directory", "choose another output path")
+    try:
+        fd, name = tempfile.mkstemp(prefix=".relpoint-probe.", dir=where)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as error:
+        raise OutputError(f"cannot write {shown}: {error.strerror or error}", "choose a writable place") from None
+
+
+def directory_owner(path: Path) -> tuple[str, set[str]] | None:
+    """``(command, files)`` of a relpoint output directory, or None if relpoint did not write it."""
+    marker = path / MARKER
+    if marker.is_file():
+        try:
+            document = json.loads(marker.read_text(encoding="utf-8")[:1_000_000])
+            return str(document["command"]), {str(f) for f in document["files"]}
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+    run_json = path / "run.json"  # outputs written before the marker existed
+    if run_json.is_file():
+        try:
+            document = json.loads(run_json.read_text(encoding="utf-8")[:10_000_000])
+        except (OSError, ValueError):
+            return None
+        if isinstance(document, dict) and "relpoint_version" in document:
+            from formats.run_output import RUN_FILES  # a late import: run_output imports this module
+
+            return "run", {*RUN_FILES, "map_history.csv"}
+    return None
+
+
+def check_output_directory(
+    path: str | os.PathLike[str],
+    *,
+    command: str,
+    inputs: Iterable[str | os.PathLike[str] | None] = (),
+    overwrite: bool = False,
+) -> Path:
+    """Check that ``path`` may be written as the output directory of ``relpoint COMMAND``; its resolved path.
+
+    Raises :class:`OutputError` (exit 2) when it is or contains an input, is a file, holds anything
+    relpoint did not write, holds another command's output without ``overwrite``, or is not writable.
+    """
+    target = resolve_output(path)
+    _refuse_inputs(path, target, _resolved_inputs(inputs), directory=True)
+    if target.exists():
+        if not target.is_dir():
+            raise OutputError(f"{path} exists and is not a directory", "choose another output directory")
+        try:
+            entries = sorted(entry.name for entry in target.iterdir())
+        except OSError as error:
+            raise OutputError(f"cannot read {path}: {error.strerror or error}", "choose another output directory") from None
+        if entries:
+            owner = directory_owner(target)
+            if owner is None:
+                raise OutputError(
+                    f"{path} exists, is not empty and is not a relpoint output",
+                    "choose a new or empty directory (relpoint never replaces what it did not write)",
+                )
+            owner_command, files = owner
+            foreign = [name for name in entries if name not in files and name != MARKER]
+            if foreign:
+                raise OutputError(
+                    f"{path} holds {foreign[0]!s}" + (f" and {len(foreign) - 1} more" if len(foreign) > 1 else "")
+                    + ", which relpoint did not write",
+                    "move it away or choose another output directory",
+                )  # fmt: skip
+            if owner_command != command and not overwrite:
+                raise OutputError(
+                    f"{path} holds the output of `relpoint {owner_command}`",
+                    "pass --overwrite to replace it, or choose another output directory",
+                )
+    probe_writable(target.parent, path)
+    return target
+
+
+def written_by_relpoint(path: Path) -> bool:
+    """Whether a file's own header says relpoint wrote it (MCAP library, PLY/TUM comment, JSON key, CSV header)."""
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(_SNIFF_BYTES)
+    except OSError:
+        return False
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
+        return first in _CSV_HEADERS
+    if suffix == ".json":
+        try:
+            if path.stat().st_size > 50_000_000:
+                return False
+            document = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return False
+        return isinstance(document, dict) and "relpoint_version" in document
+    if suffix in (".mcap", ".ply", ".tum", ".txt", ".png", ".pdf", ".svg"):
+        return b"relpoint" in head
+    return False
+
+
+def check_output_file(
+    path: str | os.PathLike[str],
+    *,
+    inputs: Iterable[str | os.PathLike[str] | None] = (),
+    overwrite: bool = False,
+) -> Path:
+    """Check that file ``path`` may be written; its resolved path (a symlink's target).
+
+    Raises :class:`OutputError` (exit 2) when it is one of ``inputs`` (whatever ``overwrite`` says), a
+    directory, an existing file relpoint did not write (unless ``overwrite``), or not writable.
+    """
+    target = resolve_output(path)
+    _refuse_inputs(path, target, _resolved_inputs(inputs), directory=False)
+    if target.is_dir():
+        raise OutputError(f"{path} is a directory", "give a file name")
+    if target.exists() and not overwrite and not written_by_relpoint(target):
+        raise OutputError(f"{path} exists and relpoint did not write it", "pass --overwrite to replace it")
+    probe_writable(target.parent, path)
+    return target
+
+
+#: Operating-system errors that mean an output could not be written (exit 2); any other is an input's (exit 3).
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EBUSY, errno.EEXIST, errno.ENOTEMPTY,
+                           errno.EXDEV, errno.EISDIR, errno.EFBIG})  # fmt: skip
+
+
+def os_error_message(error: OSError) -> str:
+    """One line for an operating-system error: the path, what the system said, and the way out."""
+    where = f" {error.filename}" if error.filename else ""
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"cannot write{where}: no space left on the device; free some space or write elsewhere"
+    if error.errno == errno.EROFS:
+        return f"cannot write{where}: read-only file system; write elsewhere"
+    if error.errno in (errno.EACCES, errno.EPERM):
+        return f"cannot use{where}: permission denied; check its permissions or choose another path"
+    return f"cannot use{where}: {error.strerror or error}; check the path"
