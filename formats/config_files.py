@@ -17,27 +17,84 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
+#: Largest settings file or plan read, bytes: far above any real one, and bounded before parsing.
+MAX_DOCUMENT_BYTES = 1_000_000
+
+#: Most YAML nodes a document may expand to once aliases are followed (an alias bomb is refused).
+MAX_YAML_NODES = 100_000
+
+_SUFFIXES = (".toml", ".yaml", ".yml", ".json")
+
+
+def _read_text(path: Path, what: str) -> str:
+    """The file's text, read only up to :data:`MAX_DOCUMENT_BYTES` (so ``/dev/zero`` is safe)."""
+    try:
+        with path.open("rb") as stream:
+            data = stream.read(MAX_DOCUMENT_BYTES + 1)
+    except IsADirectoryError:
+        raise UsageError(f"{what} {path} is a directory", "give a .toml or .yaml file") from None
+    except OSError as error:
+        raise UsageError(f"cannot read {what} {path}: {error.strerror or error}") from None
+    if len(data) > MAX_DOCUMENT_BYTES:
+        raise UsageError(f"{what} {path} is larger than {MAX_DOCUMENT_BYTES // 1_000_000} MB", "is it the right file?")
+    if b"\x00" in data:
+        raise UsageError(f"{what} {path} is a binary file, not TOML or YAML text", "is it the right file?")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise UsageError(f"{what} {path} is not UTF-8 text (byte {error.start})", "save it as UTF-8") from None
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """A safe YAML loader that refuses documents whose aliases expand beyond :data:`MAX_YAML_NODES`."""
+
+    def compose_document(self) -> yaml.Node:
+        node = super().compose_document()
+        _check_expanded_size(node)
+        return node
+
+
+def _check_expanded_size(root: yaml.Node) -> None:
+    """Count the nodes a document expands to (an alias counts every time it is used), up to the bound."""
+    count = 0
+    stack: list[yaml.Node] = [root]
+    while stack:
+        node = stack.pop()
+        count += 1
+        if count > MAX_YAML_NODES:
+            raise UsageError(f"document expands to more than {MAX_YAML_NODES} values (YAML aliases)",
+                             "write the settings out without nested aliases")  # fmt: skip
+        if isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            for key, value in node.value:
+                stack.append(key)
+                stack.append(value)
+
+
 def read_document(path: str | os.PathLike[str], what: str = "config file") -> dict[str, Any]:
     """A TOML (``.toml``) or YAML (``.yaml``/``.yml``/``.json``) file as a mapping.
 
-    Raises :class:`UsageError` naming ``what``, the file and the problem when it cannot be read, has
-    another suffix, does not parse, or does not hold a table.
+    The suffix is checked before anything is read, at most :data:`MAX_DOCUMENT_BYTES` are read, and
+    YAML aliases may not expand past :data:`MAX_YAML_NODES` values. Raises :class:`UsageError` naming
+    ``what``, the file and the problem when it cannot be read, is binary, has another suffix, does
+    not parse, or does not hold a table.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise UsageError(f"cannot read {what} {path}: {error.strerror or error}") from None
     suffix = path.suffix.lower()
+    if suffix not in _SUFFIXES:
+        raise UsageError(f"{what} {path} must end in .toml, .yaml or .yml")
+    text = _read_text(path, what)
     try:
         if suffix == ".toml":
             data: Any = tomllib.loads(text)
-        elif suffix in (".yaml", ".yml", ".json"):
-            data = yaml.safe_load(text)
         else:
-            raise UsageError(f"{what} {path} must end in .toml, .yaml or .yml")
-    except (tomllib.TOMLDecodeError, yaml.YAMLError) as error:
-        raise UsageError(f"{what} {path} is not valid {suffix[1:].upper()}: {error}".splitlines()[0]) from None
+            data = yaml.load(text, Loader=_BoundedLoader)
+    except UsageError as error:
+        raise UsageError(f"{what} {path}: {error.message}", error.hint) from None
+    except (tomllib.TOMLDecodeError, yaml.YAMLError, RecursionError) as error:
+        first = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise UsageError(f"{what} {path} is not valid {suffix[1:].upper()}: {first[:200]}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -24,7 +24,7 @@ from formats.outputs import check_output_directory
 from formats.run_output import file_sha256, write_run_directory
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_tum, write_tum
-from relpoint.errors import InputError
+from relpoint.errors import InputError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import run_segmented
@@ -32,7 +32,7 @@ from relpoint.pipeline import RunResult
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
 from relpoint_cli.options import overwrite_option
-from relpoint_cli.run import estimator_inputs, parse_value
+from relpoint_cli.run import estimator_inputs
 from relpoint_cli.topics import topic_options, topics_from
 
 EXAMPLES = """\b
@@ -64,13 +64,7 @@ def read_timing(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def fusion_config(params: tuple[str, ...]) -> FusionConfig:
     """:class:`FusionConfig` from ``--param KEY=VALUE`` items."""
-    values: dict[str, Any] = {}
-    for item in params:
-        if "=" not in item:
-            raise click.UsageError(f"--param {item!r} is not KEY=VALUE")
-        key, value = item.split("=", 1)
-        values[key.strip()] = parse_value(value)
-    return FusionConfig.from_mapping(values)
+    return FusionConfig.from_strings(params)
 
 
 @click.command(epilog=EXAMPLES)
@@ -199,9 +193,10 @@ def _restarted(
         raise InputError(f"run.json names estimator {name!r}, which --restart cannot re-run",
                          f"known estimators: {', '.join(sorted(ESTIMATORS))}")  # fmt: skip
     spec = ESTIMATORS[name]
+    parameters = previous.get("parameters") or {}
     try:
-        estimator_config = spec.config_class(**(previous.get("parameters") or {}))
-    except (TypeError, ValueError) as error:
+        estimator_config = spec.build_config(parameters if isinstance(parameters, dict) else {})
+    except UsageError as error:
         raise InputError(f"run.json parameters do not fit {name}: {error}") from None
     seed = int(previous.get("seed", 0))
     needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]

@@ -40,32 +40,12 @@ Examples:
 """
 
 
-def parse_value(text: str) -> Any:
-    """``--param`` values: true/false, int, float, or the text itself."""
-    lowered = text.strip().lower()
-    if lowered in ("true", "yes", "on"):
-        return True
-    if lowered in ("false", "no", "off"):
-        return False
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
 def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[str, ...]) -> Any:
     """The estimator's config dataclass from defaults, a settings file and ``--param KEY=VALUE``."""
     values: dict[str, Any] = {}
     if config_file is not None:
         values.update(load_settings(config_file, section=spec.name))
-    for item in params:
-        if "=" not in item:
-            raise UsageError(f"--param {item!r} is not KEY=VALUE")
-        key, value = item.split("=", 1)
-        values[key.strip().replace("-", "_")] = parse_value(value)
-    return spec.build_config(values)
+    return spec.build_config(values, params)
 
 
 def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
@@ -226,6 +206,9 @@ def config_command(estimator_name: str) -> None:
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
         help_text = f.metadata.get("help", "")
+        limits = spec.config_class.field_limits(f.name) if hasattr(spec.config_class, "field_limits") else None
+        if limits is not None:
+            help_text = f"{help_text} [{limits[0]:g} .. {limits[1]:g}]".strip()
         comment = f"  # {help_text}" if help_text else ""
         if default is None:
             click.echo(f"# {f.name} =  (unset){comment}")

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from relpoint.errors import UsageError
+from relpoint.settings import short_repr
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
@@ -82,16 +83,17 @@ class EstimatorSpec:
     needs: frozenset[str]
     uses: frozenset[str] = frozenset()
 
-    def build_config(self, values: Mapping[str, Any]) -> Any:
-        """The config dataclass from parameter values; unknown or bad values are a :class:`UsageError`."""
+    def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
+        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``, read as
+        each field's kind); unknown keys and bad values are a :class:`UsageError`."""
         known = {f.name for f in dataclasses.fields(self.config_class)}
-        unknown = sorted(set(values) - known)
+        keys = [str(k).replace("-", "_") for k in values] + [
+            item.split("=", 1)[0].strip().replace("-", "_") for item in params if "=" in item
+        ]
+        unknown = sorted(set(keys) - known)
         if unknown:
             raise UsageError(
-                f"unknown {self.name} parameter(s): {', '.join(unknown)}",
+                f"unknown {self.name} parameter(s): {', '.join(short_repr(k, 40) for k in unknown[:10])}",
                 f"see `relpoint config --estimator {self.name}` for the parameters",
             )
-        try:
-            return self.config_class(**values)
-        except (TypeError, ValueError) as error:
-            raise UsageError(f"bad {self.name} parameter: {error}") from None
+        return self.config_class.from_strings(params, base=values)

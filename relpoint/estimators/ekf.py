@@ -61,6 +61,13 @@ class EkfConfig(Settings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "ekf"
+    limits: ClassVar[dict[str, tuple[float, float]]] = {
+        "observation_sigma": (1e-6, 1e3), "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
+        "linear_acceleration_noise": (0.0, 1e4), "angular_acceleration_noise": (0.0, 1e3),
+        "initial_speed_sigma": (0.0, 1e4), "initial_turn_rate_sigma": (0.0, 1e2), "initial_orientation_sigma": (0.0, 10.0),
+        "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
+        "jcbb_max_nodes": (1, 10_000_000),
+    }  # fmt: skip
 
     association: str = "nn"
     """Data association: ``nn`` (nearest neighbour in Mahalanobis distance), ``jcbb`` (joint

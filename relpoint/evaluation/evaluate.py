@@ -72,8 +72,10 @@ class EvaluationSettings:
             raise UsageError(f"t_max_diff must be a finite number >= 0 s, got {self.t_max_diff}")
         if not np.isfinite(self.t_offset):
             raise UsageError(f"t_offset must be finite, got {self.t_offset}")
-        if not (np.isfinite(self.delta) and self.delta > 0):
-            raise UsageError(f"delta must be a positive number, got {self.delta}")
+        if not (np.isfinite(self.delta) and 0 < self.delta <= 1e9):
+            raise UsageError(f"delta must be a positive number up to 1e9, got {self.delta}")
+        if abs(self.t_offset) > 1e10 or self.t_max_diff > 1e10 or self.n_to_align > 1e9 or self.kitti_step > 1e9:
+            raise UsageError("t_offset and t_max_diff must be within 1e10 s, n_to_align and kitti_step within 1e9")
         if self.delta_unit is DeltaUnit.FRAMES and float(self.delta) != int(self.delta):
             raise UsageError(f"delta must be an integer for delta unit f (frames), got {self.delta}")
         if not (np.isfinite(self.delta_tol) and self.delta_tol >= 0):

@@ -24,6 +24,12 @@ class SimulationConfig(Settings):
     """
 
     settings_name: ClassVar[str] = "simulation"
+    limits: ClassVar[dict[str, tuple[float, float]]] = {
+        "passes": (1, 1_000), "iterations": (1, 1_000_000), "step": (1e-4, 1e3), "rate": (1e-3, 1e4),
+        "start_time": (0.0, 4e9), "density": (1e-3, 1e4), "range": (1e-3, 1e5), "min_range": (0.0, 1e5),
+        "noise": (0.0, 1e3), "clutter": (0.0, 1e5), "fix_every": (0, 1_000_000), "fix_noise": (0.0, 1e4),
+        "seed": (0, 2**63 - 1),
+    }  # fmt: skip
 
     scenario: str = setting(
         "figure8",

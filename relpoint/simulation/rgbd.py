@@ -41,6 +41,9 @@ class RgbdConfig(Settings):
     """Settings of the simulated RGB-D room. Metres, degrees, seconds, hertz."""
 
     settings_name: ClassVar[str] = "rgbd"
+    limits: ClassVar[dict[str, tuple[float, float]]] = {
+        "frames": (1, 100_000), "rate": (1e-3, 1e4), "reference_points": (1, 10_000_000), "seed": (0, 2**63 - 1),
+    }  # fmt: skip
 
     resolution: str = _setting("320x240", "Image size: 320x240 or 640x480.")
     frames: int = _setting(150, "Number of frames.")

@@ -37,6 +37,11 @@ class DenseConfig(Settings):
     """Settings of the dense estimator. Metres, degrees, frames."""
 
     settings_name: ClassVar[str] = "dense"
+    limits: ClassVar[dict[str, tuple[float, float]]] = {
+        "downsample": (1, 64), "pyramid_levels": (1, 8), "source_stride": (1, 64), "min_correspondences": (3, 10_000_000),
+        "icp_normal_angle": (0.0, 180.0), "fusion_normal_angle": (0.0, 180.0), "min_depth": (0.0, 1e3),
+        "max_depth": (1e-3, 1e3), "unstable_age": (0, 1_000_000),
+    }  # fmt: skip
 
     downsample: int = 1
     """Process the depth at 1/downsample of its resolution (1, 2 or 4; 2x2 block averaging)."""

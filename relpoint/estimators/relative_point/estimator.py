@@ -113,6 +113,13 @@ class RelativePointConfig(Settings):
     """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
 
     settings_name: ClassVar[str] = "relpoint"
+    limits: ClassVar[dict[str, tuple[float, float]]] = {
+        "ring_size": (1, 65_536), "match_window": (1, 1_000), "dynamic_window": (1, 10_000),
+        "dynamic_references": (1, 1_000), "max_groups_per_point": (1, 1_000), "relocate_points": (3, 10_000),
+        "adjustment_members": (3, 10_000), "adjustment_iterations": (1, 1_000), "seed_points": (1, 10_000),
+        "trim_rounds": (1, 100), "loop_support": (3, 10_000), "unverified_weight": (0.0, 1.0),
+        "dynamic_spread_verify": (0.0, 1.0),
+    }  # fmt: skip
 
     ring_size: int = 128
     """Untransformed observations each point keeps (*RltPoint* circular array); bounds regrouping intervals."""
