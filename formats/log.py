@@ -302,7 +302,7 @@ class LogReader:
                 try:
                     record = self._convert(role, _deserialize(reader, raw, ROLE_TYPES[role]))
                 except InputError as error:
-                    self._skip(f"{topic}: malformed messages", str(error))
+                    self._skip(f"{topic}: {getattr(error, 'kind', 'malformed messages')}", str(error))
                     continue
                 except (AttributeError, TypeError, ValueError, IndexError, KeyError, OverflowError) as error:
                     # The bytes decoded under the file's own schema but are not the message they claim.

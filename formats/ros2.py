@@ -253,6 +253,9 @@ def tf_to_msg(stamp_ns: int, parent: str, child: str, position: Any, quat_xyzw: 
 
 def cloud_of(message: Any) -> np.ndarray:
     """The structured array of a decoded PointCloud2 (see :func:`formats.pointcloud2.decode_cloud`)."""
+    width, height = int(message.width), int(message.height)
+    if width * height > MAX_CLOUD_POINTS:
+        raise OversizedMessage(f"cloud of {width * height} points exceeds the limit of {MAX_CLOUD_POINTS} points")
     fields = [Field(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in message.fields]
     return decode_cloud(
         message.data,
@@ -263,6 +266,28 @@ def cloud_of(message: Any) -> np.ndarray:
         row_step=int(message.row_step),
         big_endian=bool(message.is_bigendian),
     )
+
+
+#: Largest PointCloud2 read, points: a landmark or keypoint cloud holds hundreds to thousands; a larger
+#: one is skipped (and counted) before any array is made of it.
+MAX_CLOUD_POINTS = 1_000_000
+
+#: Largest image read, pixels (4096 x 4096); larger ones are skipped before their pixels are copied.
+MAX_IMAGE_PIXELS = 4096 * 4096
+
+#: Smallest depth image the dense estimator can track, pixels per side.
+MIN_DEPTH_SIDE = 16
+
+
+class OversizedMessage(InputError):
+    """A message within the format but beyond relpoint's documented size limits (skipped and counted)."""
+
+    kind = "oversized messages"
+
+
+def _check_image_size(what: str, width: int, height: int) -> None:
+    if width * height > MAX_IMAGE_PIXELS:
+        raise OversizedMessage(f"{what} of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
 
 
 def msg_to_observation(message: Any) -> tuple[PointObservation, int]:
@@ -318,6 +343,7 @@ def msg_to_fix(message: Any) -> PositionFix:
 def msg_to_intrinsics(message: Any) -> Intrinsics:
     """Pinhole intrinsics from a CameraInfo's ``k``."""
     k = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    _check_image_size("camera_info", int(message.width), int(message.height))
     try:
         return Intrinsics(int(message.width), int(message.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     except ValueError as error:
@@ -334,6 +360,9 @@ def msg_to_depth(message: Any) -> np.ndarray:
     dtype = dtypes[encoding].newbyteorder(">" if message.is_bigendian else "<")
     if height <= 0 or width <= 0:
         raise InputError(f"depth image has size {width}x{height}")
+    _check_image_size("depth image", width, height)
+    if min(width, height) < MIN_DEPTH_SIDE:
+        raise InputError(f"depth image of {width}x{height} pixels is too small to track (at least {MIN_DEPTH_SIDE} a side)")
     data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
     if step < width * dtype.itemsize or step * height > data.size:
         raise InputError(f"depth image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
@@ -352,6 +381,7 @@ def msg_to_rgb(message: Any) -> np.ndarray:
     encoding = str(message.encoding).lower()
     if encoding not in ("rgb8", "bgr8"):
         raise InputError(f"colour image encoding {message.encoding!r} is not rgb8 or bgr8")
+    _check_image_size("colour image", width, height)
     data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
     if step < width * 3 or step * height > data.size:
         raise InputError(f"colour image header ({width}x{height}, step {step}) does not match its {data.size} bytes")

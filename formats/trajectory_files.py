@@ -232,9 +232,7 @@ def write_tum(path: str | os.PathLike[str], trajectory: Trajectory, header: str 
     ``header`` lines are written as ``#`` comments before the column legend.
     """
     path = Path(path)
-    header = header or f"relpoint {relpoint.__version__}"
-    if "relpoint" not in header:  # the mark that lets a later run replace the file
-        header = f"{header}\nrelpoint {relpoint.__version__}"
+    header = header or f"relpoint {relpoint.__version__}"  # the mark that lets a later run replace the file
     out = [f"# {line}\n" for line in header.splitlines()]
     out.append("# timestamp tx ty tz qx qy qz qw\n")
     for stamp, p, q in zip(

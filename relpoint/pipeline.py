@@ -9,6 +9,7 @@ records come from any iterable (``formats.log.LogReader.records`` in the CLI, a 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from array import array
 from collections.abc import Callable, Iterable
@@ -19,6 +20,7 @@ import numpy as np
 
 from relpoint.errors import EstimatorError
 from relpoint.estimators.base import Estimator
+from relpoint.screening import InputScreen
 from relpoint.types import DepthFrame, LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 log = logging.getLogger(__name__)
@@ -53,6 +55,10 @@ class RunResult:
     dense_map: tuple[np.ndarray, ...] | None = None
     """For dense estimators: (positions (M,3) m, normals (M,3), colours (M,3) uint8, weights (M,)) in ``world``."""
     seconds_finish: float = 0.0
+    skipped: dict[str, int] = field(default_factory=dict)
+    """Inputs dropped before the estimator saw them, and iterations it could not compute, by kind."""
+    warnings: tuple[str, ...] = ()
+    """What a user should know about the result (no landmarks, mostly failed iterations)."""
 
     def timing_summary(self) -> dict[str, float]:
         """Mean, median and total wall time per iteration, and the time after the last one, in seconds."""
@@ -90,15 +96,34 @@ def run(
     map_size = array("q")
     seconds = array("d")
     snapshots: list[tuple[int, int, LandmarkMap]] = []
+    screen = InputScreen()
+    failed = 0
     for item in inputs:
         if isinstance(item, OdometryMeasurement):
-            estimator.add_odometry(item)
+            if (odometry := screen.odometry(item)) is not None:
+                estimator.add_odometry(odometry)
         elif isinstance(item, PositionFix):
-            estimator.add_fix(item)
+            if (fix := screen.fix(item)) is not None:
+                estimator.add_fix(fix)
         elif isinstance(item, PointObservation | DepthFrame):
+            if isinstance(item, PointObservation):
+                item = screen.points(item)
             start = time.perf_counter()
-            pose = estimator.step(item)
+            try:
+                pose = estimator.step(item)
+            except (np.linalg.LinAlgError, FloatingPointError) as error:
+                # A singular system at this iteration: skip it, keep the estimator's state, go on.
+                failed += 1
+                if failed == 1:
+                    log.warning("%s: iteration at %d ns skipped, its numerics failed (%s); further ones are "
+                                "counted in run.json", estimator.name, item.stamp_ns, error)  # fmt: skip
+                continue
             seconds.append(time.perf_counter() - start)
+            if not (all(math.isfinite(v) for v in pose.position) and all(math.isfinite(v) for v in pose.quat_xyzw)):
+                raise EstimatorError(
+                    f"{estimator.name} lost its pose at {pose.stamp_ns} ns (not finite) after {len(stamps)} iterations",
+                    "check the log's stamps and values, or try another estimator",
+                )
             if stamps and pose.stamp_ns <= stamps[-1]:
                 raise EstimatorError(f"{estimator.name} returned a pose out of time order at {pose.stamp_ns} ns")
             stamps.append(pose.stamp_ns)
@@ -110,7 +135,13 @@ def run(
                 snapshots.append((len(stamps) - 1, pose.stamp_ns, estimator.landmark_map()))
             if on_iteration is not None:
                 on_iteration(len(stamps) - 1, pose)
+    skipped = dict(screen.skipped)
+    if failed:
+        skipped["iterations: numerics failed (skipped)"] = failed
     if not stamps:
+        if failed:
+            raise EstimatorError(f"{estimator.name} could not compute any of the log's {failed} iterations",
+                                 "check the log's stamps and values, or try another estimator")  # fmt: skip
         raise EstimatorError("the log holds no observation to run on")
     start = time.perf_counter()
     trajectory = estimator.finish(
@@ -127,6 +158,10 @@ def run(
         if snapshots and snapshots[-1][0] == len(stamps) - 1:
             snapshots.pop()
         snapshots.append((len(stamps) - 1, stamps[-1], landmarks))
+    dense_map = estimator.dense_map() if hasattr(estimator, "dense_map") else None
+    warnings = _result_warnings(estimator.name, len(stamps), failed, len(landmarks), dense_map, observed)
+    for warning in warnings:
+        log.warning("%s", warning)
     return RunResult(
         trajectory=trajectory,
         landmarks=landmarks,
@@ -135,6 +170,25 @@ def run(
         seconds=np.asarray(seconds, dtype=np.float64),
         summary=estimator.summary(),
         map_history=tuple(snapshots),
-        dense_map=estimator.dense_map() if hasattr(estimator, "dense_map") else None,
+        dense_map=dense_map,
         seconds_finish=seconds_finish,
+        skipped=skipped,
+        warnings=tuple(warnings),
     )
+
+
+def _result_warnings(
+    name: str, iterations: int, failed: int, landmarks: int, dense_map: tuple[np.ndarray, ...] | None, observed: Any
+) -> list[str]:
+    """What makes a finished run doubtful: no map at all, or most iterations failed or unobserved."""
+    warnings = []
+    if dense_map is None and landmarks == 0:
+        warnings.append(f"{name} mapped no landmark in {iterations} iterations; the trajectory is not anchored to a map")
+    if dense_map is not None and len(dense_map[0]) == 0:
+        warnings.append(f"{name} fused no map point in {iterations} frames")
+    if failed and failed >= iterations:
+        warnings.append(f"{name}: {failed} of {iterations + failed} iterations failed numerically")
+    empty = sum(1 for n in observed if n < 3)
+    if iterations and empty >= iterations:
+        warnings.append(f"every one of the {iterations} iterations observed fewer than 3 points: nothing to locate with")
+    return warnings

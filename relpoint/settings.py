@@ -77,7 +77,7 @@ class Settings:
         unknown = sorted(set(keys) - known)
         if unknown:
             raise UsageError(
-                f"unknown {cls.settings_name} setting(s): {', '.join(short_repr(k, 40) for k in unknown[:10])}",
+                f"unknown {cls.settings_name} setting(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
                 f"known settings are {', '.join(sorted(known))}",
             )
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -48,13 +49,15 @@ def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[st
     return spec.build_config(values, params)
 
 
-def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
+def estimator_inputs(records: Iterator[Record], skipped: Counter[str] | None = None) -> Iterator[Any]:
     """Core-type inputs for the pipeline from decoded log records.
 
     Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
     colour image of the same stamp (colour is written before depth at a stamp); depth images that
-    arrive before any camera_info, or that do not match its size, are skipped and counted.
+    arrive before any camera_info, or that do not match its size, are skipped, counted in ``skipped``
+    and reported once.
     """
+    skipped = Counter() if skipped is None else skipped
     intrinsics: Intrinsics | None = None
     color: tuple[int, np.ndarray] | None = None
     for record in records:
@@ -66,7 +69,11 @@ def estimator_inputs(records: Iterator[Record]) -> Iterator[Any]:
             color = (record.stamp_ns, record.value)
         elif record.role == "depth":
             if intrinsics is None or record.value.shape != (intrinsics.height, intrinsics.width):
-                log.warning("skipping a depth image at %d ns: no matching camera_info before it", record.stamp_ns)
+                kind = "depth: images without a matching camera_info"
+                if kind not in skipped:
+                    log.warning("skipping a depth image at %d ns: no matching camera_info before it; further "
+                                "ones are counted in run.json", record.stamp_ns)  # fmt: skip
+                skipped[kind] += 1
                 continue
             rgb = color[1] if color is not None and color[0] == record.stamp_ns else None
             if rgb is not None and rgb.shape[:2] != record.value.shape:
@@ -109,7 +116,8 @@ def execute_run(
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             result = pipeline.run(
-                estimator_inputs(reader.records(roles)), estimator, on_iteration=on_iteration, map_every=map_every
+                estimator_inputs(reader.records(roles), reader.skipped), estimator, on_iteration=on_iteration,
+                map_every=map_every,
             )
         except EstimatorError as error:
             malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
@@ -126,7 +134,8 @@ def execute_run(
         "relpoint_version": relpoint.__version__,
         "input": {"path": str(reader.path), "sha256": file_sha256(reader.path), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
-        "skipped": dict(sorted(reader.skipped.items())),
+        "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
+        "warnings": list(result.warnings),
         **(extra_info or {}),
     }  # fmt: skip
     write_run_directory(output, result, run_info)
@@ -183,7 +192,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
         )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()
-        skipped = sum(reader.skipped.values())
+        skipped = sum(reader.skipped.values()) + sum(result.skipped.values())
         click.echo(
             f"{spec.name}: {timing['iterations']} iterations, {len(result.landmarks)} landmarks, "
             f"{timing['seconds_median'] * 1e3:.2f} ms median per iteration"

@@ -116,7 +116,7 @@ def test_plan_expands_logs_estimators_and_grids(plan_file: Path, tmp_path: Path)
         ('[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n', "unknown ekf parameter(s): no_such"),
         ('[[simulate]]\nname = "a"\n[estimators.ekf.grid]\nobservation_sigma = 0.3\n', "must be a non-empty list"),
         ('estimators = ["ekf"]\n[[simulate]]\nname = "a"\n[evaluation]\nalign = "banana"\n', "align"),
-        ('[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n', "simulate[0]: density must be a positive"),
+        ('[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n', "simulate[0]: simulation setting density must be between 0.001"),
         ('estimators = ["ekf"]\n', "names no logs"),
         ("jobs = 3\n", "unknown key(s) jobs"),
     ],

@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from formats.log import LogReader, LogWriter
+from formats.outputs import MARKER
 from formats.ply import read_ply
 from formats.run_output import RUN_FILES
 from formats.trajectory_files import read_tum
@@ -30,7 +31,7 @@ def test_run_writes_every_output_file(tmp_path: Path, small_log: Path) -> None:
     out = tmp_path / "out"
     code, err = invoke("-q", "run", str(small_log), "--estimator", ESTIMATOR, "-o", str(out))
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == sorted(RUN_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*RUN_FILES, MARKER])
     trajectory = read_tum(out / "trajectory.tum")
     truth = [r.value for r in LogReader(small_log).records(["ground_truth_pose"])]
     assert len(trajectory) == len(truth) == 120

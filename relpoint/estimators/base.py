@@ -17,7 +17,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from relpoint.errors import UsageError
-from relpoint.settings import short_repr
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
@@ -93,7 +92,7 @@ class EstimatorSpec:
         unknown = sorted(set(keys) - known)
         if unknown:
             raise UsageError(
-                f"unknown {self.name} parameter(s): {', '.join(short_repr(k, 40) for k in unknown[:10])}",
+                f"unknown {self.name} parameter(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
                 f"see `relpoint config --estimator {self.name}` for the parameters",
             )
         return self.config_class.from_strings(params, base=values)

@@ -62,7 +62,8 @@ class EkfConfig(Settings):
 
     settings_name: ClassVar[str] = "ekf"
     limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "observation_sigma": (1e-6, 1e3), "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
+        "observation_sigma": (1e-6, 1e3), "gate_probability": (0.0, 1.0), "new_landmark_probability": (0.0, 1.0),
+        "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
         "linear_acceleration_noise": (0.0, 1e4), "angular_acceleration_noise": (0.0, 1e3),
         "initial_speed_sigma": (0.0, 1e4), "initial_turn_rate_sigma": (0.0, 1e2), "initial_orientation_sigma": (0.0, 10.0),
         "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
@@ -511,7 +512,7 @@ class EkfSlam(Estimator):
         try:
             factor = linalg.cho_factor(S, lower=True, check_finite=False)
         except linalg.LinAlgError as error:
-            raise EstimatorError("EKF innovation covariance is not positive definite") from error
+            raise np.linalg.LinAlgError("EKF innovation covariance is not positive definite") from error
         Kt = linalg.cho_solve(factor, PHt.T, check_finite=False)  # (q, N)
         dx = Kt.T @ innovation
         residual = PHt.T - S @ Kt  # ~0 for the optimal gain; kept so the form stays Joseph's

@@ -78,7 +78,8 @@ class FastSlamConfig(Settings):
 
     settings_name: ClassVar[str] = "fastslam"
     limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "particles": (1, 10_000), "observation_sigma": (1e-6, 1e3), "linear_acceleration_noise": (0.0, 1e4),
+        "particles": (1, 10_000), "new_landmark_probability": (0.0, 1.0), "start_landmark_probability": (0.0, 1.0),
+        "observation_sigma": (1e-6, 1e3), "linear_acceleration_noise": (0.0, 1e4),
         "angular_acceleration_noise": (0.0, 1e3), "initial_speed_sigma": (0.0, 1e4),
         "initial_turn_rate_sigma": (0.0, 1e2), "pose_noise": (0.0, 1e2), "resample_threshold": (0.0, 1.0),
         "search_radius": (1e-6, 1e6), "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0),

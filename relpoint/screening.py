@@ -1,0 +1,120 @@
+"""Screening a log's inputs before an estimator sees them: implausible values are dropped and counted.
+
+A log can be valid and still carry values no sensor measured: a point a billion kilometres away, a
+fix at infinity, an odometry twist of light speed. One such point in every cloud is enough to ruin
+a map without any error (the estimators fit to it), so the pipeline drops them here and the run
+reports how many it dropped.
+
+A point is implausible when its range (distance from the sensor, metres) is
+
+- beyond :data:`MAX_POINT_RANGE` whatever the log, or
+- beyond :data:`RANGE_FACTOR` times the median range of the points seen so far (this cloud and a
+  window of the previous ones). The median is what the data itself shows of the sensor's reach; it
+  holds while fewer than half the points are bad, and no real sensor's far points lie fifty times
+  beyond its median point.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relpoint.types import OdometryMeasurement, PointObservation, PositionFix
+
+log = logging.getLogger(__name__)
+
+#: No 3D sensor measures points farther than this (m).
+MAX_POINT_RANGE = 1e5
+
+#: A point beyond this many times the running median range is dropped.
+RANGE_FACTOR = 50.0
+
+#: Ranges of recent points kept for the running median.
+RANGE_WINDOW = 4096
+
+#: Largest plausible fix coordinate (m): beyond the Earth-centred frame's reach.
+MAX_FIX_COORDINATE = 1e8
+
+#: Largest plausible odometry speed (m/s) and turn rate (rad/s).
+MAX_SPEED = 1e4
+MAX_TURN_RATE = 1e3
+
+
+@dataclass
+class InputScreen:
+    """Drops implausible points, fixes and odometry; counts what it dropped in :attr:`skipped`.
+
+    The first drop of each kind is logged as a warning; later ones are only counted.
+    """
+
+    skipped: Counter[str] = field(default_factory=Counter)
+    _ranges: np.ndarray = field(default_factory=lambda: np.zeros(RANGE_WINDOW))
+    _filled: int = 0
+    _next: int = 0
+
+    def points(self, observation: PointObservation) -> PointObservation:
+        """``observation`` without its implausible points (the same object when none is dropped)."""
+        if len(observation) == 0:
+            return observation
+        ranges = np.linalg.norm(observation.points, axis=1)
+        window = self._ranges[: self._filled]
+        reference = np.concatenate([window, ranges]) if self._filled else ranges
+        median = float(np.median(reference[reference <= MAX_POINT_RANGE])) if np.any(reference <= MAX_POINT_RANGE) else 0.0
+        limit = min(MAX_POINT_RANGE, RANGE_FACTOR * median) if median > 0 else MAX_POINT_RANGE
+        keep = ranges <= limit
+        self._remember(ranges[keep])
+        dropped = int(len(keep) - keep.sum())
+        if dropped == 0:
+            return observation
+        self._count("points: implausible range (far beyond the data's own)", dropped,
+                    f"beyond {limit:.4g} m, {RANGE_FACTOR:g} times the median range {median:.4g} m")  # fmt: skip
+        ids = observation.ids[keep] if observation.ids is not None else None
+        return PointObservation(observation.stamp_ns, observation.points[keep], ids, observation.frame_id)
+
+    def _count(self, kind: str, count: int, detail: str) -> None:
+        if kind not in self.skipped:
+            log.warning("skipping %s (%s); further ones are counted in run.json", kind, detail)
+        self.skipped[kind] += count
+
+    def _remember(self, ranges: np.ndarray) -> None:
+        ranges = ranges[-RANGE_WINDOW:]
+        n = len(ranges)
+        if n == 0:
+            return
+        end = self._next + n
+        if end <= RANGE_WINDOW:
+            self._ranges[self._next : end] = ranges
+        else:
+            first = RANGE_WINDOW - self._next
+            self._ranges[self._next :] = ranges[:first]
+            self._ranges[: n - first] = ranges[first:]
+        self._next = end % RANGE_WINDOW
+        self._filled = min(RANGE_WINDOW, self._filled + n)
+
+    def fix(self, fix: PositionFix) -> PositionFix | None:
+        """``fix``, or None (counted) when its position or covariance is not finite or implausible."""
+        if (
+            not np.all(np.isfinite(fix.position))
+            or np.any(np.abs(fix.position) > MAX_FIX_COORDINATE)
+            or not np.all(np.isfinite(fix.covariance))
+            or np.any(np.diag(fix.covariance) < 0)
+        ):
+            self._count("fixes: non-finite or implausible", 1, f"position {fix.position.tolist()}")
+            return None
+        return fix
+
+    def odometry(self, odometry: OdometryMeasurement) -> OdometryMeasurement | None:
+        """``odometry``, or None (counted) when its twist is not finite or implausibly fast."""
+        linear, angular = odometry.linear, odometry.angular
+        if (
+            not (np.all(np.isfinite(linear)) and np.all(np.isfinite(angular)))
+            or np.linalg.norm(linear) > MAX_SPEED
+            or np.linalg.norm(angular) > MAX_TURN_RATE
+            or not np.all(np.isfinite(odometry.covariance))
+        ):
+            self._count("odometry: non-finite or implausible", 1, f"twist {linear.tolist()} {angular.tolist()}")
+            return None
+        return odometry
