@@ -44,6 +44,7 @@ from relpoint.estimators._association import (
     twist_step,
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings, require_non_negative, require_positive
@@ -171,6 +172,7 @@ class EkfSlam(Estimator):
 
     def __init__(self, config: EkfConfig | None = None) -> None:
         self.config = config or EkfConfig()
+        self._gaps = GapBridge()
         cv = self.config.motion == "constant_velocity"
         self._nv = 12 if cv else 6
         self._R_obs = np.eye(3) * self.config.observation_sigma**2
@@ -273,6 +275,7 @@ class EkfSlam(Estimator):
             "association": self.config.association,
             "motion": self.config.motion,
             "state_size": int(self._P.shape[0]),
+            "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
         }
@@ -352,6 +355,8 @@ class EkfSlam(Estimator):
     def _predict_to(self, stamp_ns: int) -> None:
         assert self._stamp_ns is not None
         dt = (stamp_ns - self._stamp_ns) * 1e-9
+        if dt > 0.0:
+            dt = self._gaps.interval(dt)
         if dt <= 0.0:
             if dt < 0.0:
                 logger.debug(

@@ -45,6 +45,7 @@ from scipy.special import logsumexp
 from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings, require_non_negative, require_positive
@@ -204,6 +205,7 @@ class FastSlam(Estimator):
     def __init__(self, config: FastSlamConfig | None, rng: np.random.Generator) -> None:
         self.config = cfg = config or FastSlamConfig()
         self._rng = rng
+        self._gaps = GapBridge()
         n = cfg.particles
         self._Q = np.eye(3) * cfg.observation_sigma**2
         # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.
@@ -388,6 +390,7 @@ class FastSlam(Estimator):
             "particles": self.config.particles,
             "landmarks": self.map_size,
             "effective_sample_size": float(1.0 / np.sum(w**2)),
+            "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
         }
@@ -416,6 +419,8 @@ class FastSlam(Estimator):
         """
         assert self._stamp_ns is not None
         dt = (stamp_ns - self._stamp_ns) * 1e-9
+        if dt > 0.0:
+            dt = self._gaps.interval(dt)
         if dt <= 0.0:
             return
         cfg = self.config
