@@ -181,8 +181,22 @@ def written_by_relpoint(path: Path) -> bool:
         except (OSError, ValueError):
             return False
         return isinstance(document, dict) and "relpoint_version" in document
-    if suffix in (".mcap", ".ply", ".tum", ".txt", ".png", ".pdf", ".svg"):
-        return b"relpoint" in head
+    if suffix == ".mcap":  # the header record's library string
+        return head.startswith(b"\x89MCAP") and b"relpoint/" in head[:256]
+    if suffix == ".ply":
+        header = head.split(b"end_header", 1)[0]
+        return head.startswith(b"ply") and any(
+            line.startswith(b"comment") and b"relpoint" in line for line in header.splitlines()
+        )
+    if suffix in (".tum", ".txt"):
+        comments = []
+        for line in head.splitlines():
+            if not line.startswith(b"#"):
+                break
+            comments.append(line)
+        return any(b"relpoint" in line for line in comments)
+    if suffix == ".png":
+        return head.startswith(b"\x89PNG") and b"Software\x00relpoint" in head
     return False
 
 

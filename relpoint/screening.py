@@ -8,10 +8,11 @@ reports how many it dropped.
 A point is implausible when its range (distance from the sensor, metres) is
 
 - beyond :data:`MAX_POINT_RANGE` whatever the log, or
-- beyond :data:`RANGE_FACTOR` times the median range of the points seen so far (this cloud and a
-  window of the previous ones). The median is what the data itself shows of the sensor's reach; it
-  holds while fewer than half the points are bad, and no real sensor's far points lie fifty times
-  beyond its median point.
+- beyond :data:`RANGE_FACTOR` times the median range the data itself shows: the larger of the
+  median over a window of recent points and this cloud's own median (so a robot leaving a room for
+  the open keeps its new far points). A median holds while fewer than half the points are bad, and
+  no real sensor's far points lie fifty times beyond its median point. When most of a cloud lies
+  beyond the limit the scene has changed, and only the absolute bound applies.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ MAX_POINT_RANGE = 1e5
 
 #: A point beyond this many times the running median range is dropped.
 RANGE_FACTOR = 50.0
+
+#: A cloud of at least this many points speaks for its own scene's range (a robot leaving a room).
+MIN_CLOUD_FOR_MEDIAN = 5
 
 #: Ranges of recent points kept for the running median.
 RANGE_WINDOW = 4096
@@ -60,11 +64,15 @@ class InputScreen:
         if len(observation) == 0:
             return observation
         ranges = np.linalg.norm(observation.points, axis=1)
-        window = self._ranges[: self._filled]
-        reference = np.concatenate([window, ranges]) if self._filled else ranges
-        median = float(np.median(reference[reference <= MAX_POINT_RANGE])) if np.any(reference <= MAX_POINT_RANGE) else 0.0
+        plausible = ranges[ranges <= MAX_POINT_RANGE]
+        medians = [float(np.median(self._ranges[: self._filled]))] if self._filled else []
+        if len(plausible) >= MIN_CLOUD_FOR_MEDIAN or not medians:
+            medians.append(float(np.median(plausible)) if len(plausible) else 0.0)
+        median = max(medians)
         limit = min(MAX_POINT_RANGE, RANGE_FACTOR * median) if median > 0 else MAX_POINT_RANGE
         keep = ranges <= limit
+        if keep.sum() * 2 < len(keep):  # most of the cloud is far: the scene changed, not its outliers
+            keep = ranges <= MAX_POINT_RANGE
         self._remember(ranges[keep])
         dropped = int(len(keep) - keep.sum())
         if dropped == 0:

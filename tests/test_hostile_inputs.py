@@ -1,0 +1,221 @@
+"""Hostile inputs (the reliability suite): logs and settings that are valid on their face but would
+ruin a run, exhaust memory or crash it. Logs are written with mcap-ros2-support, not relpoint.
+
+Each case ends in the documented exit code with one stderr line, or in a run that goes on with
+what it skipped counted in run.json.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from formats import ros2
+from formats.trajectory_files import read_tum
+from relpoint import pipeline
+from relpoint.estimators.base import Estimator
+from relpoint.screening import InputScreen
+from relpoint.simulation import SimulationConfig, simulate
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+from relpoint_cli.main import cli
+from tests.hostile_logs import far_point, one_point, time_gap, write_log
+
+REPO = Path(__file__).resolve().parents[1]
+POINT_ESTIMATORS = ("relpoint", "ekf", "fastslam")
+CONFIG = SimulationConfig(iterations=150, density=25, noise=0.3, odometry_noise=0.05, seed=5)
+
+
+def invoke(*args: str) -> tuple[int, str]:
+    result = CliRunner().invoke(cli, list(args))
+    return result.exit_code, result.stderr
+
+
+def position_rmse(run_dir: Path) -> float:
+    estimate = read_tum(run_dir / "trajectory.tum").positions
+    truth = simulate(CONFIG).ground_truth.positions
+    return float(np.sqrt(np.mean(np.sum((estimate - truth) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def clean_and_far(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("far")
+    return write_log(folder / "clean.mcap", CONFIG), write_log(folder / "far.mcap", CONFIG, far_point(1e30))
+
+
+@pytest.mark.parametrize("name", POINT_ESTIMATORS)
+def test_a_far_point_in_every_cloud_is_skipped_and_counted(
+    name: str, clean_and_far: tuple[Path, Path], tmp_path: Path
+) -> None:
+    clean, far = clean_and_far
+    code, err = invoke("run", str(clean), "--estimator", name, "-o", str(tmp_path / "clean"))
+    assert code == 0, err
+    code, err = invoke("run", str(far), "--estimator", name, "-o", str(tmp_path / "far"))
+    assert code == 0, err
+    assert err.count("implausible range") == 1  # warned once
+    document = json.loads((tmp_path / "far" / "run.json").read_text())
+    assert document["skipped"]["points: implausible range (far beyond the data's own)"] == CONFIG.iterations
+    assert document["summary"]["landmarks"] > 20 and document["warnings"] == []
+    assert position_rmse(tmp_path / "far") <= 1.1 * position_rmse(tmp_path / "clean") + 0.05
+
+
+def test_one_point_clouds_end_with_a_warning(tmp_path: Path) -> None:
+    log = write_log(tmp_path / "one.mcap", SimulationConfig(iterations=300, density=25, seed=5), one_point)
+    code, err = invoke("run", str(log), "--estimator", "relpoint", "-o", str(tmp_path / "out"))
+    assert code == 0, err
+    assert "fewer than 3 points" in err and "mapped no landmark" in err
+    warnings = json.loads((tmp_path / "out" / "run.json").read_text())["warnings"]
+    assert any("no landmark" in w for w in warnings) and any("fewer than 3 points" in w for w in warnings)
+
+
+@pytest.mark.parametrize("name", ("ekf", "fastslam"))
+def test_a_ten_year_stamp_gap_is_bridged(name: str, tmp_path: Path) -> None:
+    log = write_log(tmp_path / "gap.mcap", CONFIG, time_gap(75, 10 * 365.25 * 86400), odometry=True)
+    code, err = invoke("run", str(log), "--estimator", name, "-o", str(tmp_path / "out"))
+    assert code == 0, err
+    document = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert document["summary"]["iterations"] == CONFIG.iterations
+    assert document["summary"]["time_gaps_bridged"] == 1
+    assert "gap in the stamps" in err
+
+
+class _Singular(Estimator):
+    """Fails numerically on every third iteration."""
+
+    name = "singular"
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def step(self, observation: PointObservation) -> Pose:
+        self.calls += 1
+        if self.calls % 3 == 0:
+            raise np.linalg.LinAlgError("singular matrix")
+        return Pose(observation.stamp_ns, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+    def landmark_map(self) -> LandmarkMap:
+        return LandmarkMap(np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64))
+
+
+def test_a_singular_iteration_is_skipped_counted_and_the_run_goes_on() -> None:
+    rng = np.random.default_rng(0)
+    inputs = [PointObservation(k * 10**8, rng.normal(size=(10, 3))) for k in range(1, 10)]
+    result = pipeline.run(iter(inputs), _Singular())
+    assert len(result.trajectory) == 6
+    assert result.skipped == {"iterations: numerics failed (skipped)": 3}
+
+
+def test_the_screen_keeps_real_ranges_and_drops_absurd_ones() -> None:
+    rng = np.random.default_rng(1)
+    screen = InputScreen()
+    for scale in (0.5, 3.0, 70.0, 0.5):  # indoor, room, outdoor and back: nothing real is dropped
+        for k in range(20):
+            points = rng.normal(size=(40, 3)) * scale
+            assert len(screen.points(PointObservation(k, points))) == 40
+    screen = InputScreen()
+    kept = screen.points(PointObservation(0, np.array([[1.0, 0, 0], [2.0, 0, 0], [1e7, 0, 0], [3.0, 1, 0]])))
+    assert len(kept) == 3 and screen.skipped["points: implausible range (far beyond the data's own)"] == 1
+    assert screen.fix(PositionFix(0, [np.inf, 0, 0], np.eye(3))) is None
+    assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], np.eye(3))) is not None
+    assert screen.odometry(OdometryMeasurement(0, [3e8, 0, 0], [0, 0, 0])) is None
+    assert screen.odometry(OdometryMeasurement(0, [1.0, 0, 0], [0, 0, 0.1])) is not None
+
+
+def test_oversized_clouds_and_images_are_refused_before_allocation() -> None:
+    huge_cloud = SimpleNamespace(width=5_000_000, height=1, fields=[], data=b"", point_step=16, row_step=0,
+                                 is_bigendian=False, header=None)  # fmt: skip
+    with pytest.raises(ros2.OversizedMessage, match="exceeds the limit"):
+        ros2.msg_to_observation(huge_cloud)
+    huge_image = SimpleNamespace(width=10_000, height=10_000, step=20_000, encoding="16UC1", is_bigendian=False,
+                                 data=np.zeros(0, dtype=np.uint8))  # fmt: skip
+    with pytest.raises(ros2.OversizedMessage, match="exceeds the limit"):
+        ros2.msg_to_depth(huge_image)
+    tiny = SimpleNamespace(width=1, height=1, step=2, encoding="16UC1", is_bigendian=False, data=np.zeros(2, np.uint8))
+    with pytest.raises(ros2.InputError, match="too small"):
+        ros2.msg_to_depth(tiny)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--param", "match_bound=1e308"), "match_bound must be between"),
+        (("--param", "ring_size=1e8"), "ring_size must be between"),
+        (("--param", "ring_size=true"), "ring_size must be a number"),
+        (("--param", "ring_size=2.5"), "ring_size must be an integer"),
+        (("--param", "final_adjustment=7"), "final_adjustment must be true or false"),
+    ],
+)
+def test_settings_out_of_range_are_usage_errors(args: tuple[str, ...], message: str, tmp_path: Path) -> None:
+    log = REPO / "sample_logs" / "figure8.mcap"
+    code, err = invoke("run", str(log), "--estimator", "relpoint", *args, "-o", str(tmp_path / "o"))
+    assert code == 2 and message in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_estimator_settings_are_read_as_their_kind(tmp_path: Path) -> None:
+    log = REPO / "sample_logs" / "figure8.mcap"
+    code, err = invoke("run", str(log), "-e", "fastslam", "--param", "particles=1e7", "-o", str(tmp_path / "o"))
+    assert code == 2 and "particles must be between 1 and 10000" in err
+    config = ros2_free_fastslam_config(["variant=1.0", "particles=8"])
+    assert config.variant == "1.0" and config.particles == 8
+
+
+def ros2_free_fastslam_config(params: list[str]):
+    from relpoint.estimators import ESTIMATORS
+
+    return ESTIMATORS["fastslam"].build_config({}, params)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--rate", "1e-300"), "rate must be between"),
+        (("--iterations", "100000000"), "iterations must be between"),
+        (("--noise", "nan"), "noise must be a finite number"),
+    ],
+)
+def test_simulation_settings_out_of_range_are_usage_errors(args: tuple[str, ...], message: str, tmp_path: Path) -> None:
+    code, err = invoke("simulate", "-o", str(tmp_path / "s.mcap"), *args)
+    assert code == 2 and message in err
+    assert not (tmp_path / "s.mcap").exists()
+
+
+ALIAS_BOMB = "a: &a [" + ",".join(['"lol"'] * 9) + "]\n" + "".join(
+    f"{b}: &{b} [" + ",".join([f"*{a}"] * 9) + "]\n" for a, b in zip("abcdefgh", "bcdefghi", strict=True)
+)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("bomb.yaml", ALIAS_BOMB.encode(), "expands to more than"),
+        ("binary.toml", bytes(range(256)) * 8, "binary file"),
+        ("latin.yaml", "noise: 0.3 # caf\xe9\n".encode("latin-1"), "not UTF-8"),
+        ("big.toml", b"# " + b"x" * 2_000_000 + b"\n", "larger than 1 MB"),
+        ("settings.ini", b"noise = 1\n", "must end in .toml"),
+    ],
+)
+def test_config_files_are_bounded_before_parsing(name: str, content: bytes, message: str, tmp_path: Path) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    start = time.perf_counter()
+    for command in (["simulate", "-o", str(tmp_path / "s.mcap")],
+                    ["run", str(REPO / "sample_logs" / "figure8.mcap"), "-e", "ekf", "-o", str(tmp_path / "o")]):  # fmt: skip
+        code, err = invoke(*command, "--config", str(path))
+        assert code == 2 and message in err and err.count("\n") == 1 and len(err) < 400
+    assert time.perf_counter() - start < 20  # parsing is bounded: the bomb expanded would take minutes
+
+
+def test_dev_zero_as_a_config_file_is_refused_unread(tmp_path: Path) -> None:
+    link = tmp_path / "zero.toml"
+    link.symlink_to("/dev/zero")
+    process = subprocess.run([sys.executable, "-m", "relpoint_cli.main", "simulate", "-o", str(tmp_path / "s.mcap"),
+                              "--config", str(link)], capture_output=True, text=True, timeout=120, cwd=REPO)  # fmt: skip
+    assert process.returncode == 2 and "larger than 1 MB" in process.stderr

@@ -1,0 +1,183 @@
+"""No command deletes or overwrites what relpoint did not write (the reliability suite, outputs).
+
+Each case runs the real command line in a subprocess where the working directory or signals matter,
+and through click's runner elsewhere, and checks the exit code, the one stderr line and that every
+user file is byte-for-byte where it was.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from formats.outputs import MARKER
+from relpoint_cli.main import cli
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def invoke(*args: str) -> tuple[int, str]:
+    result = CliRunner().invoke(cli, ["-q", *args])
+    return result.exit_code, result.stderr
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def tree(path: Path) -> dict[str, str]:
+    """Every file under ``path`` with its SHA-256."""
+    return {str(p.relative_to(path)): digest(p) for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture()
+def log(tmp_path: Path, small_log: Path) -> Path:
+    """A copy of the small log in its own directory (the tests put outputs beside it)."""
+    copy = tmp_path / "logs" / "small.mcap"
+    copy.parent.mkdir()
+    copy.write_bytes(small_log.read_bytes())
+    return copy
+
+
+def run_ekf(log: Path, output: Path | str, *extra: str) -> tuple[int, str]:
+    return invoke("run", str(log), "--estimator", "ekf", "-o", str(output), *extra)
+
+
+def test_a_directory_of_user_files_is_refused_and_kept(tmp_path: Path, log: Path) -> None:
+    user = tmp_path / "user"
+    (user / "sub").mkdir(parents=True)
+    (user / "notes.txt").write_text("mine")
+    (user / "sub" / "y.txt").write_text("also mine")
+    before = tree(user)
+    for extra in ((), ("--overwrite",)):
+        code, err = run_ekf(log, user, *extra)
+        assert code == 2, err
+        assert err.count("\n") == 1 and "is not a relpoint output" in err
+        assert tree(user) == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".user.")]  # no temporaries left
+
+
+def test_an_earlier_run_is_replaced_but_not_a_file_added_to_it(tmp_path: Path, log: Path) -> None:
+    out = tmp_path / "out"
+    assert run_ekf(log, out)[0] == 0
+    marker = json.loads((out / MARKER).read_text())
+    assert marker["command"] == "run" and "trajectory.tum" in marker["files"]
+    first = digest(out / "trajectory.tum")
+    code, err = run_ekf(log, out)
+    assert code == 0, err
+    assert digest(out / "trajectory.tum") == first  # same seed, same output
+    (out / "notes.txt").write_text("mine")
+    code, err = run_ekf(log, out)
+    assert code == 2 and "notes.txt, which relpoint did not write" in err
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_outputs_never_contain_or_are_the_input(tmp_path: Path, log: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    before = digest(log)
+    for output in (log.parent, log, tmp_path, Path("/")):
+        code, err = run_ekf(log, output)
+        assert code == 2, (output, err)
+        assert "input" in err or "is a file" in err
+    monkeypatch.chdir(log.parent)
+    code, err = run_ekf(Path("small.mcap"), ".")
+    assert code == 2 and "contains the input" in err
+    assert digest(log) == before and sorted(p.name for p in log.parent.iterdir()) == ["small.mcap"]
+
+
+def test_fuse_cannot_write_over_its_run_or_another_commands_output(tmp_path: Path, log: Path) -> None:
+    run_dir = tmp_path / "run"
+    assert run_ekf(log, run_dir)[0] == 0
+    before = tree(run_dir)
+    code, err = invoke("fuse", str(run_dir), "--log", str(log), "-o", str(run_dir))
+    assert code == 2 and "is the input" in err
+    other = tmp_path / "other"
+    assert run_ekf(log, other)[0] == 0
+    code, err = invoke("fuse", str(run_dir), "--log", str(log), "-o", str(other))
+    assert code == 2 and "holds the output of `relpoint run`" in err and "--overwrite" in err
+    code, err = invoke("fuse", str(run_dir), "--log", str(log), "-o", str(other), "--overwrite")
+    assert code == 0, err
+    assert json.loads((other / MARKER).read_text())["command"] == "fuse"
+    assert tree(run_dir) == before
+
+
+def test_file_outputs_never_overwrite_an_input_or_a_foreign_file(tmp_path: Path, log: Path) -> None:
+    run_dir = tmp_path / "run"
+    assert run_ekf(log, run_dir)[0] == 0
+    tum = run_dir / "trajectory.tum"
+    before = digest(tum)
+    code, err = invoke("export", str(tum), "-o", str(tum))
+    assert code == 2 and "is the input" in err
+    code, err = invoke("export", str(tum), "-o", str(tum), "--overwrite")
+    assert code == 2 and "is the input" in err
+    code, err = invoke("evaluate", str(tum), "--reference", str(log), "--json", str(tum))
+    assert code == 2 and "is the input" in err
+    assert digest(tum) == before
+
+    mine = tmp_path / "mine.tum"
+    mine.write_text("my own notes\n")
+    code, err = invoke("export", str(run_dir), "-o", str(mine))
+    assert code == 2 and "relpoint did not write it" in err and "--overwrite" in err
+    assert mine.read_text() == "my own notes\n"
+    assert invoke("export", str(run_dir), "-o", str(mine), "--overwrite")[0] == 0
+    assert invoke("export", str(run_dir), "-o", str(mine))[0] == 0  # now relpoint's: replaced freely
+    assert mine.read_text().startswith("# relpoint")
+
+    summary = tmp_path / "summary.json"
+    summary.write_text('{"mine": true}\n')
+    code, err = invoke("evaluate", str(run_dir), "--reference", str(log), "--json", str(summary))
+    assert code == 2 and summary.read_text() == '{"mine": true}\n'
+    summary.unlink()
+    assert invoke("evaluate", str(run_dir), "--reference", str(log), "--json", str(summary))[0] == 0
+    assert invoke("evaluate", str(run_dir), "--reference", str(log), "--json", str(summary))[0] == 0
+
+
+def test_simulate_does_not_overwrite_a_foreign_log(tmp_path: Path, small_log: Path) -> None:
+    foreign = tmp_path / "recording.mcap"
+    foreign.write_bytes(b"not relpoint's" * 10)
+    code, err = invoke("simulate", "-o", str(foreign), "--iterations", "5")
+    assert code == 2 and "relpoint did not write it" in err
+    assert foreign.read_bytes() == b"not relpoint's" * 10
+    ours = tmp_path / "ours.mcap"
+    assert invoke("simulate", "-o", str(ours), "--iterations", "5")[0] == 0
+    assert invoke("simulate", "-o", str(ours), "--iterations", "6")[0] == 0  # relpoint's own: replaced
+
+
+def test_symlinks_are_written_through_and_dangling_ones_refused(tmp_path: Path, log: Path) -> None:
+    real = tmp_path / "real"
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    real.mkdir()
+    assert run_ekf(log, link)[0] == 0
+    assert link.is_symlink() and (real / "trajectory.tum").is_file()
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "nowhere")
+    code, err = run_ekf(log, dangling)
+    assert code == 2 and "dangling symbolic link" in err
+    file_link = tmp_path / "t.tum"
+    file_link.symlink_to(real / "trajectory.tum")
+    assert invoke("export", str(real), "-o", str(tmp_path / "copy.tum"))[0] == 0
+    assert invoke("export", str(tmp_path / "copy.tum"), "-o", str(file_link))[0] == 0
+    assert file_link.is_symlink()
+
+
+def test_an_unwritable_place_fails_before_the_run(tmp_path: Path, log: Path) -> None:
+    code, err = run_ekf(log, "/proc/relpoint-out")
+    assert code == 2 and "cannot write" in err and err.count("\n") == 1
+
+
+def test_a_closed_stdout_pipe_ends_quietly(small_log: Path) -> None:
+    for args in (["info", str(small_log)], ["config", "--estimator", "relpoint"]):
+        process = subprocess.Popen([sys.executable, "-m", "relpoint_cli.main", *args], cwd=REPO,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+        assert process.stdout is not None and process.stderr is not None
+        process.stdout.read(10)
+        process.stdout.close()  # the reader goes away, as `| head -c 10` does
+        err = process.stderr.read().decode()
+        assert process.wait(timeout=60) == 0, err
+        assert "Traceback" not in err and "BrokenPipe" not in err
