@@ -299,6 +299,10 @@ class LogReader:
             for connection, _, raw in reader.messages(connections=connections):
                 topic = connection.topic
                 role = topic_roles[topic]
+                if len(raw) > ros2.MAX_MESSAGE_BYTES:  # refused before a byte of it is decoded
+                    self._skip(f"{topic}: oversized messages",
+                               f"{len(raw)} bytes, over the limit of {ros2.MAX_MESSAGE_BYTES} bytes")  # fmt: skip
+                    continue
                 try:
                     record = self._convert(role, _deserialize(reader, raw, ROLE_TYPES[role]))
                 except InputError as error:

@@ -254,7 +254,13 @@ def tf_to_msg(stamp_ns: int, parent: str, child: str, position: Any, quat_xyzw: 
 def cloud_of(message: Any) -> np.ndarray:
     """The structured array of a decoded PointCloud2 (see :func:`formats.pointcloud2.decode_cloud`)."""
     width, height = int(message.width), int(message.height)
+    point_step, row_step = int(message.point_step), int(message.row_step)
     if width * height > MAX_CLOUD_POINTS:
+        if width * point_step > row_step or row_step * height > len(message.data):
+            raise InputError(
+                f"PointCloud2 header ({width}x{height} points, point_step {point_step}, row_step {row_step}) "
+                f"does not match its {len(message.data)} bytes"
+            )
         raise OversizedMessage(f"cloud of {width * height} points exceeds the limit of {MAX_CLOUD_POINTS} points")
     fields = [Field(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in message.fields]
     return decode_cloud(
@@ -275,8 +281,9 @@ MAX_CLOUD_POINTS = 1_000_000
 #: Largest image read, pixels (4096 x 4096); larger ones are skipped before their pixels are copied.
 MAX_IMAGE_PIXELS = 4096 * 4096
 
-#: Smallest depth image the dense estimator can track, pixels per side.
-MIN_DEPTH_SIDE = 16
+#: Largest serialised message decoded, bytes: the largest image allowed (4 bytes a pixel) or cloud
+#: (64 bytes a point) fits; anything larger is skipped before it is decoded.
+MAX_MESSAGE_BYTES = max(4 * MAX_IMAGE_PIXELS, 64 * MAX_CLOUD_POINTS) + (1 << 20)
 
 
 class OversizedMessage(InputError):
@@ -360,12 +367,10 @@ def msg_to_depth(message: Any) -> np.ndarray:
     dtype = dtypes[encoding].newbyteorder(">" if message.is_bigendian else "<")
     if height <= 0 or width <= 0:
         raise InputError(f"depth image has size {width}x{height}")
-    _check_image_size("depth image", width, height)
-    if min(width, height) < MIN_DEPTH_SIDE:
-        raise InputError(f"depth image of {width}x{height} pixels is too small to track (at least {MIN_DEPTH_SIDE} a side)")
     data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
     if step < width * dtype.itemsize or step * height > data.size:
         raise InputError(f"depth image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
+    _check_image_size("depth image", width, height)
     rows = np.lib.stride_tricks.as_strided(
         data[: step * height].view(np.uint8), shape=(height, width * dtype.itemsize), strides=(step, 1)
     )
@@ -381,10 +386,10 @@ def msg_to_rgb(message: Any) -> np.ndarray:
     encoding = str(message.encoding).lower()
     if encoding not in ("rgb8", "bgr8"):
         raise InputError(f"colour image encoding {message.encoding!r} is not rgb8 or bgr8")
-    _check_image_size("colour image", width, height)
     data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
     if step < width * 3 or step * height > data.size:
         raise InputError(f"colour image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
+    _check_image_size("colour image", width, height)
     rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * 3), strides=(step, 1))
     rgb = np.ascontiguousarray(rows).reshape(height, width, 3)
     return rgb[..., ::-1].copy() if encoding == "bgr8" else rgb

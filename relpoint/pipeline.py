@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from relpoint.errors import EstimatorError
+from relpoint.errors import EstimatorError, InputError
 from relpoint.estimators.base import Estimator
 from relpoint.screening import InputScreen
 from relpoint.types import DepthFrame, LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
@@ -108,6 +108,8 @@ def run(
         elif isinstance(item, PointObservation | DepthFrame):
             if isinstance(item, PointObservation):
                 item = screen.points(item)
+            elif (item := screen.depth(item)) is None:
+                continue
             start = time.perf_counter()
             try:
                 pose = estimator.step(item)
@@ -142,6 +144,10 @@ def run(
         if failed:
             raise EstimatorError(f"{estimator.name} could not compute any of the log's {failed} iterations",
                                  "check the log's stamps and values, or try another estimator")  # fmt: skip
+        if screen.skipped:
+            counts = ", ".join(f"{n} {kind}" for kind, n in sorted(screen.skipped.items()))
+            raise InputError(f"the log holds no usable observation ({counts})",
+                             "check the sensor's messages against the log format's limits")  # fmt: skip
         raise EstimatorError("the log holds no observation to run on")
     start = time.perf_counter()
     trajectory = estimator.finish(

@@ -13,6 +13,9 @@ A point is implausible when its range (distance from the sensor, metres) is
   the open keeps its new far points). A median holds while fewer than half the points are bad, and
   no real sensor's far points lie fifty times beyond its median point. When most of a cloud lies
   beyond the limit the scene has changed, and only the absolute bound applies.
+
+A depth frame smaller than :data:`MIN_DEPTH_SIDE` pixels a side holds too little image to track (the
+image pyramid and the normal estimate need a neighbourhood), so it is dropped and counted too.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from relpoint.types import OdometryMeasurement, PointObservation, PositionFix
+from relpoint.types import DepthFrame, OdometryMeasurement, PointObservation, PositionFix
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +41,9 @@ MIN_CLOUD_FOR_MEDIAN = 5
 
 #: Ranges of recent points kept for the running median.
 RANGE_WINDOW = 4096
+
+#: Smallest depth image the dense estimator can track, pixels per side.
+MIN_DEPTH_SIDE = 16
 
 #: Largest plausible fix coordinate (m): beyond the Earth-centred frame's reach.
 MAX_FIX_COORDINATE = 1e8
@@ -81,6 +87,15 @@ class InputScreen:
                     f"beyond {limit:.4g} m, {RANGE_FACTOR:g} times the median range {median:.4g} m")  # fmt: skip
         ids = observation.ids[keep] if observation.ids is not None else None
         return PointObservation(observation.stamp_ns, observation.points[keep], ids, observation.frame_id)
+
+    def depth(self, frame: DepthFrame) -> DepthFrame | None:
+        """``frame``, or None (counted) when it is too small to track."""
+        height, width = frame.depth.shape
+        if min(height, width) < MIN_DEPTH_SIDE:
+            self._count("depth frames: too small to track", 1,
+                        f"{width}x{height} pixels, at least {MIN_DEPTH_SIDE} a side needed")  # fmt: skip
+            return None
+        return frame
 
     def _count(self, kind: str, count: int, detail: str) -> None:
         if kind not in self.skipped:

@@ -120,7 +120,7 @@ def execute_run(
                 map_every=map_every,
             )
         except EstimatorError as error:
-            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind}
+            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind or "oversized" in kind}
             if malformed and "no observation" in str(error):
                 counts = ", ".join(f"{n} {kind}" for kind, n in malformed.items())
                 raise InputError(

@@ -129,17 +129,37 @@ def test_the_screen_keeps_real_ranges_and_drops_absurd_ones() -> None:
 
 
 def test_oversized_clouds_and_images_are_refused_before_allocation() -> None:
-    huge_cloud = SimpleNamespace(width=5_000_000, height=1, fields=[], data=b"", point_step=16, row_step=0,
-                                 is_bigendian=False, header=None)  # fmt: skip
+    # Stride-0 byte buffers: headers that match their data without allocating it.
+    cloud_bytes = np.broadcast_to(np.zeros(1, np.uint8), (5_000_000 * 16,))
+    huge_cloud = SimpleNamespace(width=5_000_000, height=1, fields=[], data=cloud_bytes, point_step=16,
+                                 row_step=5_000_000 * 16, is_bigendian=False, header=None)  # fmt: skip
     with pytest.raises(ros2.OversizedMessage, match="exceeds the limit"):
         ros2.msg_to_observation(huge_cloud)
+    image_bytes = np.broadcast_to(np.zeros(1, np.uint8), (10_000 * 20_000,))
     huge_image = SimpleNamespace(width=10_000, height=10_000, step=20_000, encoding="16UC1", is_bigendian=False,
-                                 data=np.zeros(0, dtype=np.uint8))  # fmt: skip
+                                 data=image_bytes)  # fmt: skip
     with pytest.raises(ros2.OversizedMessage, match="exceeds the limit"):
         ros2.msg_to_depth(huge_image)
-    tiny = SimpleNamespace(width=1, height=1, step=2, encoding="16UC1", is_bigendian=False, data=np.zeros(2, np.uint8))
-    with pytest.raises(ros2.InputError, match="too small"):
-        ros2.msg_to_depth(tiny)
+
+
+def test_headers_claiming_more_than_their_bytes_are_malformed_not_oversized() -> None:
+    lying_cloud = SimpleNamespace(width=5_000_000, height=1, fields=[], data=b"", point_step=16,
+                                  row_step=5_000_000 * 16, is_bigendian=False, header=None)  # fmt: skip
+    with pytest.raises(ros2.InputError, match="does not match") as caught:
+        ros2.msg_to_observation(lying_cloud)
+    assert not isinstance(caught.value, ros2.OversizedMessage)
+
+
+def test_depth_frames_too_small_to_track_are_skipped_and_counted() -> None:
+    from relpoint.screening import InputScreen
+    from relpoint.types import DepthFrame, Intrinsics
+
+    screen = InputScreen()
+    tiny = DepthFrame(0, np.ones((1, 1), np.float32), Intrinsics(1, 1, 1.0, 1.0, 0.5, 0.5))
+    usable = DepthFrame(1, np.ones((16, 20), np.float32), Intrinsics(20, 16, 10.0, 10.0, 10.0, 8.0))
+    assert screen.depth(tiny) is None
+    assert screen.depth(usable) is usable
+    assert screen.skipped == {"depth frames: too small to track": 1}
 
 
 @pytest.mark.parametrize(
