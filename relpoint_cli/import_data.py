@@ -7,9 +7,10 @@ from pathlib import Path
 import click
 
 from formats.log import COMPRESSIONS
-from relpoint.errors import UsageError
+from relpoint.errors import InputError, UsageError
 from relpoint.types import Intrinsics
 from relpoint_cli.errors import handle_errors
+from relpoint_cli.options import overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
 
 EXAMPLES = """\\b
@@ -45,14 +46,27 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 @click.option("--first", type=int, default=0, show_default=True, help="7-Scenes: first frame to import.")
 @click.option("--count", type=int, help="7-Scenes: number of frames (default: all).")
 @click.option("--compression", type=click.Choice(sorted(COMPRESSIONS)), default="zstd", show_default=True)
+@overwrite_option
 @click.pass_context
 @handle_errors
 def import_command(
     ctx: click.Context, layout: str, folder: Path, output: Path, intrinsics: str | None, tolerance: float,
-    rate: float, first: int, count: int | None, compression: str,
+    rate: float, first: int, count: int | None, compression: str, overwrite: bool,
 ) -> None:  # fmt: skip
-    """Convert an RGB-D dataset FOLDER in LAYOUT (tum or 7scenes) to a relpoint log."""
+    """Convert an RGB-D dataset FOLDER in LAYOUT (tum or 7scenes) to a relpoint log.
+
+    The log is written atomically; an existing OUTPUT is replaced only when relpoint wrote it (or with
+    --overwrite), and never when it is one of the folder's files.
+    """
+    from formats.outputs import check_output_file
     from formats.rgbd_import import import_7scenes, import_tum
+
+    if not folder.is_dir():
+        problem = "not a folder" if folder.exists() else "no such folder"
+        raise InputError(f"{folder}: {problem}", f"give the {layout} dataset's folder")
+    # The folder's files and those of its image folders (TUM keeps depth/ and rgb/ beside its lists).
+    image_folders = [path for path in folder.iterdir() if path.is_dir()]
+    check_output_file(output, inputs=read_paths(folder, *image_folders), overwrite=overwrite)
 
     with progress_bar(None, f"import {layout}", unit="frame") as bar:
         if layout == "tum":

@@ -181,3 +181,26 @@ def test_a_closed_stdout_pipe_ends_quietly(small_log: Path) -> None:
         err = process.stderr.read().decode()
         assert process.wait(timeout=60) == 0, err
         assert "Traceback" not in err and "BrokenPipe" not in err
+
+
+def test_import_never_writes_over_the_dataset_or_a_foreign_log(tmp_path: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    for k in range(2):
+        Image.fromarray(np.full((16, 20), 1500, dtype=np.uint16)).save(folder / f"frame-{k:06d}.depth.png")
+        np.savetxt(folder / f"frame-{k:06d}.pose.txt", np.eye(4))
+    dataset = tree(folder)
+    inside = folder / "frame-000000.pose.txt"
+    code, err = invoke("import", "7scenes", str(folder), "-o", str(inside))
+    assert code == 2 and "input" in err
+    foreign = tmp_path / "recording.mcap"
+    foreign.write_bytes(b"someone else's")
+    code, err = invoke("import", "7scenes", str(folder), "-o", str(foreign))
+    assert code == 2 and "relpoint did not write it" in err and foreign.read_bytes() == b"someone else's"
+    ours = tmp_path / "ours.mcap"
+    assert invoke("import", "7scenes", str(folder), "-o", str(ours))[0] == 0
+    assert invoke("import", "7scenes", str(folder), "-o", str(ours))[0] == 0  # relpoint's own: replaced
+    assert tree(folder) == dataset
