@@ -184,7 +184,9 @@ def import_tum(
             stamp = _stamp_ns(stamp_s)
             if previous is not None and stamp <= previous:
                 skipped += 1
-                log.warning("depth frame %s at %.6f s is not after the previous one; skipped", fields[0], stamp_s)
+                if skipped == 1:
+                    log.warning("depth frame %s at %.6f s is not after the previous one; skipped (further ones "
+                                "are counted)", fields[0], stamp_s)  # fmt: skip
                 continue
             depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
             h, w = depth.shape
@@ -239,7 +241,7 @@ def import_7scenes(
     if (folder / "camera-intrinsics.txt").is_file():
         K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
         intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    depth_count = color_count = pose_count = 0
+    depth_count = color_count = pose_count = invalid_poses = 0
     metadata = {"relpoint.import": metadata_json({"layout": "7scenes", "source": folder.name, "rate": rate})}
     with LogWriter(output, compression=compression, metadata=metadata) as writer:
         for position, (number, depth_path) in enumerate(frames):
@@ -257,7 +259,10 @@ def import_7scenes(
                     writer.write_ground_truth_pose(Pose.from_matrix(stamp, T), topics.ground_truth_pose)
                     pose_count += 1
                 else:
-                    log.warning("%s holds an invalid pose; no ground truth for that frame", pose_path.name)
+                    invalid_poses += 1
+                    if invalid_poses == 1:
+                        log.warning("%s holds an invalid pose; no ground truth for that frame (further ones are "
+                                    "counted)", pose_path.name)  # fmt: skip
             color_path = folder / f"{stem}.color.jpg"
             if not color_path.is_file():
                 color_path = folder / f"{stem}.color.png"
@@ -268,4 +273,6 @@ def import_7scenes(
             depth_count += 1
             if on_frame is not None:
                 on_frame(position)
+    if invalid_poses > 1:
+        log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
     return ImportCounts(depth_count, color_count, pose_count)
