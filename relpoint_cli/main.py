@@ -46,6 +46,7 @@ class RelpointGroup(click.Group):
         module_name, attribute = COMMANDS[name].split(":")
         command = getattr(importlib.import_module(module_name), attribute)
         command.name = name
+        _accept_verbosity_options(command)
         return command
 
     def main(self, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
@@ -74,6 +75,42 @@ class RelpointGroup(click.Group):
             quiet_broken_pipe()
 
 
+def _set_verbosity(ctx: click.Context, *, quiet: bool = False, verbose: bool = False) -> None:
+    """Record ``--quiet`` for progress bars and summaries, and set the log level to match."""
+    root_ctx = ctx.find_root()
+    root_ctx.ensure_object(dict)
+    if quiet:
+        root_ctx.obj["quiet"] = True
+    quiet = bool(root_ctx.obj.get("quiet"))
+    verbose = verbose or bool(root_ctx.obj.get("verbose"))
+    root_ctx.obj["verbose"] = verbose
+    logging.getLogger().setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
+    # Third-party chatter stays out of the user's terminal unless debugging.
+    for name in ("matplotlib", "PIL", "numba"):
+        logging.getLogger(name).setLevel(logging.WARNING if verbose else logging.ERROR)
+
+
+def _accept_verbosity_options(command: click.Command) -> None:
+    """Let ``-q/--quiet`` and ``-v/--verbose`` follow the subcommand too (``relpoint run LOG ... -q``)."""
+    if any(param.name == "quiet_after" for param in command.params):
+        return
+
+    def quiet(ctx: click.Context, _: click.Parameter, value: bool) -> None:
+        if value:
+            _set_verbosity(ctx, quiet=True)
+
+    def verbose(ctx: click.Context, _: click.Parameter, value: bool) -> None:
+        if value:
+            _set_verbosity(ctx, verbose=True)
+
+    command.params += [
+        click.Option(["-q", "--quiet", "quiet_after"], is_flag=True, expose_value=False, callback=quiet,
+                     help="Only errors on stderr (also accepted before the command)."),
+        click.Option(["-v", "--verbose", "verbose_after"], is_flag=True, expose_value=False, callback=verbose,
+                     help="Debug logging (also accepted before the command)."),
+    ]  # fmt: skip
+
+
 class _Formatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         return f"relpoint: {record.levelname.lower()}: {record.getMessage()}"
@@ -93,14 +130,11 @@ def cli(ctx: click.Context, quiet: bool, verbose: bool) -> None:
     """
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
+    ctx.obj["verbose"] = verbose
     handler = logging.StreamHandler()
     handler.setFormatter(_Formatter())
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
-    # Third-party chatter stays out of the user's terminal unless debugging.
-    for name in ("matplotlib", "PIL", "numba"):
-        logging.getLogger(name).setLevel(logging.WARNING if verbose else logging.ERROR)
+    logging.getLogger().handlers[:] = [handler]
+    _set_verbosity(ctx)
 
 
 #: Every subcommand, imported only when used so that each command starts quickly.

@@ -110,3 +110,13 @@ def test_unknown_options_give_one_line_and_exit_2(tmp_path: Path) -> None:
     result = run_cli("simulate", "-o", str(tmp_path / "x.mcap"), "--noise", "-2")
     assert result.returncode == 2 and "noise must be between 0 and 1000" in result.stderr
     assert not (tmp_path / "x.mcap").exists()
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_quiet_is_accepted_before_or_after_the_command(runner: CliRunner, tmp_path: Path, where: str) -> None:
+    log = tmp_path / "q.mcap"
+    args = ["simulate", "-o", str(log), "--iterations", "10"]
+    code, _, err = invoke(runner, *(["-q", *args] if where == "before" else [*args, "-q"]))
+    assert code == 0 and err == ""
+    code, _, err = invoke(runner, *args)
+    assert code == 0 and err.startswith("wrote ")
