@@ -13,7 +13,7 @@ from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
 
-EXAMPLES = """\\b
+EXAMPLES = """\b
 Examples:
   relpoint import tum rgbd_dataset_freiburg1_xyz -o fr1_xyz.mcap
   relpoint import tum fr3_office -o office.mcap --intrinsics 535.4,539.2,320.1,247.6

@@ -31,6 +31,7 @@ Examples:
   relpoint simulate -o run.mcap --config sim.toml        # settings from TOML/YAML; options override
 
 A config file holds the same settings by name (dashes or underscores), e.g. in TOML:
+
 \b
   scenario = "figure8"
   density = 100

@@ -120,3 +120,9 @@ def test_quiet_is_accepted_before_or_after_the_command(runner: CliRunner, tmp_pa
     assert code == 0 and err == ""
     code, _, err = invoke(runner, *args)
     assert code == 0 and err.startswith("wrote ")
+
+
+def test_every_commands_help_renders_without_markup(runner: CliRunner) -> None:
+    for command in cli.list_commands(None):  # type: ignore[arg-type]
+        code, out, _ = invoke(runner, command, "--help")
+        assert code == 0 and "\\b" not in out and "\b" not in out, command
