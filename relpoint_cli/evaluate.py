@@ -136,10 +136,14 @@ def _json_value(value: Any) -> Any:
 
 
 def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
-    """The summary (NaN/inf written as null), settings and inputs as JSON, atomically."""
+    """The summary (NaN/inf written as null), settings and inputs as JSON, atomically (``-``: stdout)."""
     document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
                 "relpoint_version": relpoint.__version__}
-    write_text(path, json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    text = json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"
+    if str(path) == "-":
+        click.echo(text, nl=False)
+    else:
+        write_text(path, text)
 
 
 def dense_map_summary(
@@ -288,7 +292,10 @@ def _save(fig: Any, path: Path) -> Path:
 )
 @click.option("--all-pairs", is_flag=True, help="Every pose starts an RPE pair.")
 @click.option("--pairs-from-reference", is_flag=True, help="Choose RPE pairs on the reference.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the summary as JSON.")
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    help="Write the summary as JSON ('-': to stdout, and the table to stderr).",
+)
 @click.option(
     "--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), help="Write per-pose errors as CSV."
 )
@@ -326,7 +333,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
     outputs = [json_path, csv_path, *([plot_dir / name for name in PLOT_FILES] if plot_dir is not None else [])]
     for path in outputs:
-        if path is not None:
+        if path is not None and str(path) != "-":
             check_output_file(path, inputs=read, overwrite=overwrite)
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
@@ -366,6 +373,6 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         write_errors_csv(csv_path, result, landmark_error_over_time)
     if plot_dir is not None:
         write_plots(plot_dir, ref, result)
-    click.echo(format_table(summary, settings.pose_relation))
+    click.echo(format_table(summary, settings.pose_relation), err=json_path is not None and str(json_path) == "-")
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

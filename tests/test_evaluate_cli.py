@@ -75,6 +75,17 @@ def test_table_on_stdout(tmp_path: Path) -> None:
     assert "matched_poses    785" in out
 
 
+def test_json_dash_writes_the_summary_to_stdout_and_the_table_to_stderr(tmp_path: Path, monkeypatch) -> None:
+    data = shared_data(*FR1)
+    monkeypatch.chdir(tmp_path)
+    code, out, err = invoke("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
+                            "--align", "se3", "--json", "-")  # fmt: skip
+    assert code == 0, err
+    assert json.loads(out)["summary"]["ate_rmse"] == pytest.approx(0.013470, abs=1e-6)
+    assert "APE translation (m)" in err
+    assert list(tmp_path.iterdir()) == []  # no file named "-"
+
+
 # --- ROS 2 bag written by rosbag2 -------------------------------------------------------------------------
 
 
