@@ -9,6 +9,7 @@ Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--p
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -34,9 +35,12 @@ from relpoint.evaluation import (
     landmark_metrics,
 )
 from relpoint.evaluation.dense import dense_metrics
+from relpoint.evaluation.evaluate import frame_mismatch
 from relpoint.types import Trajectory
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths
+
+log = logging.getLogger(__name__)
 
 EXAMPLES = """\b
 Examples:
@@ -91,7 +95,7 @@ def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]
 
 def _fmt(value: float) -> str:
     if math.isnan(value):
-        return "nan"
+        return "n/a"
     if float(value).is_integer() and abs(value) < 1e15:
         return str(int(value))
     return f"{value:.6f}"
@@ -290,6 +294,10 @@ def _save(fig: Any, path: Path) -> Path:
 @click.option(
     "--delta-tol", type=float, default=0.1, show_default=True, help="Relative tolerance of --all-pairs (m|d|r)."
 )
+@click.option(
+    "--min-matched", "min_matched_fraction", type=float, default=0.5, show_default=True,
+    help="Fewest matched poses, as a fraction of the sparser trajectory's (0: accept any overlap).",
+)
 @click.option("--all-pairs", is_flag=True, help="Every pose starts an RPE pair.")
 @click.option("--pairs-from-reference", is_flag=True, help="Choose RPE pairs on the reference.")
 @click.option(
@@ -338,6 +346,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
     result = evaluate_trajectory(ref, est, settings)
+    if (mismatch := frame_mismatch(result)) is not None:
+        log.warning("%s", mismatch)
     summary = dict(result.summary)
 
     landmarks = load_landmark_map(estimate)

@@ -86,6 +86,18 @@ def test_json_dash_writes_the_summary_to_stdout_and_the_table_to_stderr(tmp_path
     assert list(tmp_path.iterdir()) == []  # no file named "-"
 
 
+def test_a_small_overlap_is_an_error_naming_both_time_ranges(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    args = ["evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
+            "--t-offset", "20", "--t-max-diff", "0.02"]  # fmt: skip
+    code, _, err = invoke(*args)
+    assert code == 3
+    assert_one_error_line(err, "poses matched")
+    assert "reference 1305031098" in err and "estimate 1305031102" in err and "--min-matched 0" in err
+    code, out, err = invoke(*args, "--min-matched", "0")
+    assert code == 0, err
+
+
 # --- ROS 2 bag written by rosbag2 -------------------------------------------------------------------------
 
 
@@ -103,6 +115,18 @@ def test_bag_odom_against_amcl_pose(tmp_path: Path) -> None:
     # evo 1.38.1: `evo_ape bag2 nav2_turtlebot.mcap /amcl_pose /odom -a` prints rmse 0.512301, max 0.852349.
     assert summary["ate_rmse"] == pytest.approx(0.512301, abs=1e-6)
     assert summary["ate_max"] == pytest.approx(0.852349, abs=1e-6)
+
+
+def test_trajectories_in_different_frames_are_pointed_out() -> None:
+    bag = shared_data(*BAG)
+    args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
+    code, _, err = invoke(*args)
+    assert code == 0 and "look to be in different frames" in err and "--align se3" in err
+    code, _, err = invoke(*args, "--align", "se3")
+    assert code == 0 and "different frames" not in err
+    fr1 = shared_data(*FR1)
+    code, _, err = invoke("evaluate", fr1 / "freiburg1_xyz-rgbdslam.txt", "-r", fr1 / "freiburg1_xyz-groundtruth.txt")
+    assert code == 0 and "different frames" not in err
 
 
 def test_tf_chain_reference(tmp_path: Path) -> None:

@@ -440,6 +440,14 @@ def test_landmark_metrics_on_crafted_case() -> None:
     assert "lm_purity_mean" not in observed.summary
 
 
+def test_dynamic_figures_do_not_apply_to_a_log_without_movers() -> None:
+    estimated, truth = _landmark_case()
+    still = GroundTruthLandmarks(truth.positions, truth.ids, np.zeros(len(truth.ids), dtype=bool))
+    summary = landmark_metrics(estimated, still).summary
+    assert np.isnan(summary["dyn_precision"]) and np.isnan(summary["dyn_recall"])
+    assert summary["lm_err_rmse"] == landmark_metrics(estimated, truth).summary["lm_err_rmse"]
+
+
 def test_landmark_error_with_trajectory_alignment() -> None:
     estimated, truth = _landmark_case()
     rotation = Rotation.from_rotvec([0.0, 0.0, np.pi / 2])

@@ -231,7 +231,7 @@ def associate(
         raise EvaluationError(
             f"found no matching timestamps between reference and estimate with max. time diff {max_diff} s "
             f"and time offset {offset} s",
-            hint=f"reference spans {_span(reference)}, estimate spans {_span(estimate)}",
+            hint=f"reference spans {time_span(reference)}, estimate spans {time_span(estimate)}",
         )
     short_p = short.positions[idx_short]
     short_R = _rotations(short.quats_xyzw[idx_short])
@@ -253,6 +253,7 @@ def associate(
     return MatchedPoses(long_ns, short_ns, long_p, long_R, short_p, short_R, idx_long, idx_short, interpolate)
 
 
-def _span(trajectory: Trajectory) -> str:
+def time_span(trajectory: Trajectory) -> str:
+    """``first..last s (N poses)`` of a trajectory, for messages."""
     t = trajectory.stamps_ns
     return f"{t[0] / 1e9:.6f}..{t[-1] / 1e9:.6f} s ({len(t)} poses)"

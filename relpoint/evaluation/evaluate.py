@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from relpoint.errors import UsageError
+from relpoint.evaluation import EvaluationError
 from relpoint.evaluation.alignment import Alignment, AlignMode, apply_alignment, estimate_alignment
 from relpoint.evaluation.ape import PoseRelation, ape_errors
-from relpoint.evaluation.association import MatchedPoses, associate
+from relpoint.evaluation.association import MatchedPoses, associate, time_span
 from relpoint.evaluation.kitti import KITTI_LENGTHS, KittiSegmentErrors, kitti_segment_errors
 from relpoint.evaluation.rpe import DeltaUnit, RelativeErrors, accumulated_distances, rpe_errors
 from relpoint.evaluation.statistics import STATISTICS, error_statistics
@@ -43,6 +44,9 @@ class EvaluationSettings:
         ``--all_pairs``, ``--pairs_from_reference``).
     rpe: compute the RPE figures.
     kitti, kitti_lengths, kitti_step: KITTI segment errors (reported when any segment fits).
+    min_matched_fraction: the matched pairs must number at least this fraction of the sparser
+        trajectory's poses (``--min-matched``; 0 accepts any overlap). A smaller overlap usually means
+        the two trajectories come from different runs or time bases.
     """
 
     align: AlignMode = AlignMode.NONE
@@ -60,6 +64,7 @@ class EvaluationSettings:
     kitti: bool = True
     kitti_lengths: tuple[float, ...] = KITTI_LENGTHS
     kitti_step: int = 10
+    min_matched_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "align", AlignMode.parse(self.align))
@@ -76,6 +81,8 @@ class EvaluationSettings:
             raise UsageError(f"delta must be a positive number up to 1e9, got {self.delta}")
         if abs(self.t_offset) > 1e10 or self.t_max_diff > 1e10 or self.n_to_align > 1e9 or self.kitti_step > 1e9:
             raise UsageError("t_offset and t_max_diff must be within 1e10 s, n_to_align and kitti_step within 1e9")
+        if not 0.0 <= self.min_matched_fraction <= 1.0:
+            raise UsageError(f"min_matched_fraction must be between 0 and 1, got {self.min_matched_fraction}")
         if self.delta_unit is DeltaUnit.FRAMES and float(self.delta) != int(self.delta):
             raise UsageError(f"delta must be an integer for delta unit f (frames), got {self.delta}")
         if not (np.isfinite(self.delta_tol) and self.delta_tol >= 0):
@@ -154,6 +161,14 @@ def evaluate_trajectory(
     matched = associate(
         reference, estimate, max_diff=settings.t_max_diff, offset=settings.t_offset, interpolate=settings.interpolate
     )
+    sparser = min(len(reference), len(estimate))
+    if len(matched) < settings.min_matched_fraction * sparser:
+        raise EvaluationError(
+            f"only {len(matched)} of {sparser} poses matched ({100 * len(matched) / sparser:.0f} %): reference "
+            f"{time_span(reference)}, estimate {time_span(estimate)}",
+            "check that both come from the same run and clock (--t-offset, --t-max-diff), or accept a partial "
+            "overlap with --min-matched 0",
+        )
     alignment = estimate_alignment(matched, settings.align, settings.n_to_align)
     aligned = apply_alignment(matched, alignment)
 
@@ -215,3 +230,39 @@ def evaluate_trajectory(
         rpe=rpe_sel,
         kitti=kitti,
     )
+
+
+#: The first poses' offset must exceed this many times the SE(3)-aligned error to suggest an alignment.
+FRAME_MISMATCH_FACTOR = 3.0
+
+
+def frame_mismatch(result: EvaluationResult) -> str | None:
+    """Why the estimate looks to be in another frame than the reference, or None.
+
+    Only for an unaligned evaluation: when the first matched poses differ (in position or heading) by
+    far more than the error left after an SE(3) alignment (the noise of the estimate), and by more than
+    5 cm and 1 % of the path (or 10 degrees), the two
+    trajectories start in different frames (``/odom`` against ``/amcl_pose``, a dense run started at
+    the identity) and the unaligned figures measure that offset, not the estimate.
+    """
+    if result.settings.align is not AlignMode.NONE or len(result.matched) < 3:
+        return None
+    matched = result.matched
+    try:
+        aligned = apply_alignment(matched, estimate_alignment(matched, AlignMode.SE3))
+    except EvaluationError:  # degenerate (collinear or stationary) trajectories: nothing to compare
+        return None
+    noise_m = float(np.sqrt(np.mean(ape_errors(aligned, PoseRelation.TRANS_PART) ** 2)))
+    noise_deg = float(np.sqrt(np.mean(ape_errors(aligned, PoseRelation.ANGLE_DEG) ** 2)))
+    offset_m = float(np.linalg.norm(matched.estimate_positions[0] - matched.reference_positions[0]))
+    relative = matched.reference_rotations[0].T @ matched.estimate_rotations[0]
+    offset_deg = float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
+    # An offset under 5 cm or 1 % of the path does not change the figures' meaning, whatever the noise.
+    floor_m = max(0.05, 0.01 * float(accumulated_distances(matched.reference_positions)[-1]))
+    if offset_m > max(FRAME_MISMATCH_FACTOR * noise_m, floor_m) or offset_deg > max(FRAME_MISMATCH_FACTOR * noise_deg, 10.0):
+        return (
+            f"the estimate's first pose is {offset_m:.3g} m and {offset_deg:.3g} deg from the reference's, far "
+            f"beyond the {noise_m:.3g} m left after an SE(3) alignment: they look to be in different frames; "
+            "evaluate with --align se3 (sim3 for a monocular scale)"
+        )
+    return None

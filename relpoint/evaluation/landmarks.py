@@ -159,6 +159,7 @@ def landmark_metrics(
         summary["lm_purity_mean"] = float(np.mean(purity_arr)) if m else NAN
         summary["lm_purity_weighted"] = float(np.sum(purity_arr * weights) / np.sum(weights)) if weights.sum() else NAN
 
-    precision, recall = precision_recall(landmarks.dynamic, gt_dynamic)
+    # Without movers in the ground truth there is nothing to detect: the figures do not apply.
+    precision, recall = precision_recall(landmarks.dynamic, gt_dynamic) if ground_truth.dynamic.any() else (NAN, NAN)
     summary["dyn_precision"], summary["dyn_recall"] = precision, recall
     return LandmarkEvaluation(summary, index, landmarks.gt_id[index], error, error_aligned)
