@@ -97,7 +97,7 @@ def cases(work: Path) -> list[tuple[str, list[str] | Callable[[], list[str]]]]:
         out = work / "a-run"
         if not out.exists():
             subprocess.run([sys.executable, "-m", "relpoint_cli.main", "-q", "run", str(sample), "-e", "ekf", "-o",
-                            str(out)], check=False, cwd=REPO)  # fmt: skip
+                            str(out)], check=False, cwd=REPO, stderr=subprocess.DEVNULL)  # fmt: skip
         return out
 
     def file_in(name: str, content: bytes) -> Path:
@@ -225,6 +225,10 @@ def main() -> None:
         print("| case | exit | stderr lines | last stderr line | peak MB | s |")
         print("|---|---|---|---|---|---|")
         for name, argv in selected:
+            # The code before the fix deletes the log's directory in one case: every case starts from the log.
+            work.mkdir(exist_ok=True)
+            if not (work / "figure8.mcap").exists():
+                shutil.copy(REPO / "sample_logs" / "figure8.mcap", work / "figure8.mcap")
             argv = argv() if callable(argv) else argv
             code, last, peak, seconds, n_lines = isolated(args, argv, name.startswith("info"))
             print(f"| {name} | {code} | {n_lines} | {last.replace('|', '/')} | {peak:.0f} | {seconds:.1f} |", flush=True)
