@@ -20,7 +20,13 @@ import relpoint
 from formats.atomic import atomic_path, write_text
 from formats.outputs import check_output_file, register_csv_header
 from formats.ply import read_ply
-from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.reference_trajectories import (
+    check_index_pairing,
+    is_index_stamped,
+    load_ground_truth_landmarks,
+    load_landmark_map,
+    load_trajectory,
+)
 from formats.tables import read_map_history_csv
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
@@ -330,6 +336,9 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             check_output_file(path, inputs=read, overwrite=overwrite)
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    check_index_pairing(
+        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
+    )
     result = evaluate_trajectory(ref, est, settings)
     summary = dict(result.summary)
 

@@ -1,4 +1,4 @@
-"""TUM and KITTI trajectory files: round trips, evo compatibility and malformed input."""
+"""Trajectory files (TUM, EuRoC, KITTI): round trips, how evo reads them and its figures, malformed input."""
 
 from __future__ import annotations
 
@@ -8,11 +8,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from formats.trajectory_files import format_stamp, parse_stamp_ns, read_kitti, read_tum, write_kitti, write_tum
+from formats.trajectory_files import (
+    TrajectoryFormat,
+    detect_format,
+    format_stamp,
+    parse_stamp_ns,
+    read_euroc_csv,
+    read_kitti,
+    read_tum,
+    separate_repeated_stamps,
+    write_euroc_csv,
+    write_kitti,
+    write_tum,
+)
 from relpoint.errors import InputError
 from relpoint.types import Trajectory
+from tests.conftest import shared_data
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "evo-fr1xyz"
+FR1 = "evo-fr1xyz"
 
 
 def _trajectory(rng: np.random.Generator, n: int = 50) -> Trajectory:
@@ -70,12 +83,11 @@ def test_tum_tolerates_whitespace_comments_and_scientific_notation(tmp_path: Pat
 
 
 def test_reads_the_shared_tum_files_like_evo() -> None:
-    if not DATA.is_dir():
-        pytest.skip("../shared/data/evo-fr1xyz is absent")
+    data = shared_data(FR1)
     file_interface = pytest.importorskip("evo.tools.file_interface")
     for name in ("freiburg1_xyz-groundtruth.txt", "freiburg1_xyz-rgbdslam.txt", "freiburg1_xyz-ORB_kf_mono.txt"):
-        ours = read_tum(DATA / name)
-        theirs = file_interface.read_tum_trajectory_file(str(DATA / name))
+        ours = read_tum(data / name)
+        theirs = file_interface.read_tum_trajectory_file(str(data / name))
         np.testing.assert_array_equal([s / 1_000_000_000 for s in ours.stamps_ns.tolist()], theirs.timestamps)
         np.testing.assert_array_equal(ours.positions, theirs.positions_xyz)
 
@@ -89,7 +101,7 @@ def test_reads_the_shared_tum_files_like_evo() -> None:
         ("abc 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
         ("1 0 0 nan 0 0 0 1\n", r":1: non-finite value"),
         ("inf 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
-        ("1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":2: timestamp does not increase"),
+        ("2 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":3: timestamp goes back in time .*line 2"),
         ("1 0 0 0 0 0 0 0\n", r":1: zero quaternion"),
         ("# only comments\n\n", r"no poses"),
     ],
@@ -146,7 +158,7 @@ def test_kitti_times_in_scientific_notation(tmp_path: Path) -> None:
         ("1 0 0 0 0 1 0 0 0 0 1 x\n", None, r"poses.txt:1: non-numeric"),
         ("2 0 0 0 0 1 0 0 0 0 1 0\n", None, r"poses.txt:1: .*not a rotation"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n", "0.0\n0.1\n", r"times.txt: 2 times for 1 poses"),
-        ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2, "0.1\n0.1\n", r"times.txt:2: timestamp does not increase"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2, "0.2\n0.1\n", r"times.txt:2: timestamp goes back in time"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n", "0.1 0.2\n", r"times.txt:1: expected one time"),
     ],
 )
@@ -184,3 +196,94 @@ def test_stamp_text_round_trips(text: str) -> None:
     ns = parse_stamp_ns(text)
     assert parse_stamp_ns(format_stamp(ns)) == ns
     assert float(format_stamp(ns)) == pytest.approx(float(text), abs=1e-9)
+
+
+# --- repeated stamps -----------------------------------------------------------------------------------
+
+
+def test_separate_repeated_stamps_moves_earlier_copies_back() -> None:
+    assert separate_repeated_stamps([10, 20, 20, 20, 30]).tolist() == [10, 18, 19, 20, 30]
+    assert separate_repeated_stamps([5, 6, 6]).tolist() == [4, 5, 6]  # room is made further back when needed
+    increasing = np.array([1, 2, 7])
+    assert separate_repeated_stamps(increasing).tolist() == [1, 2, 7]
+    assert separate_repeated_stamps([]).tolist() == []
+
+
+def test_tum_with_repeated_stamps_keeps_every_pose_and_says_so_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "gt.txt"
+    path.write_text(
+        "# motion capture\n1.0 0 0 0 0 0 0 1\n\n2.0 1 0 0 0 0 0 1\n2.0 2 0 0 0 0 0 1\n3.0 3 0 0 0 0 0 1\n"
+        "3.0 4 0 0 0 0 0 1\n3.0 5 0 0 0 0 0 1\n"
+    )
+    with caplog.at_level("WARNING"):
+        traj = read_tum(path)
+    assert traj.stamps_ns.tolist() == [10**9, 2 * 10**9 - 1, 2 * 10**9, 3 * 10**9 - 2, 3 * 10**9 - 1, 3 * 10**9]
+    assert traj.positions[:, 0].tolist() == [0, 1, 2, 3, 4, 5]  # file order
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1
+    assert "3 repeated timestamps" in warnings[0] and "line 5" in warnings[0] and "1 ns" in warnings[0]
+
+
+# --- format detection ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "expected"),
+    [
+        ("a.txt", "# tum\n1.5 0 0 0 0 0 0 1\n", TrajectoryFormat.TUM),
+        ("a.csv", "1.5,0,0,0,0,0,0,1\n", TrajectoryFormat.TUM),
+        ("a.txt", "1,0,0,0,0,0,0,1\n", TrajectoryFormat.TUM),
+        ("a.csv", "1403636579758555392,0,0,0,1,0,0,0\n", TrajectoryFormat.EUROC),
+        ("data.csv", "#timestamp,p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+         "1403636579758555392,0,0,0,1,0,0,0\n", TrajectoryFormat.EUROC),
+        ("gt", "1403636579758555392,0,0,0,1,0,0,0,0.1,0.2,0.3,0,0,0,0,0,0\n", TrajectoryFormat.EUROC),
+        ("00.txt", "1 0 0 0 0 1 0 0 0 0 1 0\n", TrajectoryFormat.KITTI),
+        ("a.txt", "1 2 3 4 5\n", None),
+        ("a.txt", "# nothing\n\n", None),
+        ("a.bin", b"\xff\xfe\x00\x01", None),
+    ],
+)  # fmt: skip
+def test_detect_format(tmp_path: Path, name: str, text: str | bytes, expected: TrajectoryFormat | None) -> None:
+    path = tmp_path / name
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text)
+    assert detect_format(path) is expected
+
+
+# --- EuRoC ground truth --------------------------------------------------------------------------------
+
+
+def test_euroc_round_trip_and_extra_columns(tmp_path: Path) -> None:
+    original = _trajectory(np.random.default_rng(4))
+    path = tmp_path / "data.csv"
+    write_euroc_csv(path, original)
+    header, first = path.read_text().splitlines()[:2]
+    assert header.startswith("#timestamp [ns],p_RS_R_x [m]") and len(first.split(",")) == 8
+    again = read_euroc_csv(path)
+    np.testing.assert_array_equal(again.stamps_ns, original.stamps_ns)
+    np.testing.assert_array_equal(again.positions, original.positions)
+    np.testing.assert_allclose(again.quats_xyzw, original.quats_xyzw, rtol=0, atol=1e-15)
+    wide = tmp_path / "wide.csv"
+    wide.write_text("".join(line + ",0.5,-0.5,0,0.01,0.02,0.03,0.1,0.2,0.3\n" for line in path.read_text().splitlines()))
+    _assert_same(read_euroc_csv(wide), original)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("1,0,0,0,1,0,0\n", r":1: expected at least 8 values"),
+        ("1.5,0,0,0,1,0,0,0\n", r":1: bad timestamp '1.5', expected integer nanoseconds"),
+        ("#h\n1,0,0,x,1,0,0,0\n", r":2: non-numeric value"),
+        ("1,0,0,0,0,0,0,0\n", r":1: zero quaternion"),
+        ("2,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n", r":2: timestamp goes back in time"),
+    ],
+)
+def test_malformed_euroc_names_file_and_line(tmp_path: Path, content: str, message: str) -> None:
+    path = tmp_path / "data.csv"
+    path.write_text(content)
+    with pytest.raises(InputError, match=message):
+        read_euroc_csv(path)
