@@ -139,8 +139,8 @@ def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntAr
         separated = separate_repeated_stamps(stamps_arr)
         k = int(repeats[0]) + 1
         logger.warning(
-            "%s: %d repeated timestamp%s (the first at line %d, as at line %d); kept every pose as evo does, "
-            "each earlier copy moved 1 ns back so that stamps increase",
+            "%s: %d repeated timestamp%s (the first: line %d repeats the stamp of line %d); kept every pose as "
+            "evo does, each earlier copy moved 1 ns back so that stamps increase",
             path, int(np.count_nonzero(separated != stamps_arr)), "s" if repeats.size > 1 else "",
             lines[k], lines[k - 1],
         )  # fmt: skip

@@ -223,7 +223,8 @@ def test_tum_with_repeated_stamps_keeps_every_pose_and_says_so_once(
     assert traj.positions[:, 0].tolist() == [0, 1, 2, 3, 4, 5]  # file order
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1
-    assert "3 repeated timestamps" in warnings[0] and "line 5" in warnings[0] and "1 ns" in warnings[0]
+    assert "3 repeated timestamps (the first: line 5 repeats the stamp of line 4)" in warnings[0]
+    assert "kept every pose" in warnings[0] and "1 ns back" in warnings[0]
 
 
 # --- format detection ----------------------------------------------------------------------------------
