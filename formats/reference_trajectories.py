@@ -12,8 +12,8 @@
   ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
   composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).
 
-Bag messages with a stamp equal to or older than the previous one are dropped (rosbag2 recordings
-repeat stamps now and then); the count is logged. Every problem is an :class:`InputError` naming the file.
+Bag messages are sorted by stamp and, of messages with the same stamp, the first is kept (rosbag2
+recordings repeat messages now and then); a warning gives the count. Every problem is an :class:`InputError` naming the file.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def is_mcap(path: Path) -> bool:
 
 
 def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[FloatArray], source: str) -> Trajectory:
-    """A trajectory from possibly unordered poses: sorted by stamp, repeated or older stamps dropped."""
+    """A trajectory from possibly unordered poses: sorted by stamp, the first pose of each stamp kept."""
     if not stamps:
         raise InputError(f"{source}: no poses")
     stamps_arr = np.asarray(stamps, dtype=np.int64)
@@ -74,8 +74,9 @@ def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[Floa
     keep[1:] = np.diff(stamps_arr) > 0
     dropped = int((~keep).sum())
     if dropped:
-        log.info("%s: dropped %d poses with repeated stamps", source, dropped)
+        log.warning("%s: %d messages repeat the stamp of an earlier one; kept the first of each stamp", source, dropped)
     index = order[keep]
+    stamps_arr = stamps_arr[keep]
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)[index]
     quat = np.asarray(quats, dtype=np.float64).reshape(-1, 4)[index]
     finite = np.isfinite(pos).all(axis=1) & np.isfinite(quat).all(axis=1) & (np.linalg.norm(quat, axis=1) > 1e-9)

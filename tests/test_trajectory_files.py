@@ -573,3 +573,25 @@ def test_kitti_without_times_evaluates_by_index(tmp_path: Path) -> None:
     summary = json.loads(out.read_text())["summary"]
     assert summary["matched_poses"] == 30
     assert summary["ate_max"] == pytest.approx(0.1, abs=1e-12) and summary["ate_min"] == pytest.approx(0.1, abs=1e-12)
+
+
+def test_bag_pose_topic_with_repeated_stamps_warns_once(tmp_path: Path) -> None:
+    """Bag topics as before: sorted by stamp, the first message of each stamp kept; now said on stderr."""
+    from mcap_ros2.writer import Writer
+
+    from formats import ros2
+
+    bag, out = tmp_path / "bag.mcap", tmp_path / "pose.tum"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
+        for x, stamp in enumerate([1, 2, 2, 3, 3, 4]):
+            header = {"stamp": {"sec": stamp, "nanosec": 0}, "frame_id": "map"}
+            pose = {"position": {"x": float(x), "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+            writer.write_message("/pose", schema, {"header": header, "pose": pose}, log_time=stamp * 10**9 + x)
+        writer.finish()
+    code, _, err = _invoke("export", bag, "--topic", "/pose", "-o", out)
+    lines = err.strip().splitlines()
+    assert code == 0 and len(lines) == 1, err
+    assert lines[0] == f"relpoint: warning: {bag} /pose: 2 messages repeat the stamp of an earlier one; kept the first of each stamp"
+    assert read_tum(out).positions[:, 0].tolist() == [0, 1, 3, 5]
