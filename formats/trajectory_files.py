@@ -13,7 +13,8 @@
   pair frame by frame, as evo pairs them by index.
 
 :func:`detect_format` tells the three apart by content (and a ``.csv`` suffix where content alone is
-ambiguous).
+ambiguous). Each has a reader and a writer (``read_tum``/``write_tum``, ``read_euroc_csv``/
+``write_euroc_csv``, ``read_kitti``/``write_kitti``).
 
 Stamps are parsed from their decimal text into exact integer nanoseconds and written back exactly, and
 floats are written with ``repr`` (shortest round-tripping form), so a read-write-read cycle is lossless.

@@ -256,7 +256,7 @@ def _save(fig: Any, path: Path) -> Path:
     "--reference",
     type=click.Path(path_type=Path),
     required=True,
-    help="Reference: relpoint log (/ground_truth/pose), TUM/KITTI file, run directory or any MCAP bag.",
+    help="Reference: relpoint log (/ground_truth/pose), TUM/EuRoC/KITTI file, run directory or any MCAP bag.",
 )
 @click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
 @click.option("--estimate-topic", help="Pose topic of an MCAP estimate (default /relpoint/pose or /ground_truth/pose).")
@@ -321,7 +321,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
              overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
 
-    ESTIMATE is a `relpoint run` output directory, a TUM file, KITTI poses (--times) or an MCAP file
+    ESTIMATE is a `relpoint run` output directory, a TUM file, a EuRoC ground-truth CSV, KITTI poses
+    (--times; without it pose i is at i s and pairs by index with KITTI poses of equal count) or an MCAP file
     (--estimate-topic). When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
     with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
     ESTIMATE is a dense run (map.ply with normals) and --reference-cloud is given, the map's accuracy

@@ -317,26 +317,33 @@ def _moved(row: str, dx: float) -> str:
     return " ".join([fields[0], repr(float(fields[1]) + dx), *fields[2:]])
 
 
-def _relpoint_figures(reference: Path, estimate: Path, align: str, **times: Path) -> dict[str, float]:
+def _relpoint_figures(
+    reference: Path, estimate: Path, align: str, interpolate: bool = False, **times: Path
+) -> dict[str, float]:
     from formats.reference_trajectories import load_trajectory
     from relpoint.evaluation import AlignMode, EvaluationSettings, evaluate_trajectory
 
     ref = load_trajectory(reference, times=times.get("reference_times"))
     est = load_trajectory(estimate, times=times.get("times"))
-    summary = evaluate_trajectory(ref, est, EvaluationSettings(align=AlignMode(align))).summary
+    settings = EvaluationSettings(align=AlignMode(align), interpolate=interpolate)
+    summary = evaluate_trajectory(ref, est, settings).summary
     return {key: summary[key] for key in FIGURE_KEYS}
 
 
-def _evo_figures(ref: object, est: object, align: str, synchronise: bool = True) -> dict[str, float]:
+def _evo_figures(
+    ref: object, est: object, align: str, synchronise: bool = True, interpolate: bool = False
+) -> dict[str, float]:
     """evo_ape -r trans_part and evo_rpe -r trans_part / angle_deg (delta 1 frame), as evo's CLI runs them."""
     import copy
 
     from evo.core import metrics, sync
+    from evo.core.sync_method import SyncMethod
     from evo.main_ape import ape
     from evo.main_rpe import rpe
 
     if synchronise:
-        ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+        method = SyncMethod.interpolation if interpolate else SyncMethod.nearest_time
+        ref, est = sync.associate_trajectories(ref, est, max_diff=0.01, sync_method=method)
     do_align = align == "se3"
     relation = metrics.PoseRelation
     results = {
@@ -384,9 +391,9 @@ def fr1() -> dict[str, list[str]]:
     return {"gt": _data_rows(data / GT), "est": _data_rows(data / RGBD)}
 
 
-@pytest.mark.parametrize("align", ["none", "se3"])
+@pytest.mark.parametrize(("align", "interpolate"), [("none", False), ("se3", False), ("se3", True)])
 def test_repeated_stamps_in_the_longer_file_give_evo_figures(
-    tmp_path: Path, fr1: dict[str, list[str]], align: str
+    tmp_path: Path, fr1: dict[str, list[str]], align: str, interpolate: bool
 ) -> None:
     from evo.tools import file_interface
 
@@ -398,9 +405,9 @@ def test_repeated_stamps_in_the_longer_file_give_evo_figures(
     estimate.write_text("\n".join(fr1["est"]) + "\n")
     evo = _evo_figures(
         file_interface.read_tum_trajectory_file(str(theirs)), file_interface.read_tum_trajectory_file(str(estimate)),
-        align,
+        align, interpolate=interpolate,
     )  # fmt: skip
-    _assert_figures_equal(_relpoint_figures(ours, estimate, align), evo)
+    _assert_figures_equal(_relpoint_figures(ours, estimate, align, interpolate), evo)
     # Keeping only one copy (either) would not give evo's figures: the test can tell.
     for keep in ("first", "last"):
         dropped = tmp_path / f"gt_{keep}.txt"
@@ -408,10 +415,15 @@ def test_repeated_stamps_in_the_longer_file_give_evo_figures(
         if keep == "first":
             kept = [r for i, r in enumerate(rows) if i == 0 or _stamp(rows[i - 1]) != _stamp(r)]
         dropped.write_text("\n".join(kept) + "\n")
-        assert _relpoint_figures(dropped, estimate, align)["ate_rmse"] != pytest.approx(evo["ate_rmse"], abs=1e-6)
+        assert _relpoint_figures(dropped, estimate, align, interpolate)["ate_rmse"] != pytest.approx(
+            evo["ate_rmse"], abs=1e-6
+        )
 
 
-def test_repeated_stamps_in_the_shorter_file_give_evo_figures(tmp_path: Path, fr1: dict[str, list[str]]) -> None:
+@pytest.mark.parametrize("interpolate", [False, True])
+def test_repeated_stamps_in_the_shorter_file_give_evo_figures(
+    tmp_path: Path, fr1: dict[str, list[str]], interpolate: bool
+) -> None:
     from evo.tools import file_interface
 
     est_rows = []
@@ -424,9 +436,9 @@ def test_repeated_stamps_in_the_shorter_file_give_evo_figures(tmp_path: Path, fr
     estimate.write_text("\n".join(est_rows) + "\n")
     evo = _evo_figures(
         file_interface.read_tum_trajectory_file(str(reference)), file_interface.read_tum_trajectory_file(str(estimate)),
-        "se3",
+        "se3", interpolate=interpolate,
     )  # fmt: skip
-    _assert_figures_equal(_relpoint_figures(reference, estimate, "se3"), evo)
+    _assert_figures_equal(_relpoint_figures(reference, estimate, "se3", interpolate), evo)
 
 
 def test_euroc_ground_truth_gives_evo_figures(tmp_path: Path, fr1: dict[str, list[str]]) -> None:
