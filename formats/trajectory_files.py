@@ -51,6 +51,7 @@ logger = logging.getLogger(__name__)
 
 _SEPARATORS = re.compile(r"[\s,]+")
 _NS_PER_S = 1_000_000_000
+_INT64_MIN, _INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
 
 
 def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
@@ -126,6 +127,9 @@ def separate_repeated_stamps(stamps_ns: npt.ArrayLike) -> IntArray:
 
 def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntArray:
     """``stamps`` as strictly increasing int64 ns: repeats separated (one warning), going back refused."""
+    out_of_range = [k for k, stamp in enumerate(stamps) if not _INT64_MIN <= stamp <= _INT64_MAX]
+    if out_of_range:
+        raise InputError(f"{path}:{lines[out_of_range[0]]}: timestamp out of range (beyond year 2262)")
     stamps_arr = np.array(stamps, dtype=np.int64)
     steps = np.diff(stamps_arr)
     back = np.nonzero(steps < 0)[0]
@@ -139,10 +143,11 @@ def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntAr
     if repeats.size:
         separated = separate_repeated_stamps(stamps_arr)
         k = int(repeats[0]) + 1
+        moved = int(np.count_nonzero(separated != stamps_arr))
         logger.warning(
             "%s: %d repeated timestamp%s (the first: line %d repeats the stamp of line %d); kept every pose as "
             "evo does, each earlier copy moved 1 ns back so that stamps increase",
-            path, int(np.count_nonzero(separated != stamps_arr)), "s" if repeats.size > 1 else "",
+            path, moved, "s" if moved > 1 else "",
             lines[k], lines[k - 1],
         )  # fmt: skip
         stamps_arr = separated
@@ -295,7 +300,7 @@ def read_euroc_csv(path: str | os.PathLike[str]) -> Trajectory:
             raise InputError(
                 f"{path}:{number}: expected at least 8 values (timestamp [ns], p_RS_R xyz, q_RS wxyz), got {len(fields)}"
             )
-        if not fields[0].isdigit():
+        if not (fields[0].isascii() and fields[0].isdigit()):
             raise InputError(f"{path}:{number}: bad timestamp {fields[0]!r}, expected integer nanoseconds")
         stamps.append(int(fields[0]))
         rows.append(_floats(fields[1:8], path, number))
@@ -364,7 +369,7 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
         return TrajectoryFormat.EUROC
     commas = fields[-1:] == [","]
     values = fields[:-1] if commas else fields
-    integer_stamp_csv = commas and values[0].isdigit()
+    integer_stamp_csv = commas and values[0].isascii() and values[0].isdigit()
     if len(values) == 12:
         return TrajectoryFormat.KITTI
     if len(values) == 8 and not (integer_stamp_csv and path.suffix.lower() == ".csv"):

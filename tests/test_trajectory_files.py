@@ -102,6 +102,7 @@ def test_reads_the_shared_tum_files_like_evo() -> None:
         ("1 0 0 nan 0 0 0 1\n", r":1: non-finite value"),
         ("inf 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
         ("2 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":3: timestamp goes back in time .*line 2"),
+        ("1e30 0 0 0 0 0 0 1\n", r":1: timestamp out of range"),
         ("1 0 0 0 0 0 0 0\n", r":1: zero quaternion"),
         ("# only comments\n\n", r"no poses"),
     ],
@@ -281,6 +282,8 @@ def test_euroc_round_trip_and_extra_columns(tmp_path: Path) -> None:
         ("#h\n1,0,0,x,1,0,0,0\n", r":2: non-numeric value"),
         ("1,0,0,0,0,0,0,0\n", r":1: zero quaternion"),
         ("2,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n", r":2: timestamp goes back in time"),
+        ("\u00b2,0,0,0,1,0,0,0\n", r":1: bad timestamp"),
+        ("#h\n99999999999999999999,0,0,0,1,0,0,0\n", r":2: timestamp out of range"),
     ],
 )
 def test_malformed_euroc_names_file_and_line(tmp_path: Path, content: str, message: str) -> None:
