@@ -290,7 +290,8 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
 
     SOURCE is a relpoint log (ground-truth trajectory and landmarks), a `relpoint run` output directory
     (estimated trajectory, map.csv landmarks, map.ply), a TUM, EuRoC CSV or KITTI file, a PLY file, or any ROS 2 bag
-    (--topic, or --parent/--child for a TF chain).
+    (--topic, or --parent/--child for a TF chain). Trajectory files are recognised by content, as by
+    `relpoint evaluate`.
     """
     if not source.exists():
         raise InputError(f"{source}: no such file or directory")
