@@ -2,15 +2,18 @@
 
 :func:`load_trajectory` reads a :class:`relpoint.types.Trajectory` from
 
-* a TUM file (8 values per line) or KITTI poses (12 values per line, stamps from a times file);
+* a trajectory file of :mod:`formats.trajectory_files`: TUM (8 values per line), EuRoC ground truth
+  CSV (integer nanoseconds, position, quaternion w first, further columns ignored) or KITTI poses
+  (12 values per line, stamps from a times file, else pose ``i`` at ``i`` s), told apart by
+  :func:`formats.trajectory_files.detect_format`;
 * a ``relpoint run`` output directory (its ``trajectory.tum``);
 * an MCAP file: a relpoint log's ``/ground_truth/pose``, or any topic of any ROS 2 bag carrying
   ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
   ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
   composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).
 
-Messages with a stamp equal to or older than the previous one are dropped (rosbag2 recordings
-repeat stamps now and then); the count is logged. Every problem is an :class:`InputError` naming the file.
+Bag messages are sorted by stamp and, of messages with the same stamp, the first is kept (rosbag2
+recordings repeat messages now and then); a warning gives the count. Every problem is an :class:`InputError` naming the file.
 """
 
 from __future__ import annotations
@@ -29,7 +32,14 @@ from formats import ros2
 from formats.log import LogReader
 from formats.ply import read_ply
 from formats.tables import read_map_csv
-from formats.trajectory_files import read_kitti, read_tum
+from formats.trajectory_files import (
+    TrajectoryFormat,
+    describe_unknown,
+    detect_format,
+    read_euroc_csv,
+    read_kitti,
+    read_tum,
+)
 from relpoint.errors import InputError
 from relpoint.geometry import FloatArray, invert_pose
 from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
@@ -53,26 +63,8 @@ def is_mcap(path: Path) -> bool:
         return False
 
 
-def _values_per_line(path: Path) -> int | None:
-    """Number of values on the first data line of a text file (None if it has none or is binary)."""
-    try:
-        with path.open("rb") as stream:
-            head = stream.read(1 << 16)
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
-    try:
-        text = head.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        return None
-    for line in text.splitlines():
-        stripped = line.strip()
-        if stripped and not stripped.startswith("#"):
-            return len([f for f in stripped.replace(",", " ").split() if f])
-    return None
-
-
 def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[FloatArray], source: str) -> Trajectory:
-    """A trajectory from possibly unordered poses: sorted by stamp, repeated or older stamps dropped."""
+    """A trajectory from possibly unordered poses: sorted by stamp, the first pose of each stamp kept."""
     if not stamps:
         raise InputError(f"{source}: no poses")
     stamps_arr = np.asarray(stamps, dtype=np.int64)
@@ -82,8 +74,9 @@ def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[Floa
     keep[1:] = np.diff(stamps_arr) > 0
     dropped = int((~keep).sum())
     if dropped:
-        log.info("%s: dropped %d poses with repeated stamps", source, dropped)
+        log.warning("%s: %d messages repeat the stamp of an earlier one; kept the first of each stamp", source, dropped)
     index = order[keep]
+    stamps_arr = stamps_arr[keep]
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)[index]
     quat = np.asarray(quats, dtype=np.float64).reshape(-1, 4)[index]
     finite = np.isfinite(pos).all(axis=1) & np.isfinite(quat).all(axis=1) & (np.linalg.norm(quat, axis=1) > 1e-9)
@@ -294,8 +287,8 @@ def load_trajectory(
     Parameters
     ----------
     path:
-        The input. Directories must hold ``trajectory.tum``; text files are told apart by the number of
-        values on their first data line (8 TUM, 12 KITTI); MCAP files by their magic bytes.
+        The input. Directories must hold ``trajectory.tum``; MCAP files are known by their magic bytes;
+        text files by :func:`formats.trajectory_files.detect_format` (TUM, EuRoC CSV, KITTI).
     topic:
         MCAP only: the pose topic, or the TF topic of a chain (default ``/tf``).
     parent, child:
@@ -320,16 +313,54 @@ def load_trajectory(
         return mcap_trajectory(path, topic, parent, child)
     if topic is not None or parent is not None or child is not None:
         raise InputError(f"{path} is not an MCAP file; topics and TF frames apply only to MCAP inputs")
-    values = _values_per_line(path)
-    if values == 8:
+    fmt = detect_format(path)
+    if times is not None and fmt is not TrajectoryFormat.KITTI:
+        raise InputError(f"{path} is not a KITTI pose file; a times file applies only to KITTI poses")
+    if fmt is TrajectoryFormat.TUM:
         return read_tum(path)
-    if values == 12:
+    if fmt is TrajectoryFormat.EUROC:
+        return read_euroc_csv(path)
+    if fmt is TrajectoryFormat.KITTI:
         return read_kitti(path, times)
     raise InputError(
-        f"{path}: unknown trajectory format"
-        + (f" ({values} values per line)" if values is not None else " (not a text file with poses)"),
-        "give a TUM file (8 values per line), KITTI poses (12), a relpoint run directory or an MCAP file",
+        f"{path}: unknown trajectory format ({describe_unknown(path)})",
+        "give a TUM file (8 values per line), a EuRoC ground-truth CSV, KITTI poses (12 values per line), "
+        "a relpoint run directory or an MCAP file",
     )
+
+
+def is_index_stamped(path: str | os.PathLike[str], times: str | os.PathLike[str] | None) -> bool:
+    """Whether ``path`` is read as KITTI poses without a times file (pose ``i`` stamped ``i`` s)."""
+    path = Path(path)
+    return times is None and path.is_file() and not is_mcap(path) and detect_format(path) is TrajectoryFormat.KITTI
+
+
+def check_index_pairing(
+    reference: tuple[Path, Trajectory, bool], estimate: tuple[Path, Trajectory, bool]
+) -> None:
+    """Refuse pairings that KITTI poses without times cannot make: ``(path, trajectory, index_stamped)`` each.
+
+    Index-stamped poses pair by index, as evo's ``kitti`` mode: only with other index-stamped poses
+    (stamps in seconds of a sequence would match them by accident or not at all) and only with the
+    same number of poses (evo refuses other counts; a dropped frame would shift every pair after it).
+
+    Raises
+    ------
+    InputError
+        One side index-stamped and the other not, or both with different pose counts.
+    """
+    (ref_path, ref, ref_index), (est_path, est, est_index) = reference, estimate
+    if ref_index != est_index:
+        bare, other = (ref_path, est_path) if ref_index else (est_path, ref_path)
+        raise InputError(
+            f"{bare} holds KITTI poses without times, which pair by index only with other such poses, not with {other}",
+            "give its times file (--times for the estimate, --reference-times for the reference)",
+        )
+    if ref_index and len(ref) != len(est):
+        raise InputError(
+            f"KITTI poses without times pair by index, but {ref_path} has {len(ref)} poses and {est_path} {len(est)}",
+            "give both times files (--times, --reference-times), or poses of the same frames",
+        )
 
 
 def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:

@@ -1,15 +1,31 @@
-"""TUM and KITTI trajectory files to and from :class:`relpoint.types.Trajectory`.
+"""Trajectory files, as evo reads them, to and from :class:`relpoint.types.Trajectory`.
 
 * TUM (Sturm et al. 2012): one pose per line, ``timestamp tx ty tz qx qy qz qw``, seconds, metres,
   quaternion (x, y, z, w) of ``T_world_frame``; lines starting with ``#`` and blank lines are ignored;
   any run of spaces or tabs separates values (commas too, as some tools write them).
+* EuRoC MAV ground truth (``mav0/state_groundtruth_estimate0/data.csv``): comma-separated,
+  ``timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z [m], q_RS_w, q_RS_x, q_RS_y, q_RS_z`` (quaternion
+  w first), then any number of further columns (velocity, biases), which are ignored; the header line
+  starts with ``#``.
 * KITTI odometry poses: one pose per line, the first three rows of ``T_world_frame`` row-major
   (12 values). Stamps come from a separate times file (one value in seconds per line, KITTI's
-  ``times.txt``); without one, pose ``i`` gets stamp ``i`` seconds.
+  ``times.txt``); without one, pose ``i`` gets stamp ``i`` seconds, so two KITTI files without times
+  pair frame by frame, as evo pairs them by index.
+
+:func:`detect_format` tells the three apart by content (and a ``.csv`` suffix where content alone is
+ambiguous). Each has a reader and a writer (``read_tum``/``write_tum``, ``read_euroc_csv``/
+``write_euroc_csv``, ``read_kitti``/``write_kitti``).
 
 Stamps are parsed from their decimal text into exact integer nanoseconds and written back exactly, and
 floats are written with ``repr`` (shortest round-tripping form), so a read-write-read cycle is lossless.
 Writes are atomic: a temporary file in the target's directory is renamed over it.
+
+Repeated stamps (motion-capture files have them now and then) are kept as evo keeps them, both poses in
+file order: :func:`separate_repeated_stamps` moves each earlier copy 1 ns back so that stamps increase,
+and the reader says so once (a warning with the count). evo compares stamps as float64 seconds, in which
+1 ns vanishes for epoch stamps, so evo's nearest-stamp association picks the same poses: the first copy
+for a stamp just before the repeat, the last copy for the repeated stamp itself and after it, every copy
+when the file is the shorter of the two. Stamps that go back in time are an error.
 """
 
 from __future__ import annotations
@@ -19,20 +35,23 @@ import os
 import re
 from collections.abc import Iterable, Iterator
 from decimal import Decimal, InvalidOperation
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 import relpoint
 from formats.atomic import write_text
 from relpoint.errors import InputError
 from relpoint.geometry import matrix_to_position_quat
-from relpoint.types import Trajectory
+from relpoint.types import IntArray, Trajectory
 
 logger = logging.getLogger(__name__)
 
 _SEPARATORS = re.compile(r"[\s,]+")
 _NS_PER_S = 1_000_000_000
+_INT64_MIN, _INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
 
 
 def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
@@ -93,16 +112,54 @@ def _floats(fields: list[str], path: Path, number: int) -> list[float]:
     return values
 
 
+def separate_repeated_stamps(stamps_ns: npt.ArrayLike) -> IntArray:
+    """Non-decreasing stamps (N,) int64 ns made strictly increasing by moving repeated ones back.
+
+    Each stamp becomes ``min(stamp, next stamp - 1 ns)``, from the last one back, so of ``k`` copies of
+    a stamp the last keeps it and the earlier ones sit 1 ns apart just before it. Stamps already
+    increasing are returned unchanged (a copy).
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    offsets = np.arange(stamps.size, dtype=np.int64)
+    # out[i] = min over j >= i of (stamps[j] - (j - i)): a running minimum from the end.
+    return np.minimum.accumulate((stamps - offsets)[::-1])[::-1] + offsets
+
+
+def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntArray:
+    """``stamps`` as strictly increasing int64 ns: repeats separated (one warning), going back refused."""
+    out_of_range = [k for k, stamp in enumerate(stamps) if not _INT64_MIN <= stamp <= _INT64_MAX]
+    if out_of_range:
+        raise InputError(f"{path}:{lines[out_of_range[0]]}: timestamp out of range (beyond year 2262)")
+    stamps_arr = np.array(stamps, dtype=np.int64)
+    steps = np.diff(stamps_arr)
+    back = np.nonzero(steps < 0)[0]
+    if back.size:
+        k = int(back[0]) + 1
+        raise InputError(
+            f"{path}:{lines[k]}: timestamp goes back in time (previous pose at line {lines[k - 1]})",
+            "sort the file by time",
+        )
+    repeats = np.nonzero(steps == 0)[0]
+    if repeats.size:
+        separated = separate_repeated_stamps(stamps_arr)
+        k = int(repeats[0]) + 1
+        moved = int(np.count_nonzero(separated != stamps_arr))
+        logger.warning(
+            "%s: %d repeated timestamp%s (the first: line %d repeats the stamp of line %d); kept every pose as "
+            "evo does, each earlier copy moved 1 ns back so that stamps increase",
+            path, moved, "s" if moved > 1 else "",
+            lines[k], lines[k - 1],
+        )  # fmt: skip
+        stamps_arr = separated
+    return stamps_arr
+
+
 def _build(
     path: Path, stamps: list[int], positions: list[list[float]], quats: np.ndarray, lines: list[int]
 ) -> Trajectory:
     if not stamps:
         raise InputError(f"{path}: no poses in file")
-    stamps_arr = np.array(stamps, dtype=np.int64)
-    bad = np.nonzero(np.diff(stamps_arr) <= 0)[0]
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise InputError(f"{path}:{lines[k]}: timestamp does not increase (previous pose at line {lines[k - 1]})")
+    stamps_arr = _increasing_stamps(path, stamps, lines)
     norms = np.linalg.norm(quats, axis=1)
     if np.any(norms < 1e-9):
         raise InputError(f"{path}:{lines[int(np.argmax(norms < 1e-9))]}: zero quaternion")
@@ -221,6 +278,116 @@ def read_kitti(path: str | os.PathLike[str], times_path: str | os.PathLike[str] 
     return _build(path, stamps, positions.tolist(), quats, stamp_lines)
 
 
+def read_euroc_csv(path: str | os.PathLike[str]) -> Trajectory:
+    """Read EuRoC ground truth (``state_groundtruth_estimate0/data.csv``; see the module docstring).
+
+    The stamp column is integer nanoseconds and is kept exact (evo divides its float by 1e9, which can
+    differ from the exact value by one float64 step, about 0.2 us, with no effect on the association).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, no poses, a row with fewer than 8 values, a stamp that is not an
+        integer, a non-numeric or non-finite value, a zero quaternion, or stamps going back in time -
+        naming the file and line.
+    """
+    path = Path(path)
+    stamps: list[int] = []
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    for number, fields in _data_lines(path):
+        if len(fields) < 8:
+            raise InputError(
+                f"{path}:{number}: expected at least 8 values (timestamp [ns], p_RS_R xyz, q_RS wxyz), got {len(fields)}"
+            )
+        if not (fields[0].isascii() and fields[0].isdigit()):
+            raise InputError(f"{path}:{number}: bad timestamp {fields[0]!r}, expected integer nanoseconds")
+        stamps.append(int(fields[0]))
+        rows.append(_floats(fields[1:8], path, number))
+        lines.append(number)
+    values = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    quats_xyzw = values[:, [4, 5, 6, 3]]  # q_RS is w first
+    logger.debug("read %d poses from %s", len(stamps), path)
+    return _build(path, stamps, values[:, :3].tolist(), quats_xyzw, lines)
+
+
+class TrajectoryFormat(Enum):
+    """Text trajectory formats :func:`detect_format` recognises."""
+
+    TUM = "tum"
+    KITTI = "kitti"
+    EUROC = "euroc"
+
+
+#: Column names of EuRoC's ground-truth header; any of them in a ``#`` line marks the file as EuRoC.
+_EUROC_HEADER_MARKS = ("p_RS_R_x", "q_RS_w")
+
+
+def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
+    """(``#`` lines before the first data line, fields of that line) from the first 64 KiB of ``path``.
+
+    None for a binary file or one without a data line there; InputError if it cannot be opened.
+    """
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(1 << 16)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+    try:
+        text = head.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    comments = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#"):
+            comments.append(stripped)
+        elif stripped:
+            return comments, [f for f in _SEPARATORS.split(stripped) if f] + ([","] if "," in stripped else [])
+    return None
+
+
+def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
+    """The format of a text trajectory file from its first 64 KiB, or None if it is none of them.
+
+    * a ``#`` line naming EuRoC's columns (``p_RS_R_x``, ``q_RS_w``): EuRoC;
+    * else by the first data line: 12 values KITTI; 8 values TUM, unless the file is named ``*.csv``,
+      the values are comma-separated and the first is an integer (nanoseconds), which is EuRoC; more
+      than 8 comma-separated values with an integer first one (EuRoC's velocity and bias columns): EuRoC.
+
+    Raises
+    ------
+    InputError
+        If the file cannot be opened.
+    """
+    path = Path(path)
+    head = _first_lines(path)
+    if head is None:
+        return None
+    comments, fields = head
+    if any(mark in line for line in comments for mark in _EUROC_HEADER_MARKS):
+        return TrajectoryFormat.EUROC
+    commas = fields[-1:] == [","]
+    values = fields[:-1] if commas else fields
+    integer_stamp_csv = commas and values[0].isascii() and values[0].isdigit()
+    if len(values) == 12:
+        return TrajectoryFormat.KITTI
+    if len(values) == 8 and not (integer_stamp_csv and path.suffix.lower() == ".csv"):
+        return TrajectoryFormat.TUM
+    if len(values) >= 8 and integer_stamp_csv:
+        return TrajectoryFormat.EUROC
+    return None
+
+
+def describe_unknown(path: str | os.PathLike[str]) -> str:
+    """Why :func:`detect_format` found no format in ``path``, for an error message."""
+    head = _first_lines(Path(path))
+    if head is None:
+        return "not a text file with poses"
+    fields = head[1]
+    return f"{len(fields) - (fields[-1:] == [','])} values per line"
+
+
 def _atomic_write(path: Path, lines: Iterable[str]) -> None:
     """Write ``lines`` to ``path`` atomically (temporary file beside it, then rename)."""
     write_text(path, "".join(lines))
@@ -251,3 +418,17 @@ def write_kitti(
     _atomic_write(path, (" ".join(map(repr, row)) + "\n" for row in T[:, :3, :].reshape(-1, 12).tolist()))
     if times_path is not None:
         _atomic_write(Path(times_path), (format_stamp(s) + "\n" for s in trajectory.stamps_ns.tolist()))
+
+
+#: EuRoC's ground-truth header, the columns :func:`write_euroc_csv` writes.
+EUROC_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+
+
+def write_euroc_csv(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
+    """Write ``trajectory`` as EuRoC ground truth (integer ns, position, quaternion w first), atomically."""
+    out = [EUROC_HEADER + "\n"]
+    for stamp, p, q in zip(
+        trajectory.stamps_ns.tolist(), trajectory.positions.tolist(), trajectory.quats_xyzw.tolist(), strict=True
+    ):
+        out.append(",".join([str(stamp), *map(repr, p), *map(repr, [q[3], q[0], q[1], q[2]])]) + "\n")
+    _atomic_write(Path(path), out)

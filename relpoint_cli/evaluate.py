@@ -21,7 +21,13 @@ import relpoint
 from formats.atomic import atomic_path, write_text
 from formats.outputs import check_output_file, register_csv_header
 from formats.ply import read_ply
-from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.reference_trajectories import (
+    check_index_pairing,
+    is_index_stamped,
+    load_ground_truth_landmarks,
+    load_landmark_map,
+    load_trajectory,
+)
 from formats.tables import read_map_history_csv
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
@@ -258,7 +264,7 @@ def _save(fig: Any, path: Path) -> Path:
     "--reference",
     type=click.Path(path_type=Path),
     required=True,
-    help="Reference: relpoint log (/ground_truth/pose), TUM/KITTI file, run directory or any MCAP bag.",
+    help="Reference: relpoint log (/ground_truth/pose), TUM/EuRoC/KITTI file, run directory or any MCAP bag.",
 )
 @click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
 @click.option("--estimate-topic", help="Pose topic of an MCAP estimate (default /relpoint/pose or /ground_truth/pose).")
@@ -330,8 +336,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
              overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
 
-    ESTIMATE is a `relpoint run` output directory, a TUM file, KITTI poses (--times) or an MCAP file
-    (--estimate-topic). When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
+    ESTIMATE is a `relpoint run` output directory, a TUM file, a EuRoC ground-truth CSV, KITTI poses
+    (--times; without it pose i is at i s and pairs by index with KITTI poses of equal count) or an MCAP file
+    (--estimate-topic). Text files are recognised by content: 8 values per line TUM, 12 KITTI, a header
+    naming p_RS_R_x or ns stamps with 8+ comma-separated values EuRoC. When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
     with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
     ESTIMATE is a dense run (map.ply with normals) and --reference-cloud is given, the map's accuracy
     and completeness (dense_*) are added, after the trajectory alignment.
@@ -345,6 +353,9 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             check_output_file(path, inputs=read, overwrite=overwrite)
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    check_index_pairing(
+        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
+    )
     result = evaluate_trajectory(ref, est, settings)
     if (mismatch := frame_mismatch(result)) is not None:
         log.warning("%s", mismatch)

@@ -6,7 +6,7 @@ What can be exported, from which SOURCE, as which format:
 ``--what``   SOURCE                                                       formats
 ============ ============================================================ ====================
 trajectory   relpoint log (``/ground_truth/pose``), run directory         tum, kitti, csv
-             (``trajectory.tum``), TUM/KITTI file, any MCAP bag topic
+             (``trajectory.tum``), TUM/EuRoC/KITTI file, any MCAP bag topic
              (PoseStamped, PoseWithCovarianceStamped, Odometry) or TF
              chain (``--parent/--child``)
 landmarks    relpoint log (``/ground_truth/landmarks``), run directory    ply, csv
@@ -289,8 +289,9 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     """Export a trajectory, landmarks or a map from SOURCE to OUT (TUM, KITTI, CSV or binary PLY).
 
     SOURCE is a relpoint log (ground-truth trajectory and landmarks), a `relpoint run` output directory
-    (estimated trajectory, map.csv landmarks, map.ply), a TUM or KITTI file, a PLY file, or any ROS 2 bag
-    (--topic, or --parent/--child for a TF chain).
+    (estimated trajectory, map.csv landmarks, map.ply), a TUM, EuRoC CSV or KITTI file, a PLY file, or any ROS 2 bag
+    (--topic, or --parent/--child for a TF chain). Trajectory files are recognised by content, as by
+    `relpoint evaluate`.
     """
     if not source.exists():
         raise InputError(f"{source}: no such file or directory")
