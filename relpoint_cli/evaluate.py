@@ -45,6 +45,7 @@ from relpoint.evaluation.evaluate import frame_mismatch
 from relpoint.types import Trajectory
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +170,9 @@ def dense_map_summary(
     if settings.align is not AlignMode.NONE:
         points = result.alignment.apply_positions(points)
     reference_points = np.stack([reference[a] for a in "xyz"], axis=1).astype(np.float64)
-    return dense_metrics(points, reference_points, threshold=threshold).summary()
+    with progress_bar(len(points) + len(reference_points), "dense map", unit="point") as bar:
+        metrics = dense_metrics(points, reference_points, threshold=threshold, workers=-1, on_progress=bar.update)
+    return metrics.summary()
 
 
 ERRORS_CSV_HEADER = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m"

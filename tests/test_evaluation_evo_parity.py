@@ -489,6 +489,22 @@ def test_dense_accuracy_and_completeness() -> None:
         dense_metrics(np.zeros((0, 3)), reference)
 
 
+def test_dense_search_is_bounded_and_exact_within_the_bound() -> None:
+    rng = np.random.default_rng(5)
+    reference = rng.uniform(-1, 1, size=(3000, 3))
+    near = reference[:600] + rng.normal(scale=0.01, size=(600, 3))
+    far = reference[600:1000] + np.array([50.0, 0.0, 0.0])  # a misplaced part: 50 m off
+    searched: list[int] = []
+    bounded = dense_metrics(np.vstack([near, far]), reference, threshold=0.05, on_progress=searched.append)
+    exact = dense_metrics(np.vstack([near, far]), reference, threshold=0.05, max_distance=np.inf)
+    assert sum(searched) == 1000 + 3000
+    assert bounded.max_distance == pytest.approx(1.0)  # 20 thresholds
+    assert bounded.accuracy_within == exact.accuracy_within == pytest.approx(0.6, abs=0.02)
+    assert bounded.completeness_within == exact.completeness_within
+    assert bounded.accuracy_median == pytest.approx(exact.accuracy_median)  # the median lies within the bound
+    assert exact.accuracy_mean > 15 and bounded.accuracy_mean < 1.0  # far points count as 1 m
+
+
 def test_dense_against_a_mesh() -> None:
     # The unit square z = 0 as two triangles; map points 1 cm above its left half.
     vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
