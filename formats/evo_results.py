@@ -27,6 +27,7 @@ import relpoint
 from formats.atomic import atomic_path
 from relpoint.errors import InputError
 from relpoint.evaluation import STATISTICS, AlignMode, EvaluationResult, PoseRelation, error_statistics
+from relpoint.evaluation.association import stamps_to_seconds
 from relpoint.evaluation.comparison import ComparedRun, ErrorSeries
 from relpoint.evaluation.rpe import accumulated_distances
 
@@ -79,7 +80,7 @@ def _tum_text(stamps_ns: np.ndarray, positions: np.ndarray, rotations: np.ndarra
     from scipy.spatial.transform import Rotation
 
     quats_xyzw = Rotation.from_matrix(rotations).as_quat() if len(rotations) else np.zeros((0, 4))
-    table = np.column_stack((stamps_ns * 1e-9, positions, quats_xyzw))
+    table = np.column_stack((stamps_to_seconds(stamps_ns), positions, quats_xyzw))
     buffer = io.StringIO()
     np.savetxt(buffer, table, delimiter=" ")
     return buffer.getvalue()
@@ -104,7 +105,7 @@ def ape_result(
     if settings.align in (AlignMode.SE3, AlignMode.SIM3, AlignMode.SCALE) and settings.n_to_align != -1:
         title += f" (aligned poses: {settings.n_to_align})"
     matched = result.matched
-    stamps_s = result.stamps_ns * 1e-9
+    stamps_s = stamps_to_seconds(result.stamps_ns)  # the floats evo parses from the same stamps
     arrays = {
         "error_array": np.asarray(result.ape, dtype=np.float64),
         "seconds_from_start": stamps_s - stamps_s[0],
