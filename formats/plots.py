@@ -3,11 +3,11 @@
 Headless (matplotlib's Agg backend, imported on first use), written atomically as PNG, PDF or SVG
 with a creator field naming relpoint (how :func:`formats.outputs.written_by_relpoint` knows them).
 
-* Trajectory views: the aligned estimate coloured by its APE translation error, over the reference
-  drawn beneath it as a dashed line in a colour outside the error colour map (the estimate is slightly
-  transparent, so the reference shows through where they coincide); the run's landmarks with the
-  dynamic ones marked, and the true landmarks when known; the title names the run, the estimator and
-  the alignment.
+* Trajectory views: the aligned estimate, a thin line coloured by its APE translation error, over the
+  reference drawn beneath it as a wide translucent band in a colour outside the error colour map (so
+  the reference shows on both sides of the estimate where they coincide, at any scale); the run's
+  landmarks with the dynamic ones marked, and the true landmarks when known; the title names the run,
+  the estimator and the alignment.
 * Errors over time: APE and RPE translation and rotation.
 * Comparison: box or violin plots of each run's APE and RPE translation errors, and the APE
   translation of every run over time, in one figure.
@@ -81,7 +81,7 @@ def _coloured_path(ax: Any, xy: np.ndarray, errors: np.ndarray, norm: Any) -> An
 
     segments = np.stack((xy[:-1], xy[1:]), axis=1)
     values = 0.5 * (errors[:-1] + errors[1:]) if len(errors) > 1 else errors
-    lines = LineCollection(segments, cmap=_ERROR_CMAP, norm=norm, linewidths=2.0, alpha=0.85, zorder=2)
+    lines = LineCollection(segments, cmap=_ERROR_CMAP, norm=norm, linewidths=1.3, zorder=2)
     lines.set_array(values)
     ax.add_collection(lines)
     return lines
@@ -100,7 +100,7 @@ def _draw_landmarks(
         return
     positions = alignment.apply_positions(landmarks.positions) if alignment is not None else landmarks.positions
     static = ~landmarks.dynamic
-    ax.scatter(positions[static, a], positions[static, b], s=6, color="0.15", zorder=3,
+    ax.scatter(positions[static, a], positions[static, b], s=5, color="0.2", zorder=3,
                label=f"landmarks ({int(static.sum())})")  # fmt: skip
     if landmarks.dynamic.any():
         ax.scatter(positions[~static, a], positions[~static, b], s=28, marker="x", color=_DYNAMIC_COLOUR,
@@ -138,10 +138,10 @@ def evaluation_plots(
         ("trajectory_side", (0, 2), "side view (x-z)"),
     ):
         fig, ax = plt.subplots(figsize=(8, 6.5))
-        ax.plot(reference.positions[:, a], reference.positions[:, b], color=_REFERENCE_COLOUR, lw=1.1,
-                ls=(0, (5, 3)), zorder=1.5, label="reference")  # fmt: skip
+        ax.plot(reference.positions[:, a], reference.positions[:, b], color=_REFERENCE_COLOUR, lw=5.0,
+                alpha=0.45, solid_capstyle="round", zorder=1.5, label="reference")  # fmt: skip
         lines = _coloured_path(ax, est[:, [a, b]], errors, norm)
-        ax.plot([], [], color=plt.get_cmap(_ERROR_CMAP)(0.6), lw=2.0, label="estimate")  # legend entry
+        ax.plot([], [], color=plt.get_cmap(_ERROR_CMAP)(0.6), lw=1.3, label="estimate")  # legend entry
         _draw_landmarks(ax, (a, b), landmarks, truth, alignment)
         fig.colorbar(lines, ax=ax, label="APE translation (m)", shrink=0.85)
         ax.set_xlabel("xyz"[a] + " (m)")
@@ -172,6 +172,7 @@ def evaluation_plots(
 
 
 def _distribution(ax: Any, runs: Sequence[ComparedRun], key: str, kind: str) -> None:
+    colour_of = dict(zip((run.label for run in runs), _run_colours(len(runs)), strict=True))
     with_series = [run for run in runs if key in run.series and len(run.series[key])]
     ax.set_title(SERIES[key][0], fontsize=10)
     ax.grid(alpha=0.3, axis="y")
@@ -183,13 +184,16 @@ def _distribution(ax: Any, runs: Sequence[ComparedRun], key: str, kind: str) -> 
     positions = np.arange(1, len(data) + 1)
     if kind == "violin":
         parts = ax.violinplot(data, positions=positions, showmedians=True, widths=0.8)
-        for body, colour in zip(parts["bodies"], _run_colours(len(data)), strict=True):
+        parts["cmedians"].set_color("black")
+        for name in ("cbars", "cmins", "cmaxes"):
+            parts[name].set_color("0.35")
+        for body, colour in zip(parts["bodies"], (colour_of[label] for label in labels), strict=True):
             body.set_facecolor(colour)
             body.set_alpha(0.6)
     else:
         boxes = ax.boxplot(data, positions=positions, widths=0.6, patch_artist=True, showfliers=True,
-                           flierprops={"markersize": 2, "alpha": 0.5})  # fmt: skip
-        for box, colour in zip(boxes["boxes"], _run_colours(len(data)), strict=True):
+                           flierprops={"markersize": 2, "alpha": 0.5}, medianprops={"color": "black"})  # fmt: skip
+        for box, colour in zip(boxes["boxes"], (colour_of[label] for label in labels), strict=True):
             box.set_facecolor(colour)
             box.set_alpha(0.6)
     ax.set_xticks(positions)

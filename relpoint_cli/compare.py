@@ -108,14 +108,15 @@ def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, docume
     )
 
 
-def _run_log(directory: Path) -> Path | None:
-    """The input log a run directory's run.json names, when it still exists."""
+def _run_log(directory: Path) -> str | None:
+    """The input log a run directory's run.json names (as it was given to `relpoint run`), if any."""
     try:
         document = json.loads((directory / "run.json").read_text(encoding="utf-8")[:10_000_000])
     except (OSError, ValueError):
         return None
     recorded = document.get("input", {}) if isinstance(document, dict) else {}
-    return _existing(recorded.get("path") if isinstance(recorded, dict) else None)
+    path = recorded.get("path") if isinstance(recorded, dict) else None
+    return path if isinstance(path, str) and path else None
 
 
 def load_compared(label: str, path: Path, reference: Path | None, settings: EvaluationSettings) -> ComparedRun:
@@ -126,10 +127,12 @@ def load_compared(label: str, path: Path, reference: Path | None, settings: Eval
                              "give run directories, evaluate --json summaries or evo result zips")  # fmt: skip
         if reference is None and (path / "evaluation.json").is_file():
             return _from_saved_evaluation(label, path / "evaluation.json", path, _read_json(path / "evaluation.json"))
-        reference = reference or _run_log(path)
         if reference is None:
-            raise InputError(f"{path}: no evaluation.json, and the log named in its run.json is not here",
-                             "pass --reference LOG")  # fmt: skip
+            recorded = _run_log(path)
+            reference = _existing(recorded)
+            if reference is None:
+                where = f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"
+                raise InputError(f"{path}: no evaluation.json, and {where}", "pass --reference LOG")
         evaluation = evaluate_files(path, reference, settings)
         return compared_from_evaluation(label, evaluation.result, evaluation.summary,
                                         estimator=run_estimator(path), source=f"{path} against {reference}")  # fmt: skip
