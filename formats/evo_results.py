@@ -29,7 +29,7 @@ from relpoint.errors import InputError
 from relpoint.evaluation import STATISTICS, AlignMode, EvaluationResult, PoseRelation, error_statistics
 from relpoint.evaluation.association import stamps_to_seconds
 from relpoint.evaluation.comparison import ComparedRun, ErrorSeries
-from relpoint.evaluation.rpe import accumulated_distances
+from relpoint.evaluation.rpe import DeltaUnit, accumulated_distances
 
 #: The zip comment of a result file relpoint wrote.
 ZIP_COMMENT_PREFIX = b"relpoint "
@@ -42,7 +42,12 @@ EVO_RELATIONS: dict[PoseRelation, tuple[str, str]] = {
     PoseRelation.ANGLE_DEG: ("rotation angle in degrees", "deg"),
     PoseRelation.ANGLE_RAD: ("rotation angle in radians", "rad"),
     PoseRelation.POINT_DISTANCE: ("point distance", "m"),
+    PoseRelation.POINT_DISTANCE_ERROR_RATIO: ("point distance error ratio", "%"),  # RPE only
 }
+
+#: relpoint's RPE delta units as evo names them (``evo.core.metrics.Unit`` values).
+_EVO_DELTA_UNITS = {DeltaUnit.FRAMES: "frames", DeltaUnit.METERS: "m", DeltaUnit.DEGREES: "deg",
+                    DeltaUnit.RADIANS: "rad"}  # fmt: skip
 
 #: evo's title line of each alignment (``evo.main_ape.ape``).
 _ALIGN_TITLES = {
@@ -101,9 +106,7 @@ def ape_result(
     """
     settings = result.settings
     relation, unit = EVO_RELATIONS[settings.pose_relation]
-    title = f"APE w.r.t. {relation} ({unit})\n{_ALIGN_TITLES[settings.align]}"
-    if settings.align in (AlignMode.SE3, AlignMode.SIM3, AlignMode.SCALE) and settings.n_to_align != -1:
-        title += f" (aligned poses: {settings.n_to_align})"
+    title = f"APE w.r.t. {relation} ({unit})\n{_align_title(result)}"
     matched = result.matched
     stamps_s = stamps_to_seconds(result.stamps_ns)  # the floats evo parses from the same stamps
     arrays = {
@@ -115,14 +118,7 @@ def ape_result(
     }
     if settings.align is not AlignMode.NONE:
         arrays["alignment_transformation_sim3"] = result.alignment.as_matrix()
-    relpoint_info = {
-        "version": relpoint.__version__,
-        "metric": "ape",
-        "pose_relation": settings.pose_relation.value,
-        "settings": settings.to_dict(),
-        "summary": {k: (None if not math.isfinite(v) else v) for k, v in (summary or result.summary).items()},
-        **(extra or {}),
-    }
+    relpoint_info = _relpoint_info(result, "ape", summary, extra)
     info = {"title": title, "ref_name": reference_name, "est_name": estimate_name, "label": f"APE ({unit})",
             "relpoint": relpoint_info}  # fmt: skip
     trajectories = {
@@ -132,6 +128,74 @@ def ape_result(
         estimate_name: _tum_text(matched.estimate_stamps_ns, matched.estimate_positions, matched.estimate_rotations),
     }
     return EvoResult(info=info, stats=error_statistics(result.ape), arrays=arrays, trajectories=trajectories)
+
+
+def _align_title(result: EvaluationResult) -> str:
+    settings = result.settings
+    title = _ALIGN_TITLES[settings.align]
+    if settings.align in (AlignMode.SE3, AlignMode.SIM3, AlignMode.SCALE) and settings.n_to_align != -1:
+        title += f" (aligned poses: {settings.n_to_align})"
+    return title
+
+
+def rpe_result(
+    result: EvaluationResult,
+    *,
+    reference_name: str = "reference",
+    estimate_name: str = "estimate",
+    summary: Mapping[str, float] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> EvoResult:
+    """The RPE of ``result`` in its settings' pose relation, as ``evo_rpe ... --save_results`` saves it.
+
+    As in evo, the arrays and trajectories hold the pairs' second poses (with the first matched pose
+    prepended to the trajectories and the travelled distances measured along them). Raises
+    ``ValueError`` when the result has no RPE.
+    """
+    rpe = result.rpe
+    if rpe is None:
+        raise ValueError("the evaluation computed no RPE")
+    settings = result.settings
+    relation, unit = EVO_RELATIONS[settings.pose_relation]
+    delta = int(settings.delta) if settings.delta_unit is DeltaUnit.FRAMES else settings.delta
+    title = (f"RPE w.r.t. {relation} ({unit})\nfor delta = {delta} ({_EVO_DELTA_UNITS[settings.delta_unit]})"
+             f" using {'all' if settings.all_pairs else 'consecutive'} pairs\n{_align_title(result)}")  # fmt: skip
+    matched = result.matched
+    ids = np.concatenate(([0], rpe.second))
+    stamps_s = stamps_to_seconds(result.stamps_ns[ids])
+    arrays = {
+        "error_array": np.asarray(rpe.errors, dtype=np.float64),
+        "seconds_from_start": (stamps_s - stamps_s[0])[1:],
+        "timestamps": stamps_s[1:],
+        "distances_from_start": accumulated_distances(matched.reference_positions[ids])[1:],
+        "distances": accumulated_distances(matched.estimate_positions[ids])[1:],
+    }
+    if settings.align is not AlignMode.NONE:
+        arrays["alignment_transformation_sim3"] = result.alignment.as_matrix()
+    info = {"title": title, "ref_name": reference_name, "est_name": estimate_name, "label": f"RPE ({unit})",
+            "relpoint": _relpoint_info(result, "rpe", summary, extra)}  # fmt: skip
+    trajectories = {
+        reference_name: _tum_text(matched.reference_stamps_ns[ids], matched.reference_positions[ids],
+                                  matched.reference_rotations[ids]),
+        estimate_name: _tum_text(matched.estimate_stamps_ns[ids], matched.estimate_positions[ids],
+                                 matched.estimate_rotations[ids]),
+    }  # fmt: skip
+    return EvoResult(info=info, stats=error_statistics(rpe.errors), arrays=arrays, trajectories=trajectories)
+
+
+def _relpoint_info(
+    result: EvaluationResult, metric: str, summary: Mapping[str, float] | None, extra: Mapping[str, Any] | None
+) -> dict[str, Any]:
+    """What relpoint adds to ``info.json``: its version, the metric, settings, the whole summary, ``extra``."""
+    settings = result.settings
+    return {
+        "version": relpoint.__version__,
+        "metric": metric,
+        "pose_relation": settings.pose_relation.value,
+        "settings": settings.to_dict(),
+        "summary": {k: (None if not math.isfinite(v) else v) for k, v in (summary or result.summary).items()},
+        **(extra or {}),
+    }
 
 
 def _member_name(name: str) -> str:

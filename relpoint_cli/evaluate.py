@@ -2,8 +2,8 @@
 
 A thin command over :func:`relpoint.evaluation.evaluate_trajectory` and
 :func:`relpoint.evaluation.landmark_metrics`; inputs are read by :mod:`formats.reference_trajectories`.
-Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--save-results`` evo result
-zip, ``--plot`` figures (:mod:`formats.plots`; PNG, PDF or SVG), and ``--fail-above`` gates (exit code 5).
+Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--save-results`` and
+``--save-rpe-results`` evo result zips, ``--plot`` figures (:mod:`formats.plots`; PNG, PDF or SVG), and ``--fail-above`` gates (exit code 5).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 import relpoint
 from formats.atomic import write_text
-from formats.evo_results import ape_result, write_evo_result
+from formats.evo_results import ape_result, rpe_result, write_evo_result
 from formats.outputs import check_output_file, register_csv_header
 from formats.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from formats.ply import read_ply
@@ -318,6 +318,10 @@ def run_estimator(path: Path) -> str:
     help="Write the APE (in --pose-relation) as evo's result zip (evo_ape --save_results), for evo_res and compare.",
 )  # fmt: skip
 @click.option(
+    "--save-rpe-results", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE.zip",
+    help="Write the RPE (in --pose-relation) as evo's result zip (evo_rpe --save_results).",
+)  # fmt: skip
+@click.option(
     "--reference-cloud",
     type=click.Path(dir_okay=False, path_type=Path),
     help="Dense maps: reference point cloud (PLY, reference frame), e.g. the LOG.scene.ply of a simulated room.",
@@ -335,7 +339,7 @@ def run_estimator(path: Path) -> str:
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
              estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
-             plot_format: str, save_results: Path | None,
+             plot_format: str, save_results: Path | None, save_rpe_results: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
              overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
@@ -350,9 +354,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     settings = EvaluationSettings(**options)
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
     plot_files = [plot_dir / f"{stem}.{plot_format}" for stem in EVALUATION_PLOTS] if plot_dir is not None else []
-    if save_results is not None and save_results.suffix.lower() != ".zip":
-        raise UsageError(f"--save-results {save_results}: evo's result files are zip files", "name it FILE.zip")
-    for path in [json_path, csv_path, save_results, *plot_files]:
+    for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):
+        if path is not None and path.suffix.lower() != ".zip":
+            raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
+    for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
         if path is not None:
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
@@ -377,12 +382,13 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         write_json(json_path, summary, settings, inputs)
     if csv_path is not None:
         write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
-    if save_results is not None:
-        names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
-        if names["reference_name"] == names["estimate_name"]:
-            names["estimate_name"] += " (estimate)"
-        write_evo_result(save_results, ape_result(result, summary=summary, extra={"estimator": estimator,
-                                                                                   "inputs": inputs}, **names))  # fmt: skip
+    names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
+    if names["reference_name"] == names["estimate_name"]:
+        names["estimate_name"] += " (estimate)"
+    for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
+        if path is not None:
+            write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
+                                          **names))  # fmt: skip
     if plot_dir is not None:
         evaluation_plots(
             plot_dir, evaluation.reference, result, run=str(estimate), estimator=estimator,

@@ -100,6 +100,34 @@ def test_saved_results_in_another_relation_and_replaced_without_overwrite(tmp_pa
     assert_one_error_line(err, "name it FILE.zip")
 
 
+@pytest.mark.parametrize(
+    ("args", "evo_kwargs"),
+    [
+        ([], {"pose_relation": evo_metrics.PoseRelation.translation_part, "delta": 1,
+              "delta_unit": evo_metrics.Unit.frames}),
+        (["--pose-relation", "angle_deg", "--delta", "0.2", "--delta-unit", "m", "--all-pairs", "--align", "se3"],
+         {"pose_relation": evo_metrics.PoseRelation.rotation_angle_deg, "delta": 0.2,
+          "delta_unit": evo_metrics.Unit.meters, "all_pairs": True, "align": True}),
+    ],
+)  # fmt: skip
+def test_saved_rpe_results_equal_evo_rpe(tmp_path: Path, args: list[str], evo_kwargs: dict[str, object]) -> None:
+    ref, est = shared_data(FR1, GT), shared_data(FR1, RGBD)
+    zip_path = tmp_path / "rpe.zip"
+    code, _, err = invoke("evaluate", est, "-r", ref, *args, "--save-rpe-results", zip_path)
+    assert code == 0, err
+    ours = evo_file_interface.load_res_file(str(zip_path), load_trajectories=True)
+    theirs = evo_rpe(*evo_synced(ref, est), **evo_kwargs)
+    assert ours.info["title"] == theirs.info["title"]
+    for name, value in theirs.stats.items():
+        assert ours.stats[name] == pytest.approx(value, rel=1e-9), name
+    assert set(ours.np_arrays) == set(theirs.np_arrays)
+    for name, array in theirs.np_arrays.items():
+        np.testing.assert_allclose(ours.np_arrays[name], array, rtol=1e-9, atol=1e-9, err_msg=name)
+    for mine, traj in zip(ours.trajectories.values(), theirs.trajectories.values(), strict=True):  # ref, est
+        np.testing.assert_allclose(mine.positions_xyz, traj.positions_xyz, atol=1e-9)
+        np.testing.assert_array_equal(mine.timestamps, traj.timestamps)
+
+
 # --- compare reads zips evo wrote itself ------------------------------------------------------------------
 
 
@@ -180,6 +208,21 @@ def test_run_directories_against_their_logs(tmp_path: Path, small_log: Path) -> 
     document = json.loads(out)
     assert document["columns"] == ["ate_rmse", "lm_count"]
     assert all(run["summary"]["ate_rmse"] < 1e-6 and run["align"] == "se3" for run in document["runs"])
+
+
+def test_a_real_run_is_evaluated_against_the_log_its_run_json_names(tmp_path: Path, small_log: Path) -> None:
+    run = tmp_path / "ekf"
+    code, _, err = invoke("run", small_log, "--estimator", "ekf", "-o", run)
+    assert code == 0, err
+    code, _, err = invoke("evaluate", run, "-r", small_log, "--json", tmp_path / "evaluate.json")
+    assert code == 0, err
+    expected = json.loads((tmp_path / "evaluate.json").read_text())["summary"]
+    code, out, err = invoke("compare", run, "--format", "json")
+    assert code == 0, err
+    (row,) = json.loads(out)["runs"]
+    assert row["estimator"] == "ekf" and str(small_log) in row["source"]
+    for key in ("ate_rmse", "rpe_trans_rmse", "lm_err_rmse", "lm_count"):
+        assert row["summary"][key] == expected[key], key
 
 
 def test_tables_figures_and_their_replacement(tmp_path: Path, small_log: Path) -> None:
