@@ -131,7 +131,8 @@ def evaluation_plots(
     alignment = result.alignment if result.settings.align is not AlignMode.NONE else None
     est = result.matched.estimate_positions
     errors = result.ape_translation
-    norm = Normalize(vmin=float(errors.min()), vmax=float(max(errors.max(), errors.min() + 1e-9)))
+    # From zero, so that a colour means the same error in every run's figure; a constant error gets its own colour.
+    norm = Normalize(vmin=0.0, vmax=float(max(errors.max(), 1e-6)))
     written = []
     for stem, (a, b), view in (
         ("trajectory_top", (0, 1), "top view (x-y)"),
