@@ -169,10 +169,11 @@ def _table_format(table_format: str | None, output: Path | None) -> str:
 
 
 def _plot_format(plot_format: str | None, plot: Path) -> str:
-    if plot_format is not None:
-        return plot_format
     suffix = plot.suffix.lower().lstrip(".")
-    return suffix if suffix in PLOT_FORMATS else "png"
+    if plot_format is not None and suffix in PLOT_FORMATS and suffix != plot_format:
+        raise UsageError(f"--plot {plot} is named .{suffix} but --plot-format is {plot_format}",
+                         f"name it .{plot_format} or drop --plot-format")  # fmt: skip
+    return plot_format or (suffix if suffix in PLOT_FORMATS else "png")
 
 
 @click.command(epilog=EXAMPLES)
@@ -220,6 +221,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, align: str, label
             check_output_file(path, inputs=read, overwrite=overwrite)
     if output is not None and plot is not None and output.resolve() == plot.resolve():
         raise UsageError(f"-o and --plot both name {output}", "give them different files")
+    figure_format = _plot_format(plot_format, plot) if plot is not None else None
     settings = EvaluationSettings(align=align)
     names = list(labels) or [str(path).rstrip("/") or str(path) for path in results]
     runs = [
@@ -237,6 +239,6 @@ def compare(results: tuple[Path, ...], reference: Path | None, align: str, label
         log.warning("the runs were evaluated with different alignments (%s)", ", ".join(sorted(aligns)))
     if output is not None:
         write_text(output, render_table(runs, columns, file_format))
-    if plot is not None:
-        comparison_plot(plot, runs, kind=plot_kind, plot_format=_plot_format(plot_format, plot))
+    if plot is not None and figure_format is not None:
+        comparison_plot(plot, runs, kind=plot_kind, plot_format=figure_format)
     click.echo(render_table(runs, columns, table_format or "text"), nl=False)

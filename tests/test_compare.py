@@ -288,6 +288,9 @@ def test_errors_are_one_line(tmp_path: Path, small_log: Path) -> None:
     code, _, err = invoke("compare", run, run, "--label", "one")
     assert code == 2
     assert_one_error_line(err, "1 --label for 2 results")
+    code, _, err = invoke("compare", run, "-r", small_log, "--plot", tmp_path / "c.png", "--plot-format", "svg")
+    assert code == 2
+    assert_one_error_line(err, "named .png but --plot-format is svg")
     (tmp_path / "notes.md").write_text("mine\n")
     code, _, err = invoke("compare", run, "-r", small_log, "-o", tmp_path / "notes.md")
     assert code == 2

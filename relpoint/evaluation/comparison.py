@@ -10,7 +10,6 @@ summary without series, or a single series.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -154,7 +153,3 @@ def unique_labels(names: Sequence[str]) -> list[str]:
         labels.append(name if seen[name] == 1 else f"{name}#{seen[name]}")
     return labels
 
-
-def is_missing(value: float | None) -> bool:
-    """Whether a table value is absent (None) or undefined (NaN)."""
-    return value is None or (isinstance(value, float) and math.isnan(value))
