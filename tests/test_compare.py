@@ -16,8 +16,8 @@ from click.testing import CliRunner
 from formats.evo_results import read_evo_result
 from formats.log import LogReader
 from formats.plots import plot_title
-from formats.tables import write_map_csv
-from formats.trajectory_files import write_tum
+from formats.tables import read_map_csv, write_map_csv, write_map_history_csv
+from formats.trajectory_files import read_tum, write_tum
 from relpoint.types import LandmarkMap, Trajectory
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
@@ -316,6 +316,22 @@ def test_evaluate_plot_formats(tmp_path: Path, small_log: Path) -> None:
         names = sorted(p.name for p in plots.iterdir())
         assert names == [f"{stem}.{plot_format}" for stem in ("errors", "trajectory_side", "trajectory_top")]
         assert all((plots / name).read_bytes()[:5] == magic for name in names)
+
+
+def test_landmark_error_over_time_is_aligned_with_the_trajectory(tmp_path: Path, small_log: Path) -> None:
+    """With --align, the map_history column is the aligned landmark error (it was NaN before)."""
+    run = fake_run(tmp_path / "run", small_log, 0.3)
+    last_stamp = int(read_tum(run / "trajectory.tum").stamps_ns[-1])
+    write_map_history_csv(run / "map_history.csv", ((119, last_stamp, read_map_csv(run / "map.csv")),))
+    code, _, err = invoke("evaluate", run, "-r", small_log, "--align", "se3", "--csv", tmp_path / "e.csv",
+                          "--json", tmp_path / "e.json")  # fmt: skip
+    assert code == 0, err
+    with (tmp_path / "e.csv").open() as stream:
+        (row,) = [row for row in csv.DictReader(stream) if row["landmark_rmse_m"]]
+    summary = json.loads((tmp_path / "e.json").read_text())["summary"]
+    assert float(row["landmark_rmse_m"]) == pytest.approx(summary["lm_err_aligned_rmse"], rel=1e-9)
+    # The map is unshifted while the path is 0.3 m off: aligning the path moves the map 0.3 m away.
+    assert summary["lm_err_rmse"] < 0.15 < float(row["landmark_rmse_m"])
 
 
 def test_plot_title_names_run_estimator_and_alignment() -> None:
