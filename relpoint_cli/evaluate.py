@@ -391,7 +391,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
                                           **names))  # fmt: skip
     if plot_dir is not None:
         evaluation_plots(
-            plot_dir, evaluation.reference, result, run=str(estimate), estimator=estimator,
+            plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+            estimator=estimator,
             landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
         )  # fmt: skip
     click.echo(format_table(summary, settings.pose_relation))

@@ -76,8 +76,13 @@ def test_saved_results_load_in_evo_and_equal_evo_ape(tmp_path: Path) -> None:
         assert traj.num_poses == traj_est.num_poses
     aligned = ours.trajectories[RGBD]
     np.testing.assert_allclose(aligned.positions_xyz, traj_est.positions_xyz, atol=1e-9)
-    # relpoint reads its own zip back with every figure of the summary.
+    # relpoint reads its own zip back with every figure of the summary, RPE included.
     assert read_evo_result(zip_path).info["relpoint"]["summary"]["ate_rmse"] == pytest.approx(ours.stats["rmse"])
+    code, out, err = invoke("compare", zip_path, "--format", "json")
+    assert code == 0, err
+    (row,) = json.loads(out)["runs"]
+    assert row["align"] == "se3" and row["summary"]["ate_rmse"] == pytest.approx(0.013470, abs=1e-6)
+    assert row["summary"]["rpe_trans_rmse"] > 0 and row["summary"]["matched_poses"] == traj_est.num_poses
 
 
 def test_saved_results_in_another_relation_and_replaced_without_overwrite(tmp_path: Path) -> None:
@@ -207,6 +212,9 @@ def test_run_directories_against_their_logs(tmp_path: Path, small_log: Path) -> 
     assert code == 0, err
     document = json.loads(out)
     assert document["columns"] == ["ate_rmse", "lm_count"]
+    code, out, err = invoke("compare", near, near, "--format", "json")  # one run twice: told apart
+    assert code == 0, err
+    assert [run["run"] for run in json.loads(out)["runs"]] == [str(near), f"{near}#2"]
     assert all(run["summary"]["ate_rmse"] < 1e-6 and run["align"] == "se3" for run in document["runs"])
 
 
