@@ -28,7 +28,7 @@ from formats.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_table
 from formats.evo_results import compared_from_evo, read_evo_result
 from formats.outputs import check_output_file
 from formats.plots import PLOT_FORMATS, comparison_plot
-from relpoint.errors import InputError, UsageError
+from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation, table_keys, unique_labels
 from relpoint_cli.errors import handle_errors
@@ -85,27 +85,33 @@ def _existing(text: Any) -> Path | None:
 
 
 def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, document: dict[str, Any]) -> ComparedRun:
-    """A run from an evaluation summary: re-evaluated with its settings when its inputs exist, else its figures."""
+    """A run from an evaluation summary: its figures, and its per-pose errors re-computed with its settings
+    when its inputs still exist (fresh figures overlay the saved ones; saved-only ones, e.g. ``dense_*``,
+    stay). When they are gone or cannot be re-read, the saved figures alone, with a warning."""
     inputs = document.get("inputs") if isinstance(document.get("inputs"), dict) else {}
     settings = _saved_settings(document, path)
+    summary = _summary_of(document, path)
     estimate = estimate or _existing(inputs.get("estimate"))
     reference = _existing(inputs.get("reference"))
-    if estimate is not None and reference is not None:
-        evaluation = evaluate_files(
-            estimate, reference, settings, reference_topic=inputs.get("reference_topic"),
-            estimate_topic=inputs.get("estimate_topic"), parent=inputs.get("parent"), child=inputs.get("child"),
-        )  # fmt: skip
-        return compared_from_evaluation(label, evaluation.result, evaluation.summary,
-                                        estimator=run_estimator(estimate), source=f"{path} (re-evaluated)")  # fmt: skip
-    log.warning("%s: its reference %s is not readable here; only its summary is compared (no plot data)",
-                path, inputs.get("reference"))  # fmt: skip
-    return ComparedRun(
-        label=label,
-        estimator=run_estimator(estimate) if estimate is not None else "",
-        align=settings.align.value,
-        summary=_summary_of(document, path),
-        source=f"{path} (summary)",
-    )
+    estimator = run_estimator(estimate) if estimate is not None else ""
+    if not summary:
+        log.warning("%s holds no evaluation figures (was there a ground truth?)", path)
+    elif estimate is None or reference is None:
+        log.warning("%s: its estimate or reference (%s) is not readable here; only its summary is compared",
+                    path, inputs.get("reference"))  # fmt: skip
+    else:
+        try:
+            evaluation = evaluate_files(
+                estimate, reference, settings, reference_topic=inputs.get("reference_topic"),
+                estimate_topic=inputs.get("estimate_topic"), parent=inputs.get("parent"), child=inputs.get("child"),
+            )  # fmt: skip
+        except RelpointError as error:
+            log.warning("%s: cannot re-evaluate it (%s); only its summary is compared", path, error)
+        else:
+            return compared_from_evaluation(label, evaluation.result, summary | evaluation.summary,
+                                            estimator=estimator, source=f"{path} (re-evaluated)")  # fmt: skip
+    return ComparedRun(label=label, estimator=estimator, align=settings.align.value, summary=summary,
+                       source=f"{path} (summary)")  # fmt: skip
 
 
 def _run_log(directory: Path) -> str | None:

@@ -274,8 +274,18 @@ def test_saved_evaluations_keep_their_settings(tmp_path: Path, small_log: Path) 
     moved.unlink()
     code, out, err = invoke("compare", summary_json, "--format", "json")
     assert code == 0, err
-    assert "only its summary is compared" in err
+    assert "only its summary is compared" in err and "moved.mcap" in err
     assert json.loads(out)["runs"][0]["summary"]["ate_rmse"] == pytest.approx(0.25, abs=1e-6)
+    # A reference that no longer reads as one: a warning, and the saved figures.
+    document = json.loads(summary_json.read_text())
+    junk = tmp_path / "junk.txt"
+    junk.write_text("not a trajectory\n")
+    document["inputs"]["reference"] = str(junk)
+    changed = tmp_path / "changed.json"
+    changed.write_text(json.dumps(document))
+    code, out, err = invoke("compare", changed, "--format", "json")
+    assert code == 0, err
+    assert "cannot re-evaluate it" in err and json.loads(out)["runs"][0]["source"].endswith("(summary)")
     code, _, err = invoke("compare", summary_json, "--plot", tmp_path / "p.png")
     assert code == 3
     assert_one_error_line(err.strip().splitlines()[-1], "no RESULT holds per-pose errors")  # after the warning
