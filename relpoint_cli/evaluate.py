@@ -45,6 +45,7 @@ EXAMPLES = """\b
 Examples:
   relpoint evaluate est.txt --reference groundtruth.txt --align se3
   relpoint evaluate out/fig8 --reference sample_logs/figure8.mcap --json eval.json --plot plots/
+  relpoint evaluate out/fig8 -r sample_logs/figure8.mcap --save-results ape.zip --plot plots/ --plot-format pdf
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --reference-topic /amcl_pose
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --parent map --child base_footprint
   relpoint evaluate out/run --reference run.mcap --fail-above ate_rmse=0.5 --fail-above lm_err_rmse=1
