@@ -34,6 +34,9 @@ MARKER = ".relpoint-output"
 #: Header lines of the CSV tables relpoint writes; a CSV file starting with one is relpoint's.
 _CSV_HEADERS: set[str] = set()
 
+#: Starts of CSV header lines whose columns vary (``relpoint compare`` tables); see :func:`register_csv_header`.
+_CSV_HEADER_PREFIXES: set[str] = set()
+
 _SNIFF_BYTES = 8192
 
 
@@ -44,6 +47,11 @@ class OutputError(UsageError):
 def register_csv_header(header: Iterable[str] | str) -> None:
     """Declare a CSV header line that relpoint writes, so its files are recognised as relpoint's."""
     _CSV_HEADERS.add(header if isinstance(header, str) else ",".join(header))
+
+
+def register_csv_header_prefix(prefix: str) -> None:
+    """Declare the start of CSV header lines that relpoint writes with varying further columns."""
+    _CSV_HEADER_PREFIXES.add(prefix)
 
 
 def resolve_output(path: str | os.PathLike[str]) -> Path:
@@ -172,7 +180,7 @@ def written_by_relpoint(path: Path) -> bool:
     suffix = path.suffix.lower()
     if suffix == ".csv":
         first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
-        return first in _CSV_HEADERS
+        return first in _CSV_HEADERS or any(first.startswith(prefix) for prefix in _CSV_HEADER_PREFIXES)
     if suffix == ".json":
         try:
             if path.stat().st_size > 50_000_000:
@@ -197,7 +205,26 @@ def written_by_relpoint(path: Path) -> bool:
         return any(b"relpoint" in line for line in comments)
     if suffix == ".png":
         return head.startswith(b"\x89PNG") and b"Software\x00relpoint" in head
+    if suffix == ".svg":  # matplotlib's metadata: <dc:title>relpoint VERSION</dc:title> under dc:creator
+        return b"<svg" in head and b"<dc:title>relpoint " in head
+    if suffix == ".pdf":  # the document information dictionary, near the end
+        return head.startswith(b"%PDF") and b"/Creator (relpoint " in _tail(path)
+    if suffix == ".md":
+        return head.startswith(b"<!-- relpoint ")
+    if suffix == ".zip":  # an evo result zip: the archive comment
+        from formats.evo_results import is_relpoint_result_zip  # a late import: evo_results imports atomic
+
+        return is_relpoint_result_zip(path)
     return False
+
+
+def _tail(path: Path) -> bytes:
+    try:
+        with path.open("rb") as stream:
+            stream.seek(max(0, path.stat().st_size - _SNIFF_BYTES))
+            return stream.read(_SNIFF_BYTES)
+    except OSError:
+        return b""
 
 
 def check_output_file(

@@ -2,8 +2,8 @@
 
 A thin command over :func:`relpoint.evaluation.evaluate_trajectory` and
 :func:`relpoint.evaluation.landmark_metrics`; inputs are read by :mod:`formats.reference_trajectories`.
-Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--plot`` PNGs, and
-``--fail-above`` gates (exit code 5).
+Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--save-results`` and
+``--save-rpe-results`` evo result zips, ``--plot`` figures (:mod:`formats.plots`; PNG, PDF or SVG), and ``--fail-above`` gates (exit code 5).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +19,10 @@ import click
 import numpy as np
 
 import relpoint
-from formats.atomic import atomic_path, write_text
+from formats.atomic import write_text
+from formats.evo_results import ape_result, rpe_result, write_evo_result
 from formats.outputs import check_output_file, register_csv_header
+from formats.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from formats.ply import read_ply
 from formats.reference_trajectories import (
     check_index_pairing,
@@ -42,7 +45,7 @@ from relpoint.evaluation import (
 )
 from relpoint.evaluation.dense import dense_metrics
 from relpoint.evaluation.evaluate import frame_mismatch
-from relpoint.types import Trajectory
+from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
@@ -53,6 +56,7 @@ EXAMPLES = """\b
 Examples:
   relpoint evaluate est.txt --reference groundtruth.txt --align se3
   relpoint evaluate out/fig8 --reference sample_logs/figure8.mcap --json eval.json --plot plots/
+  relpoint evaluate out/fig8 -r sample_logs/figure8.mcap --save-results ape.zip --plot plots/ --plot-format pdf
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --reference-topic /amcl_pose
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --parent map --child base_footprint
   relpoint evaluate out/run --reference run.mcap --fail-above ate_rmse=0.5 --fail-above lm_err_rmse=1
@@ -178,8 +182,6 @@ def dense_map_summary(
 ERRORS_CSV_HEADER = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m"
 register_csv_header(ERRORS_CSV_HEADER)
 
-PLOT_FILES = ("trajectory_top.png", "trajectory_side.png", "errors.png")
-
 
 def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
     """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
@@ -205,59 +207,77 @@ def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[i
     write_text(path, header + "\n".join(body) + ("\n" if body else ""))
 
 
-def write_plots(directory: Path, reference: Trajectory, result: EvaluationResult) -> list[Path]:
-    """``trajectory_top.png`` (x-y), ``trajectory_side.png`` (x-z) and ``errors.png``, headless, atomically."""
-    import matplotlib
+@dataclass(frozen=True)
+class FileEvaluation:
+    """What ``relpoint evaluate`` computes from its input files (before writing anything).
 
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
+    Attributes
+    ----------
+    reference: the reference trajectory as read (its own frame).
+    result: the trajectory evaluation.
+    summary: the result's summary plus the landmark figures (``lm_*``, ``dyn_*``) when both sides have them.
+    landmarks, truth: the run's map (estimate frame) and the log's true landmarks, when present.
+    landmark_error_over_time: stamp (ns) -> landmark RMSE (m) of each ``map_history.csv`` snapshot.
+    """
 
-    matched = result.matched
-    est = matched.estimate_positions
-    t0 = int(result.stamps_ns[0])
-    written = []
-    for name, (a, b), title in (
-        ("trajectory_top.png", (0, 1), "top view (x-y)"),
-        ("trajectory_side.png", (0, 2), "side view (x-z)"),
-    ):
-        fig, ax = plt.subplots(figsize=(7, 6))
-        ax.plot(reference.positions[:, a], reference.positions[:, b], color="0.5", lw=1.2, label="reference")
-        ax.plot(est[:, a], est[:, b], color="tab:blue", lw=1.0, label=f"estimate ({result.settings.align.value})")
-        ax.set_xlabel("xyz"[a] + " (m)")
-        ax.set_ylabel("xyz"[b] + " (m)")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(title)
-        ax.legend(loc="best")
-        ax.grid(alpha=0.3)
-        written.append(_save(fig, directory / name))
-    seconds = (result.stamps_ns - t0) * 1e-9
-    fig, (ax_t, ax_r) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    ax_t.plot(seconds, result.ape_translation, color="tab:red", lw=1.0, label="APE")
-    ax_r.plot(seconds, result.ape_rotation_deg, color="tab:red", lw=1.0, label="APE")
-    if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
-        second = result.rpe_translation.second
-        ax_t.plot(seconds[second], result.rpe_translation.errors, color="tab:green", lw=0.8, label="RPE")
-        ax_r.plot(seconds[second], result.rpe_rotation_deg.errors, color="tab:green", lw=0.8, label="RPE")
-    ax_t.set_ylabel("translation error (m)")
-    ax_r.set_ylabel("rotation error (deg)")
-    ax_r.set_xlabel("time since first matched pose (s)")
-    for ax in (ax_t, ax_r):
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper left")
-    written.append(_save(fig, directory / "errors.png"))
-    return written
+    reference: Trajectory
+    result: EvaluationResult
+    summary: dict[str, float]
+    landmarks: LandmarkMap | None = None
+    truth: GroundTruthLandmarks | None = None
+    landmark_error_over_time: dict[int, float] = field(default_factory=dict)
 
 
-def _save(fig: Any, path: Path) -> Path:
-    from matplotlib import pyplot as plt
+def evaluate_files(
+    estimate: Path,
+    reference: Path,
+    settings: EvaluationSettings,
+    *,
+    reference_topic: str | None = None,
+    estimate_topic: str | None = None,
+    parent: str | None = None,
+    child: str | None = None,
+    reference_times: Path | None = None,
+    times: Path | None = None,
+) -> FileEvaluation:
+    """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
+    landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks)."""
+    ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
+    est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    check_index_pairing(
+        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
+    )
+    result = evaluate_trajectory(ref, est, settings)
+    if (mismatch := frame_mismatch(result)) is not None:
+        log.warning("%s", mismatch)
+    summary = dict(result.summary)
+    landmarks = load_landmark_map(estimate)
+    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
+    over_time: dict[int, float] = {}
+    if landmarks is not None and truth is not None:
+        alignment = result.alignment if settings.align is not AlignMode.NONE else None
+        summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
+        history = estimate / "map_history.csv"
+        if history.is_file():  # written by `relpoint run --map-every N`
+            key = "lm_err_aligned_rmse" if alignment is not None else "lm_err_rmse"
+            for _, stamp_ns, snapshot in read_map_history_csv(history):
+                if len(snapshot):
+                    over_time[stamp_ns] = landmark_metrics(snapshot, truth, alignment=alignment).summary.get(
+                        key, math.nan
+                    )
+    return FileEvaluation(ref, result, summary, landmarks, truth, over_time)
 
+
+def run_estimator(path: Path) -> str:
+    """The estimator named in a run directory's run.json ("" for other inputs or an unreadable run.json)."""
+    run_json = path / "run.json"
+    if not run_json.is_file():
+        return ""
     try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight",
-                        metadata={"Software": f"relpoint {relpoint.__version__}"})
-    finally:
-        plt.close(fig)
-    return path
+        document = json.loads(run_json.read_text(encoding="utf-8")[:10_000_000])
+    except (OSError, ValueError):
+        return ""
+    return str(document.get("estimator", "")) if isinstance(document, dict) else ""
 
 
 @click.command(epilog=EXAMPLES)
@@ -316,7 +336,21 @@ def _save(fig: Any, path: Path) -> Path:
 @click.option(
     "--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), help="Write per-pose errors as CSV."
 )
-@click.option("--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path), help="Write PNG plots here.")
+@click.option(
+    "--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path),
+    help="Write plots here: trajectory_top, trajectory_side (coloured by error, over the reference) and errors.",
+)  # fmt: skip
+@click.option(
+    "--plot-format", type=click.Choice(PLOT_FORMATS), default="png", show_default=True, help="File format of --plot."
+)
+@click.option(
+    "--save-results", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE.zip",
+    help="Write the APE (in --pose-relation) as evo's result zip (evo_ape --save_results), for evo_res and compare.",
+)  # fmt: skip
+@click.option(
+    "--save-rpe-results", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE.zip",
+    help="Write the RPE (in --pose-relation) as evo's result zip (evo_rpe --save_results).",
+)  # fmt: skip
 @click.option(
     "--reference-cloud",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -335,6 +369,7 @@ def _save(fig: Any, path: Path) -> Path:
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
              estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
+             plot_format: str, save_results: Path | None, save_rpe_results: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
              overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
@@ -350,35 +385,18 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     gates = parse_gates(fail_above)
     settings = EvaluationSettings(**options)
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
-    outputs = [json_path, csv_path, *([plot_dir / name for name in PLOT_FILES] if plot_dir is not None else [])]
-    for path in outputs:
+    plot_files = [plot_dir / f"{stem}.{plot_format}" for stem in EVALUATION_PLOTS] if plot_dir is not None else []
+    for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):
+        if path is not None and path.suffix.lower() != ".zip":
+            raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
+    for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
         if path is not None and str(path) != "-":
             check_output_file(path, inputs=read, overwrite=overwrite)
-    ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
-    est = load_trajectory(estimate, topic=estimate_topic, times=times)
-    check_index_pairing(
-        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
-    )
-    result = evaluate_trajectory(ref, est, settings)
-    if (mismatch := frame_mismatch(result)) is not None:
-        log.warning("%s", mismatch)
-    summary = dict(result.summary)
-
-    landmarks = load_landmark_map(estimate)
-    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
-    landmark_error_over_time: dict[int, float] = {}
-    if landmarks is not None and truth is not None:
-        alignment = result.alignment if settings.align is not AlignMode.NONE else None
-        summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
-        history = estimate / "map_history.csv"
-        if history.is_file():  # written by `relpoint run --map-every N`
-            key = "lm_err_rmse_aligned" if alignment is not None else "lm_err_rmse"
-            for _, stamp_ns, snapshot in read_map_history_csv(history):
-                if len(snapshot):
-                    landmark_error_over_time[stamp_ns] = landmark_metrics(
-                        snapshot, truth, alignment=alignment
-                    ).summary.get(key, math.nan)
-
+    evaluation = evaluate_files(
+        estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
+        parent=parent, child=child, reference_times=reference_times, times=times,
+    )  # fmt: skip
+    result, summary = evaluation.result, evaluation.summary
     if reference_cloud is not None:
         summary |= dense_map_summary(estimate, reference_cloud, result, settings, dense_threshold)
 
@@ -391,12 +409,24 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         "parent": parent,
         "child": child,
     }
+    estimator = run_estimator(estimate)
     if json_path is not None:
         write_json(json_path, summary, settings, inputs)
     if csv_path is not None:
-        write_errors_csv(csv_path, result, landmark_error_over_time)
+        write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
+    names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
+    if names["reference_name"] == names["estimate_name"]:
+        names["estimate_name"] += " (estimate)"
+    for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
+        if path is not None:
+            write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
+                                          **names))  # fmt: skip
     if plot_dir is not None:
-        write_plots(plot_dir, ref, result)
+        evaluation_plots(
+            plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+            estimator=estimator,
+            landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
+        )  # fmt: skip
     click.echo(format_table(summary, settings.pose_relation), err=json_path is not None and str(json_path) == "-")
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

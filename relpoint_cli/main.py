@@ -144,6 +144,7 @@ COMMANDS: dict[str, str] = {
     "run": "relpoint_cli.run:run",
     "config": "relpoint_cli.run:config_command",
     "evaluate": "relpoint_cli.evaluate:evaluate",
+    "compare": "relpoint_cli.compare:compare",
     "export": "relpoint_cli.export:export",
     "fuse": "relpoint_cli.fuse:fuse_command",
     "batch": "relpoint_cli.batch:batch",
