@@ -40,6 +40,11 @@ class RelpointGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(COMMANDS)
 
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The command list from :data:`SUMMARIES`: ``relpoint --help`` imports no command module."""
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, SUMMARIES.get(name, "")) for name in COMMANDS])
+
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name not in COMMANDS:
             return None
@@ -149,6 +154,20 @@ COMMANDS: dict[str, str] = {
     "fuse": "relpoint_cli.fuse:fuse_command",
     "batch": "relpoint_cli.batch:batch",
     "import": "relpoint_cli.import_data:import_command",
+}
+
+#: One line a command for ``relpoint --help`` (kept here so that help starts without importing them).
+SUMMARIES: dict[str, str] = {
+    "simulate": "Write a simulated run (observations, ground truth, odometry, fixes, depth) to a log.",
+    "info": "Show a log's topics, types, counts, duration and rates, and which estimators it suits.",
+    "run": "Run an estimator over a log; write trajectory, map, timing and run.json.",
+    "config": "Print an estimator's settings with their defaults and ranges, as TOML for --config.",
+    "evaluate": "Evaluate a trajectory against a reference (APE, RPE, KITTI segments, landmarks).",
+    "compare": "Compare several runs or evaluations: one table and one figure.",
+    "export": "Export a trajectory, landmarks or a map (TUM, KITTI, CSV, PLY).",
+    "fuse": "Fuse a run with the log's absolute fixes into a globally consistent path and map.",
+    "batch": "Run a plan of logs x estimators x settings, evaluate each job, tabulate.",
+    "import": "Convert a dataset (TUM RGB-D, 7-Scenes) to a relpoint log.",
 }
 
 

@@ -31,6 +31,17 @@ from relpoint_cli.topics import topic_options, topics_from
 
 log = logging.getLogger(__name__)
 
+#: ``[relpoint|ekf|...]``: the estimators, shown in ``--help``.
+ESTIMATOR_METAVAR = "[" + "|".join(ESTIMATORS) + "]"
+
+
+def complete_estimator(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[Any]:
+    """Shell completion of ``--estimator``: the registered estimators' names."""
+    from click.shell_completion import CompletionItem
+
+    return [CompletionItem(name) for name in ESTIMATORS if name.startswith(incomplete)]
+
+
 EXAMPLES = """\b
 Examples:
   relpoint run sample_logs/figure8.mcap --estimator relpoint -o out/fig8
@@ -144,7 +155,8 @@ def execute_run(
 
 @click.command(epilog=EXAMPLES)
 @click.argument("log", type=click.Path(path_type=Path))
-@click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator to run (see `relpoint info LOG`).")
+@click.option("-e", "--estimator", "estimator_name", required=True, metavar=ESTIMATOR_METAVAR,
+              shell_complete=complete_estimator, help="Estimator to run (see `relpoint info LOG`).")  # fmt: skip
 @click.option(
     "-o",
     "--output",
@@ -204,7 +216,8 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
 
 
 @click.command("config")
-@click.option("-e", "--estimator", "estimator_name", required=True, help="Estimator whose parameters to show.")
+@click.option("-e", "--estimator", "estimator_name", required=True, metavar=ESTIMATOR_METAVAR,
+              shell_complete=complete_estimator, help="Estimator whose parameters to show.")  # fmt: skip
 @handle_errors
 def config_command(estimator_name: str) -> None:
     """Print an estimator's parameters with their defaults, as TOML for --config."""

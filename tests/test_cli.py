@@ -126,3 +126,23 @@ def test_every_commands_help_renders_without_markup(runner: CliRunner) -> None:
     for command in cli.list_commands(None):  # type: ignore[arg-type]
         code, out, _ = invoke(runner, command, "--help")
         assert code == 0 and "\\b" not in out and "\b" not in out, command
+
+
+def test_top_level_help_lists_every_command_without_importing_them() -> None:
+    from relpoint_cli.main import COMMANDS, SUMMARIES
+
+    assert set(SUMMARIES) == set(COMMANDS)
+    code = ("import sys; from relpoint_cli.main import main; sys.argv = ['relpoint', '--help']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('numpy', 'relpoint_cli.', 'scipy'))))")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert all(name in out for name in COMMANDS)
+    assert out.strip().splitlines()[-1] == "['relpoint_cli.errors', 'relpoint_cli.main']"
+
+
+def test_estimator_names_complete_in_the_shell(tmp_path: Path) -> None:
+    import os
+
+    env = {**os.environ, "COMP_WORDS": "relpoint run x.mcap -e fa", "COMP_CWORD": "4", "_RELPOINT_COMPLETE": "bash_complete"}
+    out = subprocess.run([sys.executable, "-m", "relpoint_cli.main"], env=env, capture_output=True, text=True)
+    assert out.stdout.split() == ["plain,fastslam"]
