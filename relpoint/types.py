@@ -7,6 +7,7 @@ quaternions are ``(x, y, z, w)``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -79,6 +80,36 @@ class Pose:
         return pose_matrix(self.position, self.quat_xyzw)
 
 
+@dataclass(frozen=True)
+class TimeWindow:
+    """A stretch of a log or trajectory: ``start_s`` to ``end_s`` seconds after its first stamp.
+
+    ``None`` leaves that side open; both ``None`` is the whole of it.
+    """
+
+    start_s: float | None = None
+    end_s: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("start_s", "end_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and 0.0 <= value <= 1e9):
+                raise ValueError(f"{name} must be between 0 and 1e9 s, got {value}")
+        if self.start_s is not None and self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError(f"the window ends ({self.end_s} s) before it starts ({self.start_s} s)")
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the window takes everything."""
+        return self.start_s is None and self.end_s is None
+
+    def bounds_ns(self, first_ns: int) -> tuple[int, int]:
+        """The window's first and last stamp (inclusive), nanoseconds, counted from ``first_ns``."""
+        low = first_ns + round(self.start_s * 1e9) if self.start_s is not None else -(2**63)
+        high = first_ns + round(self.end_s * 1e9) if self.end_s is not None else 2**63 - 1
+        return low, high
+
+
 @dataclass(frozen=True, eq=False)
 class Trajectory:
     """A sequence of poses ``T_world_frame`` with strictly increasing stamps.
@@ -134,6 +165,14 @@ class Trajectory:
             np.array([p.position for p in poses], dtype=np.float64).reshape(-1, 3),
             np.array([p.quat_xyzw for p in poses], dtype=np.float64).reshape(-1, 4),
         )
+
+    def cropped(self, window: TimeWindow, first_ns: int | None = None) -> Trajectory:
+        """The poses inside ``window``, counted from ``first_ns`` (default: this trajectory's first stamp)."""
+        if window.is_open or len(self) == 0:
+            return self
+        low, high = window.bounds_ns(int(self.stamps_ns[0]) if first_ns is None else first_ns)
+        keep = (self.stamps_ns >= low) & (self.stamps_ns <= high)
+        return Trajectory(self.stamps_ns[keep], self.positions[keep], self.quats_xyzw[keep])
 
     @classmethod
     def from_matrices(cls, stamps_ns: npt.ArrayLike, T_world_frame: npt.ArrayLike) -> Trajectory:

@@ -32,7 +32,7 @@ from formats.reference_trajectories import (
     load_trajectory,
 )
 from formats.tables import read_map_history_csv
-from relpoint.errors import GateExceeded, UsageError
+from relpoint.errors import GateExceeded, InputError, UsageError
 from relpoint.evaluation import (
     STATISTICS,
     AlignMode,
@@ -45,9 +45,9 @@ from relpoint.evaluation import (
 )
 from relpoint.evaluation.dense import dense_metrics
 from relpoint.evaluation.evaluate import frame_mismatch
-from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
+from relpoint.types import GroundTruthLandmarks, LandmarkMap, TimeWindow, Trajectory
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -239,6 +239,7 @@ def evaluate_files(
     child: str | None = None,
     reference_times: Path | None = None,
     times: Path | None = None,
+    window: TimeWindow | None = None,
 ) -> FileEvaluation:
     """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
     landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks)."""
@@ -247,6 +248,14 @@ def evaluate_files(
     check_index_pairing(
         (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
     )
+    if window is not None and not window.is_open:  # both cropped to the same stretch of the reference's time
+        first_ns = int(ref.stamps_ns[0])
+        ref, est = ref.cropped(window), est.cropped(window, first_ns)
+        if len(ref) == 0 or len(est) == 0:
+            raise InputError(
+                f"--t-start/--t-end leave {len(ref)} reference and {len(est)} estimated poses",
+                "the window counts seconds from the reference's first pose",
+            )
     result = evaluate_trajectory(ref, est, settings)
     if (mismatch := frame_mismatch(result)) is not None:
         log.warning("%s", mismatch)
@@ -363,6 +372,7 @@ def run_estimator(path: Path) -> str:
     "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",
     help="Exit 5 if summary KEY exceeds VALUE or is NaN (repeatable).",
 )  # fmt: skip
+@time_window_options
 @overwrite_option
 @click.pass_context
 @handle_errors
@@ -371,7 +381,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
              plot_format: str, save_results: Path | None, save_rpe_results: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
-             overwrite: bool, **options: Any) -> None:  # fmt: skip
+             t_start: float | None, t_end: float | None, overwrite: bool, **options: Any) -> None:  # fmt: skip
     """Evaluate the ESTIMATE trajectory against --reference (APE, RPE, KITTI segments, landmarks).
 
     ESTIMATE is a `relpoint run` output directory, a TUM file, a EuRoC ground-truth CSV, KITTI poses
@@ -380,8 +390,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     naming p_RS_R_x or ns stamps with 8+ comma-separated values EuRoC. When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
     with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
     ESTIMATE is a dense run (map.ply with normals) and --reference-cloud is given, the map's accuracy
-    and completeness (dense_*) are added, after the trajectory alignment.
+    and completeness (dense_*) are added, after the trajectory alignment. --t-start/--t-end crop both
+    trajectories to seconds after the reference's first pose.
     """
+    window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
     settings = EvaluationSettings(**options)
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
@@ -394,7 +406,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
         estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
-        parent=parent, child=child, reference_times=reference_times, times=times,
+        parent=parent, child=child, reference_times=reference_times, times=times, window=window,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
     if reference_cloud is not None:

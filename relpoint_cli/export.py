@@ -38,9 +38,9 @@ from formats.reference_trajectories import is_mcap, load_ground_truth_landmarks,
 from formats.tables import write_map_csv, write_trajectory_csv
 from formats.trajectory_files import write_kitti, write_tum
 from relpoint.errors import InputError, UsageError
-from relpoint.types import GroundTruthLandmarks, Trajectory
+from relpoint.types import GroundTruthLandmarks, TimeWindow, Trajectory
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +219,7 @@ def export_file(
     child: str | None = None,
     times: Path | None = None,
     out_times: Path | None = None,
+    window: TimeWindow | None = None,
 ) -> str:
     """Read ``what`` from ``source`` and write it to ``out`` as ``fmt``; returns a one-line description.
 
@@ -230,12 +231,16 @@ def export_file(
         Unreadable or unsuitable sources, and empty landmark sets or maps.
     """
     check_combination(what, fmt)
-    if what is not What.TRAJECTORY and (topic or parent or child or times):
-        raise UsageError(f"--topic, --parent, --child and --times select a trajectory, not {what.value}")
+    if what is not What.TRAJECTORY and (topic or parent or child or times or (window and not window.is_open)):
+        raise UsageError(f"--topic, --parent, --child, --times and --t-start/--t-end select a trajectory, not {what.value}")
     if out_times is not None and fmt is not Format.KITTI:
         raise UsageError("--out-times applies only to KITTI output")
     if what is What.TRAJECTORY:
         trajectory = load_trajectory(source, topic=topic, parent=parent, child=child, times=times)
+        if window is not None and not window.is_open:
+            trajectory = trajectory.cropped(window)
+            if len(trajectory) == 0:
+                raise InputError(f"{source}: --t-start/--t-end leave no pose", "the window counts seconds from its first pose")
         origin = f"{source}" + (f" {topic}" if topic else "") + (f" TF {parent} -> {child}" if parent else "")
         for path in (out, out_times):
             if path is not None:
@@ -280,12 +285,13 @@ def export_file(
 @click.option(
     "--out-times", type=click.Path(dir_okay=False, path_type=Path), help="KITTI output: also write its times file."
 )
+@time_window_options
 @overwrite_option
 @click.pass_context
 @handle_errors
 def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: str | None, topic: str | None,
            parent: str | None, child: str | None, times: Path | None, out_times: Path | None,
-           overwrite: bool) -> None:  # fmt: skip
+           t_start: float | None, t_end: float | None, overwrite: bool) -> None:  # fmt: skip
     """Export a trajectory, landmarks or a map from SOURCE to OUT (TUM, KITTI, CSV or binary PLY).
 
     SOURCE is a relpoint log (ground-truth trajectory and landmarks), a `relpoint run` output directory
@@ -293,6 +299,7 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     (--topic, or --parent/--child for a TF chain). Trajectory files are recognised by content, as by
     `relpoint evaluate`.
     """
+    window = time_window(t_start, t_end)
     if not source.exists():
         raise InputError(f"{source}: no such file or directory")
     if out.is_dir():
@@ -306,7 +313,8 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     out_format = output_format(out, fmt)
     kind = What(what) if what is not None else default_what(source, out_format)
     description = export_file(
-        source, out, kind, out_format, topic=topic, parent=parent, child=child, times=times, out_times=out_times
+        source, out, kind, out_format, topic=topic, parent=parent, child=child, times=times, out_times=out_times,
+        window=window,
     )
     if not (ctx.find_root().obj or {}).get("quiet"):
         click.echo(f"wrote {description} to {out} ({out_format.value})")

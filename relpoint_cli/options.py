@@ -79,3 +79,24 @@ def read_paths(*paths: Any) -> list[Any]:
             with os.scandir(path) as entries:
                 found.extend(entry.path for entry in entries if entry.is_file())
     return found
+
+
+def time_window_options(command: Any) -> Any:
+    """``--t-start`` and ``--t-end``: seconds after the first stamp (of the log, or of the reference)."""
+    command = click.option(
+        "--t-end", type=float, help="Use nothing after this many seconds from the first stamp."
+    )(command)
+    return click.option(
+        "--t-start", type=float, help="Use nothing before this many seconds from the first stamp."
+    )(command)
+
+
+def time_window(t_start: float | None, t_end: float | None) -> Any:
+    """The :class:`~relpoint.types.TimeWindow` of ``--t-start``/``--t-end`` (exit 2 when it is empty)."""
+    from relpoint.errors import UsageError
+    from relpoint.types import TimeWindow
+
+    try:
+        return TimeWindow(t_start, t_end)
+    except ValueError as error:
+        raise UsageError(f"--t-start/--t-end: {error}") from None

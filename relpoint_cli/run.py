@@ -22,10 +22,10 @@ from formats.run_output import file_sha256, write_run_directory
 from relpoint import pipeline
 from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
-from relpoint.types import DepthFrame, Intrinsics
+from relpoint.types import DepthFrame, Intrinsics, TimeWindow
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
-from relpoint_cli.options import overwrite_option
+from relpoint_cli.options import overwrite_option, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -104,6 +104,32 @@ def input_roles(
     return needed + [role for need in wanted for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
 
 
+#: Roles a time window crops; the others (camera_info) describe the sensor and are always read.
+CROPPED_ROLES = frozenset({"points", "odometry", "fix", "depth", "color", "ground_truth_pose"})
+
+#: How far (ns) past the window's end a stamp may lie before the rest of the log is left unread:
+#: topics are interleaved by log time, and header stamps may trail it.
+CROP_READ_AHEAD_NS = 10_000_000_000
+
+
+def cropped_records(records: Iterator[Record], window: TimeWindow) -> Iterator[Record]:
+    """The records inside ``window``, counted from the first record's stamp (camera_info always)."""
+    if window.is_open:
+        yield from records
+        return
+    bounds: tuple[int, int] | None = None
+    for record in records:
+        if record.role not in CROPPED_ROLES:
+            yield record
+            continue
+        if bounds is None:
+            bounds = window.bounds_ns(record.stamp_ns)
+        if record.stamp_ns > bounds[1] + CROP_READ_AHEAD_NS:
+            return
+        if bounds[0] <= record.stamp_ns <= bounds[1]:
+            yield record
+
+
 def execute_run(
     reader: LogReader,
     spec: EstimatorSpec,
@@ -116,8 +142,11 @@ def execute_run(
     extra_info: dict[str, Any] | None = None,
     on_iteration: Callable[[int, Any], None] | None = None,
     map_every: int = 0,
+    window: TimeWindow | None = None,
 ) -> pipeline.RunResult:
     """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
+
+    ``window`` crops the log's observations, odometry and fixes (seconds from the first one read).
 
     BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
     spinning worker threads made the EKF about 20 times slower.
@@ -127,7 +156,8 @@ def execute_run(
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             result = pipeline.run(
-                estimator_inputs(reader.records(roles), reader.skipped), estimator, on_iteration=on_iteration,
+                estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
+                estimator, on_iteration=on_iteration,
                 map_every=map_every,
             )
         except EstimatorError as error:
@@ -147,6 +177,7 @@ def execute_run(
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
         "warnings": list(result.warnings),
+        **({"time_window": dataclasses.asdict(window)} if window is not None and not window.is_open else {}),
         **(extra_info or {}),
     }  # fmt: skip
     write_run_directory(output, result, run_info)
@@ -182,13 +213,18 @@ def execute_run(
 @click.option("--no-odometry", is_flag=True, help="Ignore /odom even if the log has it.")
 @click.option("--no-fixes", is_flag=True, help="Ignore /fix even if the log has it.")
 @topic_options
+@time_window_options
 @overwrite_option
 @click.pass_context
 @handle_errors
 def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params: tuple[str, ...],
         config_file: Path | None, seed: int, map_every: int, no_odometry: bool, no_fixes: bool,
-        overwrite: bool, **topic_names: str) -> None:  # fmt: skip
-    """Run an estimator over LOG and write trajectory, map, timing and run.json to OUTPUT."""
+        t_start: float | None, t_end: float | None, overwrite: bool, **topic_names: str) -> None:  # fmt: skip
+    """Run an estimator over LOG and write trajectory, map, timing and run.json to OUTPUT.
+
+    --t-start/--t-end crop the log: seconds after its first observation, odometry or fix.
+    """
+    window = time_window(t_start, t_end)
     if estimator_name not in ESTIMATORS:
         known = ", ".join(sorted(ESTIMATORS)) or "none installed"
         raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {known}")
@@ -200,7 +236,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
         result = execute_run(
             reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,
-            on_iteration=lambda *_: bar.update(1), map_every=map_every,
+            on_iteration=lambda *_: bar.update(1), map_every=map_every, window=window,
         )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()
