@@ -23,6 +23,7 @@ from relpoint.types import (
     PointObservation,
     Pose,
     PositionFix,
+    Trajectory,
 )
 
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -32,6 +33,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+PATH = "nav_msgs/msg/Path"
 
 #: Rotation variance written for an unknown orientation (the log format's convention for /fix).
 UNKNOWN_ROTATION_VARIANCE = 1e9
@@ -150,6 +152,18 @@ def pose_to_msg(pose: Pose, frame_id: str = "world") -> Any:
     return _types()[POSE_STAMPED](
         header=_header(pose.stamp_ns, frame_id), pose=_pose_msg(pose.position, pose.quat_xyzw)
     )
+
+
+def path_to_msg(stamp_ns: int, trajectory: Trajectory, frame_id: str = "world") -> Any:
+    """A nav_msgs/Path of every pose of ``trajectory`` (stamped at ``stamp_ns``) in ``frame_id``."""
+    types = _types()
+    poses = [
+        types[POSE_STAMPED](header=_header(stamp, frame_id), pose=_pose_msg(position, quat))
+        for stamp, position, quat in zip(
+            trajectory.stamps_ns.tolist(), trajectory.positions.tolist(), trajectory.quats_xyzw.tolist(), strict=True
+        )
+    ]
+    return types[PATH](header=_header(stamp_ns, frame_id), poses=poses)
 
 
 def odometry_to_msg(odometry: OdometryMeasurement, frame_id: str = "world", child_frame_id: str = "sensor") -> Any:

@@ -59,6 +59,8 @@ class RunResult:
     """Inputs dropped before the estimator saw them, and iterations it could not compute, by kind."""
     warnings: tuple[str, ...] = ()
     """What a user should know about the result (no landmarks, mostly failed iterations)."""
+    map_timeline: tuple[MapSnapshot, ...] = ()
+    """The map as it grew: at most :data:`MAX_TIMELINE` snapshots at evenly spaced iterations."""
 
     def timing_summary(self) -> dict[str, float]:
         """Mean, median and total wall time per iteration, and the time after the last one, in seconds."""
@@ -72,6 +74,31 @@ class RunResult:
             "seconds_median": float(np.median(self.seconds)),
             "seconds_finish": self.seconds_finish,
         }
+
+
+#: Most map snapshots a run keeps for its timeline (``result.mcap``); the spacing doubles to stay below.
+MAX_TIMELINE = 64
+
+#: Most points a dense map snapshot keeps (an even subsample); the final map is always whole.
+MAX_SNAPSHOT_POINTS = 100_000
+
+
+@dataclass(frozen=True, eq=False)
+class MapSnapshot:
+    """The map after one iteration: ``positions`` (M, 3) float32 metres in ``world``, ``dynamic`` (M,) bool."""
+
+    stamp_ns: int
+    positions: np.ndarray
+    dynamic: np.ndarray
+
+
+def _snapshot(estimator: Estimator, stamp_ns: int) -> MapSnapshot:
+    dense = estimator.dense_map() if hasattr(estimator, "dense_map") else None
+    if dense is not None:
+        positions = dense[0][:: max(1, -(-len(dense[0]) // MAX_SNAPSHOT_POINTS))]
+        return MapSnapshot(stamp_ns, positions.astype(np.float32), np.zeros(len(positions), dtype=bool))
+    landmarks = estimator.landmark_map()
+    return MapSnapshot(stamp_ns, landmarks.positions.astype(np.float32), landmarks.dynamic.copy())
 
 
 def run(
@@ -96,6 +123,8 @@ def run(
     map_size = array("q")
     seconds = array("d")
     snapshots: list[tuple[int, int, LandmarkMap]] = []
+    timeline: list[MapSnapshot] = []
+    timeline_every = 4
     screen = InputScreen()
     failed = 0
     for item in inputs:
@@ -135,6 +164,10 @@ def run(
             map_size.append(estimator.map_size)
             if map_every > 0 and len(stamps) % map_every == 0:
                 snapshots.append((len(stamps) - 1, pose.stamp_ns, estimator.landmark_map()))
+            if len(stamps) % timeline_every == 0:
+                timeline.append(_snapshot(estimator, pose.stamp_ns))
+                if len(timeline) > MAX_TIMELINE:  # keep every other one and take them half as often
+                    timeline, timeline_every = timeline[1::2], 2 * timeline_every
             if on_iteration is not None:
                 on_iteration(len(stamps) - 1, pose)
     skipped = dict(screen.skipped)
@@ -180,6 +213,7 @@ def run(
         seconds_finish=seconds_finish,
         skipped=skipped,
         warnings=tuple(warnings),
+        map_timeline=tuple(timeline),
     )
 
 

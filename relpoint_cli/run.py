@@ -22,7 +22,7 @@ from formats.run_output import file_sha256, write_run_directory
 from relpoint import pipeline
 from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
-from relpoint.types import DepthFrame, Intrinsics, TimeWindow
+from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.info import NEED_ROLES
 from relpoint_cli.options import overwrite_option, time_window, time_window_options
@@ -180,8 +180,20 @@ def execute_run(
         **({"time_window": dataclasses.asdict(window)} if window is not None and not window.is_open else {}),
         **(extra_info or {}),
     }  # fmt: skip
-    write_run_directory(output, result, run_info)
+    observations = (
+        (record.value for record in cropped_records(reader.records(["points"]), window or TimeWindow()))
+        if "points" in roles else ()
+    )  # fmt: skip
+    write_run_directory(output, result, run_info, observations=observations, reference=reference_path(reader))
     return result
+
+
+def reference_path(reader: LogReader) -> Trajectory | None:
+    """The log's ground-truth path, if it has one (for result.mcap)."""
+    if reader.topics.ground_truth_pose not in reader.topic_infos:
+        return None
+    poses = [record.value for record in reader.records(["ground_truth_pose"])]
+    return Trajectory.from_poses(poses) if poses else None
 
 
 @click.command(epilog=EXAMPLES)

@@ -82,3 +82,7 @@ def test_dense_runs_are_deterministic(tmp_path: Path) -> None:
         assert code == 0, err
     for name in ("trajectory.tum", "trajectory.csv", "map.ply", "map.csv", "result.mcap"):
         assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    # Foxglove sees the dense map grow and its final colours.
+    result = LogReader(outs[0] / "result.mcap")
+    assert result.topic_infos["/relpoint/map"].count >= 2 and result.topic_infos["/relpoint/path"].count >= 2
+    assert "/relpoint/observations" not in result.topic_infos  # depth frames are not copied
