@@ -1,0 +1,203 @@
+"""What ``relpoint batch`` does with hostile plans, interrupts and scheduler addresses (issue 15).
+
+Each case runs ``relpoint batch`` in a fresh process and prints one table row: case | exit code | last
+stderr line | peak memory (the process's maximum resident set, from ``wait4``) | wall time.
+
+- ``grid-1e6``: one estimator with a 10^6-point grid (6 axes of 10 values): time to refuse.
+- ``glob-20k``: a plan whose glob matches 20,000 (empty) logs, loaded by ``formats.batch_plan.load_plan``
+  in a fresh process (``--max-jobs 20000`` where the option exists): time to load.
+- ``SIGINT`` / ``SIGTERM``: a 6-job plan on 2 workers, signalled once the first job directories are
+  under way; time from the signal to exit, then the job directories left: complete ones, temporaries
+  (``.*.partial``), and whether any appeared after the exit (a worker still running).
+- ``scheduler``: malformed ``--scheduler`` addresses.
+
+Usage::
+
+    python benchmarks/batch_safety.py [--timeout 120] [--cases grid-1e6,glob-20k,SIGINT,SIGTERM,scheduler]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+GRID_PLAN = """\
+logs = ["log.mcap"]
+[estimators.relpoint.grid]
+match_bound = [{values}]
+match_angle = [{values}]
+loop_support = [3, 4, 5, 6, 7, 8, 9, 10, 11, 12]
+seed = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+ring_size = [128, 129, 130, 131, 132, 133, 134, 135, 136, 137]
+match_window = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]
+"""
+
+GLOB_PLAN = """\
+logs = ["logs/**/*.mcap"]
+estimators = ["relpoint"]
+"""
+
+SIGNAL_PLAN = """\
+logs = ["logs/*.mcap"]
+[estimators.ekf.grid]
+observation_sigma = [0.3, 0.4, 0.5]
+"""
+
+LOAD_SCRIPT = """\
+import inspect, sys, time
+from formats.batch_plan import load_plan
+start = time.perf_counter()
+options = {"max_jobs": 20000} if "max_jobs" in inspect.signature(load_plan).parameters else {}
+plan = load_plan(sys.argv[1], **options)
+print(f"loaded {len(plan.jobs)} jobs in {time.perf_counter() - start:.2f} s", file=sys.stderr)
+"""
+
+
+def relpoint(*args: str) -> list[str]:
+    return [sys.executable, "-m", "relpoint_cli.main", *args]
+
+
+def measure(command: Sequence[str], timeout_s: float, cwd: Path | None = None) -> tuple[str, str, float, float]:
+    """Exit code (or 'killed'), last stderr line, peak resident MB and wall seconds of one process."""
+    start = time.perf_counter()
+    with tempfile.TemporaryFile() as stderr:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr, cwd=cwd)
+        deadline = start + timeout_s
+        status = None
+        while status is None:
+            pid, wait_status, usage = os.wait4(process.pid, os.WNOHANG)
+            if pid:
+                status = os.waitstatus_to_exitcode(wait_status)
+                break
+            if time.perf_counter() > deadline:
+                process.kill()
+                _, wait_status, usage = os.wait4(process.pid, 0)
+                status = f"killed after {timeout_s:.0f} s"
+                break
+            time.sleep(0.05)
+        process.returncode = 0  # reaped above
+        seconds = time.perf_counter() - start
+        stderr.seek(0)
+        lines = stderr.read().decode("utf-8", "replace").strip().splitlines()
+    return str(status), (lines[-1] if lines else ""), usage.ru_maxrss / 1024, seconds
+
+
+def row(case: str, code: str, line: str, peak_mb: float, seconds: float) -> None:
+    print(f"| {case} | {code} | {line[:110]} | {peak_mb:.0f} MB | {seconds:.2f} s |", flush=True)
+
+
+def grid_case(root: Path, timeout_s: float) -> None:
+    (root / "log.mcap").write_bytes(b"")
+    values = ", ".join(f"{0.1 * (k + 1):.1f}" for k in range(10))
+    (root / "grid.toml").write_text(GRID_PLAN.format(values=values))
+    row("grid-1e6 (refuse)", *measure(relpoint("batch", str(root / "grid.toml")), timeout_s))
+
+
+def glob_case(root: Path, timeout_s: float, count: int = 20_000) -> None:
+    for k in range(count):
+        folder = root / "logs" / f"d{k // 1000:02d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"log {k}.mcap" if k % 2 else folder / f"log-{k}.mcap").write_bytes(b"")
+    (root / "glob.toml").write_text(GLOB_PLAN)
+    command = [sys.executable, "-c", LOAD_SCRIPT, str(root / "glob.toml")]
+    row(f"glob-{count // 1000}k (load)", *measure(command, timeout_s, cwd=REPO))
+
+
+def _job_dirs(results: Path) -> tuple[int, int]:
+    """(complete job directories, temporaries) under ``results``."""
+    complete = sum(1 for path in results.glob("*/*/*/job.json"))
+    partial = sum(1 for path in results.rglob(".*.partial"))
+    return complete, partial
+
+
+def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
+    from formats.simulation_log import write_simulation
+    from relpoint.simulation import SimulationConfig, simulate
+
+    logs = root / "logs"
+    if not logs.exists():
+        for seed in (1, 2):
+            write_simulation(
+                simulate(SimulationConfig(iterations=400, density=25, seed=seed)), logs / f"fig8-{seed}.mcap"
+            )
+        (root / "signal.toml").write_text(SIGNAL_PLAN)
+    results = root / f"results-{signum.name}"
+    process = subprocess.Popen(
+        relpoint("batch", str(root / "signal.toml"), "--jobs", "2", "--results", str(results)),
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    while not any(results.rglob(".*.partial")) and process.poll() is None:
+        time.sleep(0.05)
+    time.sleep(1.0)  # the jobs are well under way
+    before = _job_dirs(results)
+    sent = time.perf_counter()
+    process.send_signal(signum)
+    try:
+        _, stderr = process.communicate(timeout=timeout_s)
+        code = str(process.returncode)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+        code = "killed"
+    seconds = time.perf_counter() - sent
+    at_exit = _job_dirs(results)
+    time.sleep(3.0)
+    later = _job_dirs(results)
+    lines = stderr.decode("utf-8", "replace").strip().splitlines()
+    print(
+        f"| {signum.name} | {code} | {(lines[-1] if lines else '')[:110]} | - | {seconds:.2f} s to exit |"
+        f" job dirs complete/partial: {before[0]}/{before[1]} at the signal, {at_exit[0]}/{at_exit[1]} at exit,"
+        f" {later[0]}/{later[1]} 3 s later",
+        flush=True,
+    )
+    resume = subprocess.run(
+        relpoint("batch", str(root / "signal.toml"), "--jobs", "2", "--results", str(results)),
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    print(
+        f"|   rerun after {signum.name} | {resume.returncode} | {resume.stdout.strip().splitlines()[-1][:110]} |",
+        flush=True,
+    )
+
+
+def scheduler_case(timeout_s: float) -> None:
+    for address in ("tcp://", "tcp://host:port", "tcp://[::1", "udp://127.0.0.1:8786", "tcp://127.0.0.1:99999"):
+        with tempfile.TemporaryDirectory() as tmp:
+            plan = Path(tmp) / "plan.toml"
+            (Path(tmp) / "log.mcap").write_bytes(b"")
+            plan.write_text('logs = ["log.mcap"]\nestimators = ["ekf"]\n')
+            row(f"--scheduler {address}", *measure(relpoint("batch", str(plan), "--scheduler", address), timeout_s))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds before a case is killed")
+    parser.add_argument("--cases", default="grid-1e6,glob-20k,SIGINT,SIGTERM,scheduler")
+    args = parser.parse_args(argv)
+    cases = args.cases.split(",")
+    print("| case | exit code | last stderr line | peak memory | time |\n|---|---|---|---|---|", flush=True)
+    with tempfile.TemporaryDirectory(prefix="relpoint-batch-safety-") as tmp:
+        root = Path(tmp)
+        if "grid-1e6" in cases:
+            grid_case(root, args.timeout)
+        if "glob-20k" in cases:
+            glob_case(root, args.timeout)
+        for name in ("SIGINT", "SIGTERM"):
+            if name in cases:
+                signal_case(root, signal.Signals[name], args.timeout)
+        if "scheduler" in cases:
+            scheduler_case(args.timeout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
