@@ -6,9 +6,11 @@ stderr line | peak memory (the process's maximum resident set, from ``wait4``) |
 - ``grid-1e6``: one estimator with a 10^6-point grid (6 axes of 10 values): time to refuse.
 - ``glob-20k``: a plan whose glob matches 20,000 (empty) logs, loaded by ``formats.batch_plan.load_plan``
   in a fresh process (``--max-jobs 20000`` where the option exists): time to load.
-- ``SIGINT`` / ``SIGTERM``: a 6-job plan on 2 workers, signalled once the first job directories are
-  under way; time from the signal to exit, then the job directories left: complete ones, temporaries
-  (``.*.partial``), and whether any appeared after the exit (a worker still running).
+- ``SIGINT`` (to the process group, as Ctrl-C in a terminal) and ``SIGTERM`` (to relpoint): a 6-job
+  plan on 2 workers, signalled once the first job directories are under way; time from the signal
+  until the pool's workers are gone and until the command exits, then the job directories left:
+  complete ones, temporaries (``.*.partial``), and whether any appeared after the exit (a worker
+  still running); then the rerun that resumes the batch.
 - ``scheduler``: malformed ``--scheduler`` addresses.
 
 Usage::
@@ -119,6 +121,34 @@ def _job_dirs(results: Path) -> tuple[int, int]:
     return complete, partial
 
 
+def _descendants(pid: int) -> dict[int, int]:
+    """Every descendant process of ``pid``: pid -> depth (1 = child)."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parents[int(entry.name)] = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    found: dict[int, int] = {}
+    frontier = [(pid, 0)]
+    while frontier:
+        parent, depth = frontier.pop()
+        for child, its_parent in parents.items():
+            if its_parent == parent and child not in found:
+                found[child] = depth + 1
+                frontier.append((child, depth + 1))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
 def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
     from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
@@ -133,28 +163,41 @@ def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
     results = root / f"results-{signum.name}"
     process = subprocess.Popen(
         relpoint("batch", str(root / "signal.toml"), "--jobs", "2", "--results", str(results)),
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
     )  # fmt: skip
     while not any(results.rglob(".*.partial")) and process.poll() is None:
         time.sleep(0.05)
     time.sleep(1.0)  # the jobs are well under way
     before = _job_dirs(results)
+    workers = [pid for pid, depth in _descendants(process.pid).items() if depth == 2]  # the fork server's children
     sent = time.perf_counter()
-    process.send_signal(signum)
-    try:
-        _, stderr = process.communicate(timeout=timeout_s)
-        code = str(process.returncode)
-    except subprocess.TimeoutExpired:
+    if signum == signal.SIGINT:
+        os.killpg(process.pid, signum)  # Ctrl-C: the terminal signals the whole process group
+    else:
+        process.send_signal(signum)
+    workers_gone = exited = None
+    while exited is None and time.perf_counter() - sent < timeout_s:
+        now = time.perf_counter() - sent
+        if workers_gone is None and not any(_alive(pid) for pid in workers):
+            workers_gone = now
+        if process.poll() is not None:
+            exited = now
+        time.sleep(0.01)
+    if exited is None:
         process.kill()
-        _, stderr = process.communicate()
         code = "killed"
-    seconds = time.perf_counter() - sent
+    else:
+        code = str(process.returncode)
+    stderr = process.communicate()[1]
+    seconds = exited if exited is not None else timeout_s
+    gone = f"{workers_gone:.2f} s" if workers_gone is not None else "after exit"
     at_exit = _job_dirs(results)
     time.sleep(3.0)
     later = _job_dirs(results)
     lines = stderr.decode("utf-8", "replace").strip().splitlines()
     print(
         f"| {signum.name} | {code} | {(lines[-1] if lines else '')[:110]} | - | {seconds:.2f} s to exit |"
+        f" {len(workers)} workers gone {gone} after the signal;"
         f" job dirs complete/partial: {before[0]}/{before[1]} at the signal, {at_exit[0]}/{at_exit[1]} at exit,"
         f" {later[0]}/{later[1]} 3 s later",
         flush=True,
