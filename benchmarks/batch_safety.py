@@ -97,6 +97,11 @@ def row(case: str, code: str, line: str, peak_mb: float, seconds: float) -> None
     print(f"| {case} | {code} | {line[:110]} | {peak_mb:.0f} MB | {seconds:.2f} s |", flush=True)
 
 
+def baseline_case(timeout_s: float) -> None:
+    """``relpoint batch --help``: the command's start-up (imports) alone, for comparison."""
+    row("batch --help (start-up only)", *measure(relpoint("batch", "--help"), timeout_s))
+
+
 def grid_case(root: Path, timeout_s: float) -> None:
     (root / "log.mcap").write_bytes(b"")
     values = ", ".join(f"{0.1 * (k + 1):.1f}" for k in range(10))
@@ -153,6 +158,7 @@ def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
     from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
 
+    root = root / "signals"
     logs = root / "logs"
     if not logs.exists():
         for seed in (1, 2):
@@ -167,6 +173,8 @@ def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
     )  # fmt: skip
     while not any(results.rglob(".*.partial")) and process.poll() is None:
         time.sleep(0.05)
+    if process.poll() is not None:
+        raise SystemExit(f"the batch ended before a job started: {process.communicate()[1].decode()}")
     time.sleep(1.0)  # the jobs are well under way
     before = _job_dirs(results)
     workers = [pid for pid, depth in _descendants(process.pid).items() if depth == 2]  # the fork server's children
@@ -231,6 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="relpoint-batch-safety-") as tmp:
         root = Path(tmp)
         if "grid-1e6" in cases:
+            baseline_case(args.timeout)
             grid_case(root, args.timeout)
         if "glob-20k" in cases:
             glob_case(root, args.timeout)

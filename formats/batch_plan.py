@@ -24,6 +24,7 @@ import logging
 import math
 import os
 import re
+import stat
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -230,26 +231,51 @@ def _resolve(base: Path, text: str) -> Path:
     return path if path.is_absolute() else base / path
 
 
-def _inside_output(path: Path, results: Path, verdicts: dict[Path, bool]) -> bool:
-    """Whether ``path`` (resolved) lies in ``results`` or in a directory relpoint wrote (it holds MARKER).
+def _inside_output(folder: str, results: str, verdicts: dict[str, bool]) -> bool:
+    """Whether the resolved directory ``folder`` is ``results``, or in it, or in a directory relpoint
+    wrote (one holding :data:`~formats.outputs.MARKER`).
 
     ``verdicts`` caches the answer per directory, so a glob of N files costs O(N) directory checks.
     """
-    folder = path.parent
-    chain: list[Path] = []
+    chain: list[str] = []
     while folder not in verdicts:
         chain.append(folder)
-        if folder == results or (folder / MARKER).is_file():
+        if folder == results or os.path.isfile(os.path.join(folder, MARKER)):
             verdict = True
             break
-        if folder.parent == folder:
+        parent = os.path.dirname(folder)
+        if parent == folder:
             verdict = False
             break
-        folder = folder.parent
+        folder = parent
     else:
         verdict = verdicts[folder]
     verdicts.update(dict.fromkeys(chain, verdict))
     return verdict
+
+
+class _Resolver:
+    """``os.path.realpath`` of files, resolving each directory once (a glob's files share a few)."""
+
+    def __init__(self) -> None:
+        self._folders: dict[str, str] = {}
+
+    def file(self, text: str) -> str | None:
+        """The real path of ``text`` if it is a regular file (or a link to one), else None."""
+        try:
+            mode = os.lstat(text).st_mode
+        except OSError:
+            return None
+        if stat.S_ISLNK(mode):
+            real = os.path.realpath(text)
+            return real if os.path.isfile(real) else None
+        if not stat.S_ISREG(mode):
+            return None
+        folder, name = os.path.split(os.path.abspath(text))
+        real_folder = self._folders.get(folder)
+        if real_folder is None:
+            real_folder = self._folders[folder] = os.path.realpath(folder)
+        return os.path.join(real_folder, name)
 
 
 def _glob_logs(base: Path, patterns: Any, results: Path, limit: int) -> tuple[list[Path], int]:
@@ -268,21 +294,21 @@ def _glob_logs(base: Path, patterns: Any, results: Path, limit: int) -> tuple[li
         raise UsageError("plan: logs must be a glob or a list of globs")
     logs: list[Path] = []
     count = 0
-    verdicts: dict[Path, bool] = {}
+    resolver = _Resolver()
+    verdicts: dict[str, bool] = {}
     for pattern in patterns:
-        matches: list[Path] = []
+        matches: list[tuple[str, str]] = []  # (sort key, real path)
         left_out = 0
         for text in glob.iglob(str(_resolve(base, pattern)), recursive=True):
-            path = Path(text)
-            if not path.is_file():
+            real = resolver.file(text)
+            if real is None:
                 continue
-            resolved = path.resolve()
-            if glob.has_magic(pattern) and _inside_output(resolved, results, verdicts):
+            if glob.has_magic(pattern) and _inside_output(os.path.dirname(real), str(results), verdicts):
                 left_out += 1
                 continue
             count += 1
             if count <= limit:
-                matches.append(resolved)
+                matches.append((text.replace(os.sep, "\0"), real))  # sorts as paths do: by component
         if not matches and count <= limit:
             outputs = f" ({left_out} inside relpoint outputs left out)" if left_out else ""
             raise UsageError(
@@ -290,7 +316,8 @@ def _glob_logs(base: Path, patterns: Any, results: Path, limit: int) -> tuple[li
             )
         if left_out:
             log.info("logs pattern %r: left out %d file(s) inside relpoint outputs", pattern, left_out)
-        logs.extend(sorted(matches))
+        matches.sort()
+        logs.extend(Path(real) for _, real in matches)
     return logs, count
 
 
@@ -409,14 +436,15 @@ def _log_labels(logs: Sequence[Path]) -> dict[Path, str]:
     Raises :class:`UsageError` naming both paths when two different stems reduce to the same name
     (``a b.mcap`` and ``a-b.mcap``: characters outside letters, digits and ``. _ = + -`` become ``-``).
     """
-    stems = Counter(log.stem for log in logs)
+    stems = {log: log.stem for log in logs}
+    uses = Counter(stems.values())
     labels: dict[Path, str] = {}
     owners: dict[str, Path] = {}
-    for log in logs:
-        label = _UNSAFE.sub("-", log.stem).strip(".") or "log"
+    for log, stem in stems.items():
+        label = _UNSAFE.sub("-", stem).strip(".") or "log"
         if label == "logs":  # RESULTS/logs holds the simulated logs
             label = "logs-run"
-        if stems[log.stem] > 1:
+        if uses[stem] > 1:
             label += "-" + hashlib.sha1(str(log).encode("utf-8")).hexdigest()[:8]
         other = owners.setdefault(label, log)
         if other != log:
@@ -496,15 +524,13 @@ def load_plan(
         raise UsageError(f"plan: bad evaluation setting: {error}") from None
 
     points = _grid_points(tables)
-    labels = _log_labels(logs)
     jobs = [
         Job(
-            job_id=f"{labels[log]}/{point.directory}", log=log, estimator=point.estimator,
-            parameters=point.parameters, seed=point.seed, use_odometry=point.use_odometry,
-            use_fixes=point.use_fixes, topics=topics, evaluation=evaluation,
-            output=root / labels[log] / point.directory,
+            job_id=f"{label}/{point.directory}", log=log, estimator=point.estimator, parameters=point.parameters,
+            seed=point.seed, use_odometry=point.use_odometry, use_fixes=point.use_fixes, topics=topics,
+            evaluation=evaluation, output=root.joinpath(label, point.directory),
         )
-        for log in logs
+        for log, label in _log_labels(logs).items()  # in the order of ``logs``
         for point in points
     ]  # fmt: skip
     return BatchPlan(source=source, results=root, simulations=tuple(simulations), jobs=tuple(jobs))

@@ -76,9 +76,13 @@ class JobCancelled(BaseException):
 
 #: Whether this worker process is inside a job (SIGTERM then unwinds the job before the worker exits).
 _in_job = False
+#: Whether this worker has been told to stop (it then starts no further item).
+_stopping = False
 
 
 def _on_sigterm(signum: int, frame: Any) -> None:
+    global _stopping
+    _stopping = True
     if _in_job:
         raise JobCancelled
     os._exit(128 + signum)
@@ -100,6 +104,8 @@ def _call_in_worker(function: Callable[[Any], Any], item: Any) -> Any:
     Exiting (rather than returning to the pool's loop) keeps the worker from taking another item.
     """
     global _in_job
+    if _stopping:
+        os._exit(128 + signal.SIGTERM)
     _in_job = True
     try:
         return function(item)
