@@ -7,7 +7,7 @@ stderr line | peak memory (the process's maximum resident set, from ``wait4``) |
 - ``glob-20k``: a plan whose glob matches 20,000 (empty) logs, loaded by ``formats.batch_plan.load_plan``
   in a fresh process (``--max-jobs 20000`` where the option exists): time to load.
 - ``SIGINT`` (to the process group, as Ctrl-C in a terminal) and ``SIGTERM`` (to relpoint): a 6-job
-  plan on 2 workers, signalled once the first job directories are under way; time from the signal
+  plan on 2 workers, signalled once the first job is done and the next are under way; time from the signal
   until the pool's workers are gone and until the command exits, then the job directories left:
   complete ones, temporaries (``.*.partial``), and whether any appeared after the exit (a worker
   still running); then the rerun that resumes the batch.
@@ -171,11 +171,11 @@ def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
         relpoint("batch", str(root / "signal.toml"), "--jobs", "2", "--results", str(results)),
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
     )  # fmt: skip
-    while not any(results.rglob(".*.partial")) and process.poll() is None:
+    while _job_dirs(results)[0] == 0 and process.poll() is None:
         time.sleep(0.05)
     if process.poll() is not None:
-        raise SystemExit(f"the batch ended before a job started: {process.communicate()[1].decode()}")
-    time.sleep(1.0)  # the jobs are well under way
+        raise SystemExit(f"the batch ended before a job was done: {process.communicate()[1].decode()}")
+    time.sleep(0.5)  # the next jobs are under way
     before = _job_dirs(results)
     workers = [pid for pid, depth in _descendants(process.pid).items() if depth == 2]  # the fork server's children
     sent = time.perf_counter()

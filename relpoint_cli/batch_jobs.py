@@ -98,6 +98,43 @@ def _init_worker() -> None:
     signal.signal(signal.SIGTERM, _on_sigterm)
 
 
+#: Per thread: a function that says whether this thread's job was cancelled (set by the Dask executor,
+#: whose worker threads cannot be signalled).
+_cancellation = threading.local()
+
+
+def _stop_if_cancelled(*_: Any) -> None:
+    """Called after every estimator iteration of a job: raises :class:`JobCancelled` once it is cancelled."""
+    cancelled = getattr(_cancellation, "check", None)
+    if cancelled is not None and cancelled():
+        raise JobCancelled
+
+
+def _call_in_dask(function: Callable[[Any], Any], item: Any) -> Any:
+    """Run ``function(item)`` as a Dask task that stops at its next iteration once its future is cancelled.
+
+    Dask cannot interrupt a running task; the job polls its own state on the worker (a dictionary
+    look-up, no network) and unwinds like a terminated pool worker's job. Returns None when cancelled
+    (nobody waits for the result).
+    """
+    from distributed import get_worker
+
+    worker = get_worker()
+    key = worker.get_current_task()
+
+    def cancelled() -> bool:
+        task = worker.state.tasks.get(key)
+        return task is None or task.state in ("cancelled", "released", "forgotten")
+
+    _cancellation.check = cancelled
+    try:
+        return function(item)
+    except JobCancelled:
+        return None
+    finally:
+        _cancellation.check = None
+
+
 def _call_in_worker(function: Callable[[Any], Any], item: Any) -> Any:
     """Run ``function(item)`` in a pool worker; a cancelled job ends the worker once it has unwound.
 
@@ -190,7 +227,7 @@ def _run(job: Job, out_dir: Path) -> tuple[pipeline.RunResult, bool]:
     log.info("running %s over %s", spec.name, job.log)
     result = execute_run(
         reader, spec, config, out_dir, seed=job.seed, use_odometry=job.use_odometry, use_fixes=job.use_fixes,
-        extra_info={"batch_job": job.job_id},
+        extra_info={"batch_job": job.job_id}, on_iteration=_stop_if_cancelled,
     )  # fmt: skip
     timing = result.timing_summary()
     log.info(
@@ -573,7 +610,9 @@ class DaskExecutor(Executor):
         futures = []
         for i, item in enumerate(items):
             # earlier items first, like the pool; keys unique per batch so a rerun is not served from memory
-            future = self._client.submit(function, item, key=f"relpoint-{name}-{token}-{i}", pure=False, priority=-i)
+            future = self._client.submit(
+                _call_in_dask, function, item, key=f"relpoint-{name}-{token}-{i}", pure=False, priority=-i
+            )
             index[future.key] = i
             futures.append(future)
         self._futures.extend(futures)
@@ -591,9 +630,10 @@ class DaskExecutor(Executor):
             self._client.cancel(pending)
 
     def stop(self) -> None:
-        """Cancel every future of this client; tasks already running on a worker thread run to their end.
+        """Cancel every future of this client; a running job notices at its next estimator iteration.
 
-        Dask cannot interrupt a task's thread: such a job still writes its (complete) directory.
+        Dask cannot interrupt a task's thread: a running job polls its task's state after every
+        iteration (:func:`_call_in_dask`) and unwinds, leaving no job directory.
         """
         if self._futures:
             self._client.cancel(self._futures, force=True)

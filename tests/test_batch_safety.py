@@ -263,6 +263,43 @@ def test_interrupt_cancels_running_jobs_and_a_rerun_completes_them(long_logs: Pa
     assert [row["status"] for row in read_results(results / "results.json")] == ["ok"] * 4
 
 
+def test_interrupt_cancels_running_dask_jobs(long_logs: Path, tmp_path: Path) -> None:
+    from distributed import LocalCluster
+
+    plan = write_plan(
+        tmp_path, f'logs = ["{long_logs}/*.mcap"]\n[estimators.ekf.grid]\nobservation_sigma = [0.3, 0.5]\n'
+    )
+    results = tmp_path / "results"
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        command = [sys.executable, "-m", "relpoint_cli.main", "batch", str(plan), "--scheduler",
+                   cluster.scheduler_address, "--results", str(results)]  # fmt: skip
+        process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 120
+            while not any(results.rglob(".*.partial")) and process.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert process.poll() is None, "the batch ended before a job was under way"
+            process.send_signal(signal.SIGTERM)
+            _, stderr = process.communicate(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+        done_at_exit = {folder.parent for folder in results.rglob(MARKER)}
+        assert process.returncode == 130
+        assert stderr.strip().splitlines()[-1].startswith("relpoint: error: interrupted: ")
+        # the cluster's running jobs stop at their next iteration and leave nothing
+        deadline = time.monotonic() + 10
+        while any(results.rglob(".*.partial")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not list(results.rglob(".*.partial"))
+        time.sleep(1.0)
+        assert {folder.parent for folder in results.rglob(MARKER)} == done_at_exit, "a cancelled job completed"
+        assert all((folder / "job.json").is_file() for folder in done_at_exit)
+
+
 def test_no_resume_runs_every_job_again(long_logs: Path, tmp_path: Path) -> None:
     short = tmp_path / "short.mcap"
     write_simulation(simulate(SimulationConfig(iterations=30, density=10, seed=4)), short)
