@@ -34,7 +34,7 @@ from typing import Any
 from formats.atomic import write_text
 from formats.config_files import read_document
 from formats.log import Topics
-from formats.outputs import MARKER
+from formats.outputs import MARKER, OutputError, check_output_file, probe_writable, register_csv_header
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import EvaluationSettings
@@ -571,6 +571,46 @@ def results_csv(rows: Iterable[Mapping[str, Any]]) -> str:
                 cells.append(str(value))
         writer.writerow(cells)
     return buffer.getvalue()
+
+
+register_csv_header(RESULT_COLUMNS)
+
+
+def _results_json_of_a_batch(path: Path) -> bool:
+    """Whether ``path`` is a ``results.json`` that :func:`write_results` wrote."""
+    try:
+        if path.stat().st_size > 200_000_000:
+            return False
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(document, dict) and {"plan", "results", "counts", "jobs"} <= set(document)
+
+
+def check_outputs(plan: BatchPlan) -> None:
+    """Check, before any job runs, that the batch replaces only what relpoint wrote.
+
+    ``results.csv`` and ``results.json`` may replace only earlier batch results, and a simulated log
+    only a log relpoint wrote; the results root must be writable. Job directories are checked as they
+    are written (:func:`formats.atomic.atomic_directory` replaces only a relpoint output). Raises
+    :class:`~formats.outputs.OutputError` (exit 2) naming the file and the way out.
+    """
+    hint = "move it away or choose another results root (--results DIR)"
+    for path in (plan.results / "results.csv", plan.results / "results.json"):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        ours = _results_json_of_a_batch(path) if path.suffix == ".json" else None
+        try:
+            check_output_file(path, inputs=[plan.source], overwrite=bool(ours))
+        except OutputError as error:
+            raise OutputError(error.message, hint) from None
+    for step in plan.simulations:
+        if step.output.exists() or step.output.is_symlink():
+            try:
+                check_output_file(step.output, inputs=[plan.source])
+            except OutputError as error:
+                raise OutputError(f"simulated log {step.name}: {error.message}", hint) from None
+    probe_writable(plan.results, plan.results)
 
 
 def write_results(plan: BatchPlan, rows: Sequence[Mapping[str, Any]]) -> tuple[Path, Path]:

@@ -15,7 +15,7 @@ from typing import Any
 
 import click
 
-from formats.batch_plan import MAX_JOBS, BatchPlan, load_plan, write_results
+from formats.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
 from relpoint.errors import Interrupted, UsageError
 from relpoint_cli.batch_jobs import (
     BatchOutcome,
@@ -153,6 +153,7 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
         address = parse_scheduler(scheduler)
         security = scheduler_security(address, tls)
     plan = load_plan(plan_file, results=results_dir, max_jobs=max_jobs)
+    check_outputs(plan)
     quiet = bool(ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
     executor: Executor = (
         DaskExecutor(address, security) if address is not None else LocalPool(jobs or default_workers())

@@ -98,6 +98,20 @@ def test_max_jobs_counts_logs_simulations_and_grid_points(tmp_path: Path) -> Non
     assert MAX_JOBS == 10_000
 
 
+def test_plans_are_size_capped_before_parsing(tmp_path: Path) -> None:
+    big = write_plan(tmp_path, 'estimators = ["ekf"]\n' + "# padding\n" * 200_000)
+    bomb = write_plan(
+        tmp_path,
+        "estimators: [ekf]\nx0: &x0 [a, a, a, a, a, a, a, a, a, a]\n"
+        + "".join(f"x{k + 1}: &x{k + 1} [{', '.join([f'*x{k}'] * 10)}]\n" for k in range(8)),
+        "bomb.yaml",
+    )
+    for plan, message in ((big, "is larger than 1 MB"), (bomb, "expands to more than 100000 values")):
+        outcome = invoke(str(plan))
+        lines = stderr_lines(outcome)
+        assert outcome.exit_code == 2 and len(lines) == 1 and message in lines[0], outcome.output
+
+
 def test_large_glob_loads_every_log_once_in_order(tmp_path: Path) -> None:
     names = [f"log{k:05d}" for k in range(3000)]
     touch(*(tmp_path / "logs" / f"d{k % 7}" / f"{name}.mcap" for k, name in enumerate(names)))
@@ -170,6 +184,35 @@ def test_a_glob_that_matches_only_outputs_says_so(tmp_path: Path) -> None:
     plan = write_plan(tmp_path, 'logs = ["runs/**/*.mcap"]\nestimators = ["ekf"]\n')
     with pytest.raises(UsageError, match=r"matches no file \(1 inside relpoint outputs left out\)"):
         load_plan(plan)
+
+
+# --- outputs -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "content"),
+    [("results.csv", "name,score\nalice,3\n"), ("results.json", '{"mine": true}\n'), ("logs/sim.mcap", "recorded")],
+)
+def test_files_relpoint_did_not_write_are_never_replaced(tmp_path: Path, name: str, content: str) -> None:
+    touch(tmp_path / "log.mcap")
+    plan = write_plan(tmp_path, '[[simulate]]\nname = "sim"\niterations = 20\n[estimators.ekf]\n')
+    (tmp_path / "results" / name).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "results" / name).write_text(content)
+    outcome = invoke(str(plan), "--jobs", "1")
+    lines = stderr_lines(outcome)
+    assert outcome.exit_code == 2 and len(lines) == 1, outcome.output
+    assert "relpoint did not write it" in lines[0] and "--results DIR" in lines[0]
+    assert (tmp_path / "results" / name).read_text() == content
+    assert not (tmp_path / "results" / "sim").exists()
+
+
+def test_a_link_to_a_foreign_file_is_not_written_through(tmp_path: Path) -> None:
+    touch(tmp_path / "log.mcap")
+    (tmp_path / "precious.csv").write_text("keep me\n")
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "results.csv").symlink_to(tmp_path / "precious.csv")
+    outcome = invoke(str(write_plan(tmp_path, 'logs = ["log.mcap"]\nestimators = ["ekf"]\n')), "--jobs", "1")
+    assert outcome.exit_code == 2 and (tmp_path / "precious.csv").read_text() == "keep me\n"
 
 
 # --- interrupts --------------------------------------------------------------------------------------
