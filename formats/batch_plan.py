@@ -495,7 +495,7 @@ def load_plan(
     jobs_count = (globbed + simulated) * per_log
     if jobs_count > max_jobs:
         raise UsageError(
-            f"plan {source} makes {jobs_count:,} jobs ({globbed + simulated:,} logs x {per_log:,} grid points), "
+            f"plan {source} makes {jobs_count:,} jobs ({globbed + simulated:,} log(s) x {per_log:,} grid point(s)), "
             f"more than --max-jobs {max_jobs:,}",
             f"narrow the logs or grids, or pass --max-jobs {jobs_count} to run them all",
         )

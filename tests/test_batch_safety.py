@@ -91,7 +91,7 @@ def test_max_jobs_counts_logs_simulations_and_grid_points(tmp_path: Path) -> Non
         "[estimators.ekf.grid]\nobservation_sigma = [0.2, 0.3]\n[estimators.fastslam]\nparticles = 5\n",
     )
     # (3 globbed + 2 simulated logs) x (2 ekf + 1 fastslam points) = 15 jobs
-    with pytest.raises(UsageError, match=r"makes 15 jobs \(5 logs x 3 grid points\), more than --max-jobs 14"):
+    with pytest.raises(UsageError, match=r"makes 15 jobs \(5 log\(s\) x 3 grid point\(s\)\), more than --max-jobs 14"):
         load_plan(plan, max_jobs=14)
     jobs = load_plan(plan, max_jobs=15).jobs
     assert len(jobs) == 15 and len({job.job_id for job in jobs}) == 15
