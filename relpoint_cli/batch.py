@@ -102,12 +102,12 @@ def format_summary(plan: BatchPlan, outcome: BatchOutcome) -> str:
 @click.option(
     "--tls-ca-file",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="PEM CA certificate that signed a tls:// scheduler's certificate.",
+    help="PEM CA certificate that signed a tls:// scheduler's certificate (required with tls://).",
 )
 @click.option(
     "--tls-cert",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="PEM client certificate for a tls:// scheduler.",
+    help="PEM client certificate for a tls:// scheduler (required with tls://).",
 )
 @click.option(
     "--tls-key",

@@ -410,7 +410,7 @@ class LocalPool(Executor):
 
     Workers ignore SIGINT; :meth:`stop` cancels the queued items and sends the workers SIGTERM, on
     which a running job unwinds (an atomic job directory removes its temporary) and the worker exits;
-    a worker still alive after :data:`STOP_GRACE_S` is killed.
+    a worker still alive after :attr:`STOP_GRACE_S` is killed.
     """
 
     #: Seconds a terminated worker has to unwind its job before it is killed.
