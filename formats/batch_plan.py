@@ -20,10 +20,12 @@ import hashlib
 import io
 import itertools
 import json
+import logging
 import math
 import os
 import re
-import sys
+import stat
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,15 +34,11 @@ from typing import Any
 from formats.atomic import write_text
 from formats.config_files import read_document
 from formats.log import Topics
+from formats.outputs import MARKER, OutputError, check_output_file, probe_writable, register_csv_header
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import EvaluationSettings
 from relpoint.simulation import SimulationConfig
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
 
 #: Keys of an estimator table that set how the job runs rather than the estimator's config.
 RUN_KEYS = ("seed", "use_odometry", "use_fixes")
@@ -68,11 +66,16 @@ TIMING_COLUMNS = ("seconds_per_iteration", "wall_seconds", "cpu_seconds")
 #: Job outcomes.
 STATUSES = ("ok", "failed", "cancelled")
 
+#: Most jobs a plan may make unless ``relpoint batch --max-jobs N`` allows more.
+MAX_JOBS = 10_000
+
 _UNSAFE = re.compile(r"[^A-Za-z0-9._=+-]+")
 _MAX_NAME = 80
 
 
 Items = tuple[tuple[str, Any], ...]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -177,16 +180,26 @@ def _table(value: Any, where: str) -> dict[str, Any]:
     return {str(k).replace("-", "_"): v for k, v in value.items()}
 
 
-def expand_grid(fixed: Mapping[str, Any], grid: Mapping[str, Any], where: str) -> list[tuple[dict[str, Any], Items]]:
-    """Every combination of ``grid`` (name -> non-empty list) merged over ``fixed``, in row-major order.
+def grid_size(fixed: Mapping[str, Any], grid: Mapping[str, Any], where: str) -> int:
+    """Number of combinations of ``grid`` (name -> non-empty list), checked but not expanded.
 
-    Returns (all values, grid values) per combination; an empty grid gives one combination.
+    Raises :class:`UsageError` for a value that is not a non-empty list, or a name also in ``fixed``.
     """
     for name, values in grid.items():
         if not isinstance(values, list) or not values:
             raise UsageError(f"{where}.grid.{name} must be a non-empty list of values")
         if name in fixed:
             raise UsageError(f"{where}: {name} is both fixed and in the grid")
+    return math.prod(len(values) for values in grid.values())
+
+
+def expand_grid(fixed: Mapping[str, Any], grid: Mapping[str, Any], where: str) -> list[tuple[dict[str, Any], Items]]:
+    """Every combination of ``grid`` (name -> non-empty list) merged over ``fixed``, in row-major order.
+
+    Returns (all values, grid values) per combination; an empty grid gives one combination. Callers
+    bound :func:`grid_size` first: the list holds every combination.
+    """
+    grid_size(fixed, grid, where)
     names = list(grid)
     combinations = []
     for values in itertools.product(*(grid[name] for name in names)):
@@ -218,31 +231,105 @@ def _resolve(base: Path, text: str) -> Path:
     return path if path.is_absolute() else base / path
 
 
-def _glob_logs(base: Path, patterns: Any) -> list[Path]:
+def _inside_output(folder: str, results: str, verdicts: dict[str, bool]) -> bool:
+    """Whether the resolved directory ``folder`` is ``results``, or in it, or in a directory relpoint
+    wrote (one holding :data:`~formats.outputs.MARKER`).
+
+    ``verdicts`` caches the answer per directory, so a glob of N files costs O(N) directory checks.
+    """
+    chain: list[str] = []
+    while folder not in verdicts:
+        chain.append(folder)
+        if folder == results or os.path.isfile(os.path.join(folder, MARKER)):
+            verdict = True
+            break
+        parent = os.path.dirname(folder)
+        if parent == folder:
+            verdict = False
+            break
+        folder = parent
+    else:
+        verdict = verdicts[folder]
+    verdicts.update(dict.fromkeys(chain, verdict))
+    return verdict
+
+
+class _Resolver:
+    """``os.path.realpath`` of files, resolving each directory once (a glob's files share a few)."""
+
+    def __init__(self) -> None:
+        self._folders: dict[str, str] = {}
+
+    def file(self, text: str) -> str | None:
+        """The real path of ``text`` if it is a regular file (or a link to one), else None."""
+        try:
+            mode = os.lstat(text).st_mode
+        except OSError:
+            return None
+        if stat.S_ISLNK(mode):
+            real = os.path.realpath(text)
+            return real if os.path.isfile(real) else None
+        if not stat.S_ISREG(mode):
+            return None
+        folder, name = os.path.split(os.path.abspath(text))
+        real_folder = self._folders.get(folder)
+        if real_folder is None:
+            real_folder = self._folders[folder] = os.path.realpath(folder)
+        return os.path.join(real_folder, name)
+
+
+def _glob_logs(base: Path, patterns: Any, results: Path, limit: int) -> tuple[list[Path], int]:
+    """Logs the ``logs`` globs match, in pattern order, each pattern's matches sorted; and their count.
+
+    A glob (a pattern with ``*``, ``?`` or ``[``) leaves out files inside ``results`` and inside any
+    relpoint output directory, so a batch never reads its own or another run's outputs as logs; a
+    plain path is taken as given. Only the first ``limit`` logs are returned (the count goes on), so
+    a glob over a huge tree costs no memory beyond the plan's job limit.
+    """
     if patterns is None:
-        return []
+        return [], 0
     if isinstance(patterns, str):
         patterns = [patterns]
     if not isinstance(patterns, list) or not all(isinstance(p, str) for p in patterns):
         raise UsageError("plan: logs must be a glob or a list of globs")
     logs: list[Path] = []
+    count = 0
+    resolver = _Resolver()
+    verdicts: dict[str, bool] = {}
     for pattern in patterns:
-        matches = sorted(Path(m) for m in glob.glob(str(_resolve(base, pattern)), recursive=True))
-        files = [m.resolve() for m in matches if m.is_file()]
-        if not files:
-            raise UsageError(f"plan: logs pattern {pattern!r} matches no file", f"patterns are relative to {base}")
-        logs.extend(files)
-    return logs
+        matches: list[tuple[str, str]] = []  # (sort key, real path)
+        left_out = 0
+        for text in glob.iglob(str(_resolve(base, pattern)), recursive=True):
+            real = resolver.file(text)
+            if real is None:
+                continue
+            if glob.has_magic(pattern) and _inside_output(os.path.dirname(real), str(results), verdicts):
+                left_out += 1
+                continue
+            count += 1
+            if count <= limit:
+                matches.append((text.replace(os.sep, "\0"), real))  # sorts as paths do: by component
+        if not matches and count <= limit:
+            outputs = f" ({left_out} inside relpoint outputs left out)" if left_out else ""
+            raise UsageError(
+                f"plan: logs pattern {pattern!r} matches no file{outputs}", f"patterns are relative to {base}"
+            )
+        if left_out:
+            log.info("logs pattern %r: left out %d file(s) inside relpoint outputs", pattern, left_out)
+        matches.sort()
+        logs.extend(Path(real) for _, real in matches)
+    return logs, count
 
 
-def _simulations(entries: Any, results: Path) -> list[SimulationStep]:
+def _simulation_entries(entries: Any) -> list[tuple[str, str, dict[str, Any], dict[str, Any]]]:
+    """``(where, name, fixed settings, grid)`` of each ``[[simulate]]`` table, checked but not expanded."""
     if entries is None:
         return []
     if isinstance(entries, dict):
         entries = [entries]
     if not isinstance(entries, list):
         raise UsageError("plan: simulate must be a list of tables ([[simulate]])")
-    steps: list[SimulationStep] = []
+    parsed = []
     for index, entry in enumerate(entries):
         where = f"simulate[{index}]"
         values = _table(entry, where)
@@ -250,6 +337,14 @@ def _simulations(entries: Any, results: Path) -> list[SimulationStep]:
         if not name or _UNSAFE.search(name) or name.startswith("."):
             raise UsageError(f"{where}: name {name!r} must be a plain file name (letters, digits, . _ = + -)")
         grid = _table(values.pop("grid", None), f"{where}.grid")
+        grid_size(values, grid, where)
+        parsed.append((where, name, values, grid))
+    return parsed
+
+
+def _simulations(entries: list[tuple[str, str, dict[str, Any], dict[str, Any]]], results: Path) -> list[SimulationStep]:
+    steps: list[SimulationStep] = []
+    for where, name, values, grid in entries:
         for settings, swept in expand_grid(values, grid, where):
             log_name = name if not swept else f"{name}-{_slug(swept)}"
             try:
@@ -257,19 +352,29 @@ def _simulations(entries: Any, results: Path) -> list[SimulationStep]:
             except UsageError as error:
                 raise UsageError(f"{where}: {error.message}", error.hint) from None
             steps.append(SimulationStep(log_name, results / "logs" / f"{log_name}.mcap", config))
-    names = [step.name for step in steps]
-    duplicates = sorted({n for n in names if names.count(n) > 1})
+    duplicates = sorted(name for name, uses in Counter(step.name for step in steps).items() if uses > 1)
     if duplicates:
         raise UsageError(f"plan: simulated log name(s) used twice: {', '.join(duplicates)}")
     return steps
 
 
-def _estimator_tables(value: Any) -> dict[str, dict[str, Any]]:
+def _estimator_tables(value: Any) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
+    """``name -> (fixed values, grid)`` of the plan's estimators, checked but not expanded."""
     if isinstance(value, list) and all(isinstance(v, str) for v in value):
-        return {name: {} for name in value}
-    if isinstance(value, dict):
-        return {str(name): _table(table, f"estimators.{name}") for name, table in value.items()}
-    raise UsageError("plan: estimators must be a list of names or a table of estimator tables")
+        tables = {name: {} for name in value}
+    elif isinstance(value, dict):
+        tables = {str(name): _table(table, f"estimators.{name}") for name, table in value.items()}
+    else:
+        raise UsageError("plan: estimators must be a list of names or a table of estimator tables")
+    parsed = {}
+    for name, table in tables.items():
+        where = f"estimators.{name}"
+        if name not in ESTIMATORS:
+            raise UsageError(f"{where}: unknown estimator {name!r}", f"choose from {', '.join(sorted(ESTIMATORS))}")
+        grid = _table(table.pop("grid", None), f"{where}.grid")
+        grid_size(table, grid, where)
+        parsed[name] = (table, grid)
+    return parsed
 
 
 def _run_options(values: dict[str, Any], where: str) -> tuple[int, bool, bool]:
@@ -292,32 +397,83 @@ def _estimator_config(name: str, values: dict[str, Any], where: str) -> None:
         raise UsageError(f"{where}: {error.message}", error.hint) from None
 
 
+@dataclass(frozen=True)
+class _GridPoint:
+    """One estimator with one parameter set: the part of a job that does not depend on the log."""
+
+    estimator: str
+    directory: str
+    parameters: Items
+    seed: int
+    use_odometry: bool
+    use_fixes: bool
+
+
+def _grid_points(tables: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]) -> list[_GridPoint]:
+    """Every estimator's grid points, each config validated once; distinct directories per point."""
+    points: list[_GridPoint] = []
+    seen: set[str] = set()
+    for name, (fixed, grid) in tables.items():
+        where = f"estimators.{name}"
+        for values, swept in expand_grid(fixed, grid, where):
+            config_values = dict(values)
+            seed, use_odometry, use_fixes = _run_options(config_values, where)
+            _estimator_config(name, config_values, where)
+            directory = f"{name}/{_slug(swept)}"
+            if directory in seen:
+                raise UsageError(f"plan: grid values of {where} give the job directory {directory} twice",
+                                 "make the values differ in their text")  # fmt: skip
+            seen.add(directory)
+            points.append(
+                _GridPoint(name, directory, tuple(sorted(config_values.items())), seed, use_odometry, use_fixes)
+            )
+    return points
+
+
 def _log_labels(logs: Sequence[Path]) -> dict[Path, str]:
-    """A directory name per log: its stem, with a path hash where stems clash."""
-    stems = [log.stem for log in logs]
-    labels = {}
-    for log, stem in zip(logs, stems, strict=True):
+    """A directory name per log: its stem, with a path hash where stems clash.
+
+    Raises :class:`UsageError` naming both paths when two different stems reduce to the same name
+    (``a b.mcap`` and ``a-b.mcap``: characters outside letters, digits and ``. _ = + -`` become ``-``).
+    """
+    stems = {log: log.stem for log in logs}
+    uses = Counter(stems.values())
+    labels: dict[Path, str] = {}
+    owners: dict[str, Path] = {}
+    for log, stem in stems.items():
         label = _UNSAFE.sub("-", stem).strip(".") or "log"
         if label == "logs":  # RESULTS/logs holds the simulated logs
             label = "logs-run"
-        if stems.count(stem) > 1:
+        if uses[stem] > 1:
             label += "-" + hashlib.sha1(str(log).encode("utf-8")).hexdigest()[:8]
+        other = owners.setdefault(label, log)
+        if other != log:
+            raise UsageError(f"plan: logs {other} and {log} both give the job directory name {label}",
+                             "rename one of them (only letters, digits and . _ = + - are kept)")  # fmt: skip
         labels[log] = label
     return labels
 
 
-def load_plan(path: str | os.PathLike[str], results: str | os.PathLike[str] | None = None) -> BatchPlan:
+def load_plan(
+    path: str | os.PathLike[str], results: str | os.PathLike[str] | None = None, *, max_jobs: int = MAX_JOBS
+) -> BatchPlan:
     """Parse and validate a plan file into a :class:`BatchPlan`.
 
     Paths in the plan (``results``, ``logs`` globs) are relative to the plan's directory; ``results``
     (``--results``) overrides the plan's results root and is relative to the working directory. Globs
-    are expanded now, so logs that appear later are not picked up by this plan.
+    are expanded now, so logs that appear later are not picked up by this plan; they never pick up
+    files inside the results root or inside a relpoint output directory.
+
+    The number of jobs (logs x grid points) is counted from the globs and the grids' lengths before
+    any grid is expanded; a plan of more than ``max_jobs`` jobs is refused. Loading is linear in the
+    number of jobs.
 
     Raises
     ------
     UsageError
         Unreadable or malformed plan, unknown keys, estimators or parameters, invalid values, globs that
-        match nothing, or a plan without logs or estimators.
+        match nothing, a plan without logs or estimators, more than ``max_jobs`` jobs, or two logs or
+        grid points that would share a job directory.
     """
     source = Path(path).resolve()
     data = _read_document(source)
@@ -329,11 +485,25 @@ def load_plan(path: str | os.PathLike[str], results: str | os.PathLike[str] | No
             raise UsageError("plan: results must be a directory path")
         root = _resolve(base, data.get("results", "results")).resolve()
 
-    simulations = _simulations(data.get("simulate"), root)
-    logs = _glob_logs(base, data.get("logs"))
-    logs = list(dict.fromkeys([*logs, *(step.output for step in simulations)]))
-    if not logs:
+    simulation_entries = _simulation_entries(data.get("simulate"))
+    tables = _estimator_tables(data.get("estimators"))
+    if not tables:
+        raise UsageError(f"plan {source} names no estimators")
+    simulated = sum(grid_size(values, grid, where) for where, _, values, grid in simulation_entries)
+    per_log = sum(grid_size(fixed, grid, f"estimators.{name}") for name, (fixed, grid) in tables.items())
+    logs, globbed = _glob_logs(base, data.get("logs"), root, limit=max(0, max_jobs // per_log - simulated))
+    jobs_count = (globbed + simulated) * per_log
+    if jobs_count > max_jobs:
+        raise UsageError(
+            f"plan {source} makes {jobs_count:,} jobs ({globbed + simulated:,} log(s) x {per_log:,} grid point(s)), "
+            f"more than --max-jobs {max_jobs:,}",
+            f"narrow the logs or grids, or pass --max-jobs {jobs_count} to run them all",
+        )
+    if not logs and not simulated:
         raise UsageError(f"plan {source} names no logs", 'add logs = ["GLOB", ...] or [[simulate]] steps')
+
+    simulations = _simulations(simulation_entries, root)
+    logs = list(dict.fromkeys([*logs, *(step.output for step in simulations)]))
 
     topics_table = _table(data.get("topics"), "topics")
     try:
@@ -353,38 +523,16 @@ def load_plan(path: str | os.PathLike[str], results: str | os.PathLike[str] | No
     except (TypeError, ValueError) as error:
         raise UsageError(f"plan: bad evaluation setting: {error}") from None
 
-    tables = _estimator_tables(data.get("estimators"))
-    if not tables:
-        raise UsageError(f"plan {source} names no estimators")
-    points: list[tuple[str, dict[str, Any], Items]] = []
-    for name, table in tables.items():
-        where = f"estimators.{name}"
-        if name not in ESTIMATORS:
-            raise UsageError(f"{where}: unknown estimator {name!r}", f"choose from {', '.join(sorted(ESTIMATORS))}")
-        grid = _table(table.pop("grid", None), f"{where}.grid")
-        for values, swept in expand_grid(table, grid, where):
-            points.append((name, values, swept))
-
-    labels = _log_labels(logs)
-    jobs: list[Job] = []
-    for log in logs:
-        for name, values, swept in points:
-            where = f"estimators.{name}"
-            config_values = dict(values)
-            seed, use_odometry, use_fixes = _run_options(config_values, where)
-            _estimator_config(name, config_values, where)
-            job_id = f"{labels[log]}/{name}/{_slug(swept)}"
-            jobs.append(
-                Job(
-                    job_id=job_id, log=log, estimator=name, parameters=tuple(sorted(config_values.items())),
-                    seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, topics=topics,
-                    evaluation=evaluation, output=root / job_id,
-                )
-            )  # fmt: skip
-    ids = [job.job_id for job in jobs]
-    clashes = sorted({i for i in ids if ids.count(i) > 1})
-    if clashes:
-        raise UsageError(f"plan: grid values give the same job directory twice: {', '.join(clashes[:3])}")
+    points = _grid_points(tables)
+    jobs = [
+        Job(
+            job_id=f"{label}/{point.directory}", log=log, estimator=point.estimator, parameters=point.parameters,
+            seed=point.seed, use_odometry=point.use_odometry, use_fixes=point.use_fixes, topics=topics,
+            evaluation=evaluation, output=root.joinpath(label, point.directory),
+        )
+        for log, label in _log_labels(logs).items()  # in the order of ``logs``
+        for point in points
+    ]  # fmt: skip
     return BatchPlan(source=source, results=root, simulations=tuple(simulations), jobs=tuple(jobs))
 
 
@@ -423,6 +571,46 @@ def results_csv(rows: Iterable[Mapping[str, Any]]) -> str:
                 cells.append(str(value))
         writer.writerow(cells)
     return buffer.getvalue()
+
+
+register_csv_header(RESULT_COLUMNS)
+
+
+def _results_json_of_a_batch(path: Path) -> bool:
+    """Whether ``path`` is a ``results.json`` that :func:`write_results` wrote."""
+    try:
+        if path.stat().st_size > 200_000_000:
+            return False
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(document, dict) and {"plan", "results", "counts", "jobs"} <= set(document)
+
+
+def check_outputs(plan: BatchPlan) -> None:
+    """Check, before any job runs, that the batch replaces only what relpoint wrote.
+
+    ``results.csv`` and ``results.json`` may replace only earlier batch results, and a simulated log
+    only a log relpoint wrote; the results root must be writable. Job directories are checked as they
+    are written (:func:`formats.atomic.atomic_directory` replaces only a relpoint output). Raises
+    :class:`~formats.outputs.OutputError` (exit 2) naming the file and the way out.
+    """
+    hint = "move it away or choose another results root (--results DIR)"
+    for path in (plan.results / "results.csv", plan.results / "results.json"):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        ours = _results_json_of_a_batch(path) if path.suffix == ".json" else None
+        try:
+            check_output_file(path, inputs=[plan.source], overwrite=bool(ours))
+        except OutputError as error:
+            raise OutputError(error.message, hint) from None
+    for step in plan.simulations:
+        if step.output.exists() or step.output.is_symlink():
+            try:
+                check_output_file(step.output, inputs=[plan.source])
+            except OutputError as error:
+                raise OutputError(f"simulated log {step.name}: {error.message}", hint) from None
+    probe_writable(plan.results, plan.results)
 
 
 def write_results(plan: BatchPlan, rows: Sequence[Mapping[str, Any]]) -> tuple[Path, Path]:

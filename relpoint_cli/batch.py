@@ -15,9 +15,19 @@ from typing import Any
 
 import click
 
-from formats.batch_plan import BatchPlan, load_plan, write_results
-from relpoint.errors import UsageError
-from relpoint_cli.batch_jobs import BatchOutcome, DaskExecutor, Executor, JobFailed, LocalPool, run_plan
+from formats.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
+from relpoint.errors import Interrupted, UsageError
+from relpoint_cli.batch_jobs import (
+    BatchOutcome,
+    DaskExecutor,
+    Executor,
+    JobFailed,
+    LocalPool,
+    TlsFiles,
+    parse_scheduler,
+    run_plan,
+    scheduler_security,
+)
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.progress import progress_bar
 
@@ -25,12 +35,16 @@ EXAMPLES = """\b
 Examples:
   relpoint batch plan.toml                          # local process pool, one worker per core
   relpoint batch plan.toml --jobs 2 --results out/  # two workers, results root out/
-  relpoint batch plan.yaml --scheduler tcp://10.0.0.5:8786   # an existing Dask cluster
+  relpoint batch plan.yaml --scheduler tcp://127.0.0.1:8786  # a Dask cluster on this machine
+  relpoint batch plan.yaml --scheduler tls://10.0.0.5:8786 --tls-ca-file ca.pem \\
+      --tls-cert client.pem --tls-key client.key          # a remote cluster, over TLS
   relpoint batch plan.toml --fail-fast              # CI: stop at the first failed job (exit 4)
 
 \b
-A job whose complete output exists is skipped, so rerunning a plan resumes it.
-Exit codes: 0 every job ok, 2 a bad plan, 3 no scheduler, 4 a job failed.
+A job whose complete output exists is skipped, so rerunning a plan resumes it
+(also after Ctrl-C, which cancels running jobs and leaves no partial job directory).
+Only connect to schedulers you trust: a Dask scheduler can run code in this process.
+Exit codes: 0 every job ok, 2 a bad plan or options, 3 no scheduler, 4 a job failed, 130 interrupted.
 See docs/batch.md for the plan format.
 """
 
@@ -80,7 +94,39 @@ def format_summary(plan: BatchPlan, outcome: BatchOutcome) -> str:
     "-j", "--jobs", type=click.IntRange(min=1), default=None,
     help="Worker processes of the local pool [default: the usable cores].",
 )  # fmt: skip
-@click.option("--scheduler", metavar="tcp://HOST:PORT", help="Run on this Dask distributed scheduler instead.")
+@click.option(
+    "--scheduler",
+    metavar="tcp://HOST:PORT",
+    help="Run on this Dask distributed scheduler instead (tls://HOST:PORT with the --tls-* files).",
+)
+@click.option(
+    "--tls-ca-file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="PEM CA certificate that signed a tls:// scheduler's certificate (required with tls://).",
+)
+@click.option(
+    "--tls-cert",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="PEM client certificate for a tls:// scheduler (required with tls://).",
+)
+@click.option(
+    "--tls-key",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="PEM key of --tls-cert (if not inside it).",
+)
+@click.option(
+    "--max-jobs",
+    type=click.IntRange(min=1),
+    default=MAX_JOBS,
+    show_default=True,
+    help="Refuse a plan of more jobs than this (counted before the grids are expanded).",
+)
+@click.option(
+    "--resume/--no-resume",
+    default=True,
+    show_default=True,
+    help="Skip jobs whose complete output exists for the same spec; --no-resume runs them all again.",
+)
 @click.option("--fail-fast", is_flag=True, help="Stop at the first failed job (what has not started is cancelled).")
 @click.option(
     "--results", "results_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -88,7 +134,8 @@ def format_summary(plan: BatchPlan, outcome: BatchOutcome) -> str:
 )  # fmt: skip
 @click.pass_context
 @handle_errors
-def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str | None, fail_fast: bool,
+def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str | None, tls_ca_file: Path | None,
+          tls_cert: Path | None, tls_key: Path | None, max_jobs: int, resume: bool, fail_fast: bool,
           results_dir: Path | None) -> None:  # fmt: skip
     """Run every job of PLAN (logs x estimators x parameter grid), evaluate each, and tabulate the results.
 
@@ -97,26 +144,51 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
     """
     if scheduler is not None and jobs is not None:
         raise UsageError("--jobs sets the local pool's size; the Dask cluster's workers decide with --scheduler")
-    plan = load_plan(plan_file, results=results_dir)
+    tls = TlsFiles(tls_ca_file, tls_cert, tls_key) if (tls_ca_file or tls_cert or tls_key) else None
+    if scheduler is None:
+        if tls is not None:
+            raise UsageError("--tls-ca-file, --tls-cert and --tls-key go with --scheduler tls://HOST:PORT")
+        address = security = None
+    else:
+        address = parse_scheduler(scheduler)
+        security = scheduler_security(address, tls)
+    plan = load_plan(plan_file, results=results_dir, max_jobs=max_jobs)
+    check_outputs(plan)
     quiet = bool(ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
-    executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalPool(jobs or default_workers())
-    with (
-        executor,
-        progress_bar(len(plan.simulations), "simulate", unit="log") as sim_bar,
-        progress_bar(len(plan.jobs), "batch", unit="job") as bar,
-    ):
+    executor: Executor = (
+        DaskExecutor(address, security) if address is not None else LocalPool(jobs or default_workers())
+    )
+    finished = 0
+    try:
+        with (
+            executor,
+            progress_bar(len(plan.simulations), "simulate", unit="log") as sim_bar,
+            progress_bar(len(plan.jobs), "batch", unit="job") as bar,
+        ):
 
-        def on_simulated(row: dict[str, Any]) -> None:
-            sim_bar.update(1)
-            if row["status"] != "ok" and not quiet:
-                sim_bar.write(f"relpoint: warning: simulating {row['name']} failed: {row['error']}", file=sys.stderr)
+            def on_simulated(row: dict[str, Any]) -> None:
+                sim_bar.update(1)
+                if row["status"] != "ok" and not quiet:
+                    sim_bar.write(
+                        f"relpoint: warning: simulating {row['name']} failed: {row['error']}", file=sys.stderr
+                    )
 
-        def on_job(row: dict[str, Any], resumed: bool) -> None:
-            bar.update(1)
-            if row["status"] == "failed" and not quiet:
-                bar.write(f"relpoint: warning: job {row['job']} failed: {row['error']}", file=sys.stderr)
+            def on_job(row: dict[str, Any], resumed: bool) -> None:
+                nonlocal finished
+                finished += 1
+                bar.update(1)
+                if row["status"] == "failed" and not quiet:
+                    bar.write(f"relpoint: warning: job {row['job']} failed: {row['error']}", file=sys.stderr)
 
-        outcome = run_plan(plan, executor, fail_fast=fail_fast, on_simulated=on_simulated, on_job=on_job)
+            outcome = run_plan(
+                plan, executor, fail_fast=fail_fast, resume=resume, on_simulated=on_simulated, on_job=on_job
+            )
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the executor has cancelled the running jobs
+        raise Interrupted(
+            f"interrupted: {finished} of {len(plan.jobs)} job(s) done and kept, the others cancelled "
+            "without leaving a job directory",
+            "run the same command again to resume",
+        ) from None
     csv_path, _ = write_results(plan, outcome.rows)
     click.echo(format_summary(plan, outcome))
     if not quiet:

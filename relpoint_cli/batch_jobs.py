@@ -18,10 +18,13 @@ import concurrent.futures.process
 import contextlib
 import dataclasses
 import io
+import ipaddress
 import json
 import logging
 import multiprocessing
 import os
+import re
+import signal
 import socket
 import threading
 import time
@@ -39,7 +42,7 @@ from formats.reference_trajectories import load_ground_truth_landmarks, load_lan
 from formats.run_output import RUN_FILES
 from formats.simulation_log import write_simulation
 from relpoint import pipeline
-from relpoint.errors import RelpointError
+from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
 from relpoint.simulation import simulate
@@ -61,6 +64,92 @@ class JobFailed(RelpointError):
 
 
 # --- inside a worker ---------------------------------------------------------------------------------
+
+
+class JobCancelled(BaseException):
+    """Raised in a pool worker by SIGTERM while it runs a job: the job unwinds (its temporaries are removed).
+
+    A ``BaseException``, like ``KeyboardInterrupt``, so that :func:`run_job` does not record it as the
+    job's failure.
+    """
+
+
+#: Whether this worker process is inside a job (SIGTERM then unwinds the job before the worker exits).
+_in_job = False
+#: Whether this worker has been told to stop (it then starts no further item).
+_stopping = False
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    global _stopping
+    _stopping = True
+    if _in_job:
+        raise JobCancelled
+    os._exit(128 + signum)
+
+
+def _init_worker() -> None:
+    """Signals of a pool worker: the parent decides about Ctrl-C; SIGTERM stops the worker's job.
+
+    The terminal sends Ctrl-C's SIGINT to the whole process group; workers ignore it and leave it to
+    the parent, which cancels what is queued and then terminates them (:meth:`LocalPool.stop`).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+#: Per thread: a function that says whether this thread's job was cancelled (set by the Dask executor,
+#: whose worker threads cannot be signalled).
+_cancellation = threading.local()
+
+
+def _stop_if_cancelled(*_: Any) -> None:
+    """Called after every estimator iteration of a job: raises :class:`JobCancelled` once it is cancelled."""
+    cancelled = getattr(_cancellation, "check", None)
+    if cancelled is not None and cancelled():
+        raise JobCancelled
+
+
+def _call_in_dask(function: Callable[[Any], Any], item: Any) -> Any:
+    """Run ``function(item)`` as a Dask task that stops at its next iteration once its future is cancelled.
+
+    Dask cannot interrupt a running task; the job polls its own state on the worker (a dictionary
+    look-up, no network) and unwinds like a terminated pool worker's job. Returns None when cancelled
+    (nobody waits for the result).
+    """
+    from distributed import get_worker
+
+    worker = get_worker()
+    key = worker.get_current_task()
+
+    def cancelled() -> bool:
+        task = worker.state.tasks.get(key)
+        return task is None or task.state in ("cancelled", "released", "forgotten")
+
+    _cancellation.check = cancelled
+    try:
+        return function(item)
+    except JobCancelled:
+        return None
+    finally:
+        _cancellation.check = None
+
+
+def _call_in_worker(function: Callable[[Any], Any], item: Any) -> Any:
+    """Run ``function(item)`` in a pool worker; a cancelled job ends the worker once it has unwound.
+
+    Exiting (rather than returning to the pool's loop) keeps the worker from taking another item.
+    """
+    global _in_job
+    if _stopping:
+        os._exit(128 + signal.SIGTERM)
+    _in_job = True
+    try:
+        return function(item)
+    except JobCancelled:
+        os._exit(128 + signal.SIGTERM)
+    finally:
+        _in_job = False
 
 
 @contextlib.contextmanager
@@ -138,7 +227,7 @@ def _run(job: Job, out_dir: Path) -> tuple[pipeline.RunResult, bool]:
     log.info("running %s over %s", spec.name, job.log)
     result = execute_run(
         reader, spec, config, out_dir, seed=job.seed, use_odometry=job.use_odometry, use_fixes=job.use_fixes,
-        extra_info={"batch_job": job.job_id},
+        extra_info={"batch_job": job.job_id}, on_iteration=_stop_if_cancelled,
     )  # fmt: skip
     timing = result.timing_summary()
     log.info(
@@ -280,14 +369,36 @@ class Executor(ABC):
         """Cancel what has not started (``--fail-fast``); running items finish."""
 
     @abstractmethod
-    def close(self, wait: bool = True) -> None:
-        """Release workers or the connection (``wait=False`` after an interrupt: do not wait for running items)."""
+    def stop(self) -> None:
+        """After an interrupt: start nothing more, cancel what runs, and release the workers at once."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release workers or the connection once every item is done."""
 
     def __enter__(self) -> Executor:
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        self.close(wait=exc is None)
+        if exc is None:
+            self.close()
+            return
+        with _signals_ignored():  # a second Ctrl-C must not cut the clean-up short
+            self.stop()
+
+
+@contextlib.contextmanager
+def _signals_ignored() -> Iterator[None]:
+    """SIGINT and SIGTERM ignored for the block (in the main thread; elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 class LocalPool(Executor):
@@ -296,7 +407,14 @@ class LocalPool(Executor):
     Workers come from a fork server that has imported this module once (spawned where there is none),
     never forked from the parent, which may hold threads (progress bar, logging, a test runner): each
     starts as a clean interpreter, as a cluster worker does, without paying the imports again.
+
+    Workers ignore SIGINT; :meth:`stop` cancels the queued items and sends the workers SIGTERM, on
+    which a running job unwinds (an atomic job directory removes its temporary) and the worker exits;
+    a worker still alive after :attr:`STOP_GRACE_S` is killed.
     """
+
+    #: Seconds a terminated worker has to unwind its job before it is killed.
+    STOP_GRACE_S = 1.0
 
     def __init__(self, workers: int) -> None:
         if "forkserver" in multiprocessing.get_all_start_methods():
@@ -304,19 +422,21 @@ class LocalPool(Executor):
             context.set_forkserver_preload([__name__])
         else:  # pragma: no cover - Windows
             context = multiprocessing.get_context("spawn")
-        self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context)
+        self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
+            max_workers=workers, mp_context=context, initializer=_init_worker
+        )
         self._pool = self._new_pool()
         self._futures: list[concurrent.futures.Future[Any]] = []
 
     def _submit(self, function: Callable[[Any], Any], item: Any) -> concurrent.futures.Future[Any]:
         try:
-            return self._pool.submit(function, item)
+            return self._pool.submit(_call_in_worker, function, item)
         except concurrent.futures.process.BrokenProcessPool:
             # a worker died hard (killed, out of memory) in an earlier phase: its items are already
             # recorded as failed; later items get fresh workers
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = self._new_pool()
-            return self._pool.submit(function, item)
+            return self._pool.submit(_call_in_worker, function, item)
 
     def map_unordered(self, function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Outcome]]:
         index = {}
@@ -336,28 +456,148 @@ class LocalPool(Executor):
         for future in self._futures:
             future.cancel()
 
-    def close(self, wait: bool = True) -> None:
-        self._pool.shutdown(wait=wait, cancel_futures=True)
+    def stop(self) -> None:
+        # the pool forgets its processes on shutdown: take them first
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        deadline = time.monotonic() + self.STOP_GRACE_S
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+        for process in processes:
+            if process.is_alive():
+                process.kill()
+                process.join(self.STOP_GRACE_S)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+_ADDRESS = re.compile(
+    r"(?:(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://)?(?P<host>\[[^\]]*\]|[^:/\[\]]+):(?P<port>[0-9]{1,5})"
+)
+_HOST_NAME = re.compile(r"[A-Za-z0-9_]([A-Za-z0-9_.-]*[A-Za-z0-9_])?")
+
+
+@dataclasses.dataclass(frozen=True)
+class SchedulerAddress:
+    """A checked ``--scheduler`` address: ``scheme://host:port`` with scheme ``tcp`` or ``tls``."""
+
+    scheme: str
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}"
+
+    @property
+    def is_local(self) -> bool:
+        """Whether the host is this machine (a loopback address, ``localhost`` or this host's name)."""
+        if self.host.lower() in ("localhost", socket.gethostname().lower()):
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+
+def parse_scheduler(text: str) -> SchedulerAddress:
+    """Check a ``--scheduler`` value (``tcp://HOST:PORT``, ``tls://HOST:PORT``, or ``HOST:PORT`` for tcp).
+
+    Raises :class:`UsageError` (exit 2) naming the value for anything else: another scheme, a missing
+    or out-of-range port, a malformed host or IPv6 address.
+    """
+    shown = text if len(text) <= 80 else text[:77] + "..."
+    hint = "give tcp://HOST:PORT or tls://HOST:PORT (IPv6 in brackets: tcp://[::1]:8786)"
+    match = _ADDRESS.fullmatch(text.strip())
+    if match is None:
+        raise UsageError(f"--scheduler {shown!r} is not a scheduler address", hint)
+    scheme = (match["scheme"] or "tcp").lower()
+    if scheme not in ("tcp", "tls"):
+        raise UsageError(f"--scheduler {shown!r}: unsupported scheme {scheme}://", hint)
+    host, port = match["host"], int(match["port"])
+    if host.startswith("["):
+        host = host[1:-1]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise UsageError(f"--scheduler {shown!r}: {host!r} is not an IPv6 address", hint) from None
+    elif _HOST_NAME.fullmatch(host) is None:
+        raise UsageError(f"--scheduler {shown!r}: {host!r} is not a host name or address", hint)
+    if not 1 <= port <= 65535:
+        raise UsageError(f"--scheduler {shown!r}: port {port} is not in 1..65535", hint)
+    return SchedulerAddress(scheme, host, port)
+
+
+@dataclasses.dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of a ``tls://`` connection (``--tls-ca-file``, ``--tls-cert``, ``--tls-key``).
+
+    ``ca_file`` signed the scheduler's certificate; ``cert`` (with ``key``, unless the key is inside
+    it) is the client's own: Dask's TLS is mutual, the scheduler checks the client too.
+    """
+
+    ca_file: Path | None = None
+    cert: Path | None = None
+    key: Path | None = None
+
+
+def scheduler_security(address: SchedulerAddress, tls: TlsFiles | None) -> Any:
+    """The ``distributed.security.Security`` of a connection to ``address`` (None for plain tcp).
+
+    ``tls://`` needs the CA file and the client certificate, and encryption is then required; TLS
+    files with a ``tcp://`` address are a usage error. The files are loaded now, so a bad one is
+    refused (exit 2) before anything runs.
+    """
+    if address.scheme == "tcp":
+        if tls is not None:
+            raise UsageError("--tls-ca-file, --tls-cert and --tls-key need a tls:// scheduler address",
+                             f"use tls://{str(address).split('://', 1)[1]}")  # fmt: skip
+        return None
+    if tls is None or tls.ca_file is None or tls.cert is None:
+        raise UsageError(f"--scheduler {address} needs --tls-ca-file and --tls-cert",
+                         "the CA that signed the scheduler's certificate, and this client's certificate "
+                         "(--tls-key if its key is a separate file)")  # fmt: skip
+    from distributed.security import Security
+
+    security = Security(
+        tls_ca_file=str(tls.ca_file),
+        tls_client_cert=str(tls.cert),
+        tls_client_key=None if tls.key is None else str(tls.key),
+        require_encryption=True,
+    )
+    try:
+        security.get_connection_args("client")  # builds the SSL context from the files
+    except (OSError, ValueError) as error:  # ssl.SSLError is an OSError
+        raise UsageError(f"cannot use the TLS files {tls.ca_file.name}, {tls.cert.name}: {error}",
+                         "give PEM files: the CA certificate, the client certificate and its key") from None  # fmt: skip
+    return security
 
 
 class DaskExecutor(Executor):
     """A ``dask.distributed`` client of the scheduler at ``address`` (``--scheduler tcp://HOST:PORT``).
 
     Workers must import the same relpoint version and see the plan's paths (a shared file system).
+    The scheduler is trusted: Dask moves pickled objects, so a scheduler (or anyone who can speak to
+    the client over plain tcp) can run code in this process. Hence ``tls://`` with certificates
+    (``security``, see :func:`scheduler_security`), and a warning for plain tcp to another host.
     """
 
-    def __init__(self, address: str, timeout_s: float = 10.0) -> None:
+    def __init__(self, address: SchedulerAddress, security: Any = None, timeout_s: float = 10.0) -> None:
         try:
             from distributed import Client
         except ImportError:
-            from relpoint.errors import UsageError
-
             raise UsageError("--scheduler needs dask.distributed", "pip install 'relpoint[cluster]'") from None
+        if address.scheme == "tcp" and not address.is_local:
+            log.warning(
+                "the scheduler %s is reached over plain tcp: anyone on the network between can read the jobs "
+                "or run code in this process; use tls:// with --tls-ca-file/--tls-cert/--tls-key", address
+            )  # fmt: skip
         try:
-            self._client = Client(address, timeout=timeout_s)
+            self._client = Client(str(address), timeout=timeout_s, security=security)
         except (OSError, TimeoutError) as error:
-            from relpoint.errors import InputError
-
             raise InputError(f"cannot connect to the Dask scheduler at {address}: {error}") from None
         self._futures: list[Any] = []
 
@@ -370,7 +610,9 @@ class DaskExecutor(Executor):
         futures = []
         for i, item in enumerate(items):
             # earlier items first, like the pool; keys unique per batch so a rerun is not served from memory
-            future = self._client.submit(function, item, key=f"relpoint-{name}-{token}-{i}", pure=False, priority=-i)
+            future = self._client.submit(
+                _call_in_dask, function, item, key=f"relpoint-{name}-{token}-{i}", pure=False, priority=-i
+            )
             index[future.key] = i
             futures.append(future)
         self._futures.extend(futures)
@@ -387,9 +629,17 @@ class DaskExecutor(Executor):
         if pending:
             self._client.cancel(pending)
 
-    def close(self, wait: bool = True) -> None:
-        if not wait:
-            self.cancel_pending()
+    def stop(self) -> None:
+        """Cancel every future of this client; a running job notices at its next estimator iteration.
+
+        Dask cannot interrupt a task's thread: a running job polls its task's state after every
+        iteration (:func:`_call_in_dask`) and unwinds, leaving no job directory.
+        """
+        if self._futures:
+            self._client.cancel(self._futures, force=True)
+        self._client.close(timeout=2)
+
+    def close(self) -> None:
         self._client.close()
 
 
@@ -420,10 +670,14 @@ def run_plan(
     executor: Executor,
     *,
     fail_fast: bool = False,
+    resume: bool = True,
     on_simulated: Callable[[dict[str, Any]], None] | None = None,
     on_job: Callable[[dict[str, Any], bool], None] | None = None,
 ) -> BatchOutcome:
     """Make the plan's simulated logs, then run its jobs on ``executor``; skip work already done.
+
+    With ``resume`` (the default) a job whose complete output exists for the same spec is not run
+    again (:func:`completed_row`); without it every job runs and replaces its directory.
 
     ``on_simulated(row)`` is called per simulated log made, ``on_job(row, resumed)`` once per job
     (resumed jobs first). A job whose log failed to simulate fails without running. With
@@ -450,7 +704,7 @@ def run_plan(
     batch = BatchOutcome(rows=[])
     pending: list[int] = []
     for i, job in enumerate(plan.jobs):
-        stored = completed_row(job)
+        stored = completed_row(job) if resume else None
         if stored is not None:
             rows[i] = stored
             batch.resumed += 1
