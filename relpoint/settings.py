@@ -7,9 +7,15 @@ adds building from a plain mapping (a TOML/YAML table or ``--param`` pairs), whe
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import inspect
+import itertools
 import math
+import re
 import reprlib
+import textwrap
 from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar, TypeVar
 
@@ -43,6 +49,27 @@ def _kind(annotation: Any) -> tuple[str, bool]:
     return (base if base in ("int", "float", "bool", "str") else "other"), optional
 
 
+@functools.cache
+def _attribute_docs(klass: type) -> dict[str, str]:
+    """``{field: docstring}`` of a class's annotated attributes followed by a string literal."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+    except (OSError, TypeError, SyntaxError):  # no source (frozen, built-in): no help
+        return {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    docs: dict[str, str] = {}
+    for statement, following in itertools.pairwise(body):
+        if (
+            isinstance(statement, ast.AnnAssign)
+            and isinstance(statement.target, ast.Name)
+            and isinstance(following, ast.Expr)
+            and isinstance(following.value, ast.Constant)
+            and isinstance(following.value.value, str)
+        ):
+            docs[statement.target.id] = following.value.value
+    return docs
+
+
 class Settings:
     """Mixin for frozen settings dataclasses; subclasses set :attr:`settings_name` (used in messages).
 
@@ -66,6 +93,16 @@ class Settings:
         if kind == "float":
             return DEFAULT_FLOAT_LIMITS
         return None
+
+    @classmethod
+    def field_help(cls, name: str) -> str:
+        """The first sentence of a setting's attribute docstring (the string literal below the field)."""
+        for klass in cls.__mro__:
+            text = _attribute_docs(klass).get(name)
+            if text:
+                first = re.split(r"\.\s+(?=[A-Z(])", " ".join(text.split()))[0].rstrip(".")
+                return first.replace("``", "`") + "."
+        return ""
 
     @classmethod
     def _field(cls, name: str) -> dataclasses.Field[Any]:

@@ -275,7 +275,9 @@ def config_command(estimator_name: str) -> None:
     click.echo(f"[{spec.name}]  # {spec.description}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
-        help_text = f.metadata.get("help", "")
+        help_text = f.metadata.get("help", "") or (
+            spec.config_class.field_help(f.name) if hasattr(spec.config_class, "field_help") else ""
+        )
         limits = spec.config_class.field_limits(f.name) if hasattr(spec.config_class, "field_limits") else None
         if limits is not None:
             help_text = f"{help_text} [{limits[0]:g} .. {limits[1]:g}]".strip()
