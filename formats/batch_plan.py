@@ -31,6 +31,7 @@ from typing import Any
 
 from formats.atomic import write_text
 from formats.config_files import read_document
+from formats.layouts import is_log
 from formats.log import Topics
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
@@ -228,7 +229,7 @@ def _glob_logs(base: Path, patterns: Any) -> list[Path]:
     logs: list[Path] = []
     for pattern in patterns:
         matches = sorted(Path(m) for m in glob.glob(str(_resolve(base, pattern)), recursive=True))
-        files = [m.resolve() for m in matches if m.is_file()]
+        files = [m.resolve() for m in matches if m.is_file() or is_log(m)]  # a rosbag2 bag is a directory
         if not files:
             raise UsageError(f"plan: logs pattern {pattern!r} matches no file", f"patterns are relative to {base}")
         logs.extend(files)
