@@ -91,7 +91,8 @@ def detect_layout(path: str | os.PathLike[str]) -> Layout:
             return Layout.ROSBAG2
         raise InputError(
             f"{path} is a directory without {ROSBAG2_METADATA}, not a rosbag2 bag",
-            "give a directory written by `ros2 bag record`, or the .mcap or .bag file itself",
+            "give a directory written by `ros2 bag record` (`ros2 bag reindex` rebuilds a lost metadata.yaml), "
+            "or the .mcap or .bag file itself",
         )
     try:
         with path.open("rb") as stream:
@@ -260,6 +261,42 @@ def _describe_rosbag2(path: Path) -> Storage:
         Layout.ROSBAG2, str(metadata.get("storage_identifier", "")), tuple(files),
         str(metadata.get("compression_format") or "") if mode else "", mode, str(metadata.get("ros_distro") or ""),
     )  # fmt: skip
+
+
+def check_sqlite_file(path: Path) -> None:
+    """Raise :class:`InputError` unless a SQLite file is as long as its header says.
+
+    SQLite has no checksum, and reads a cut-off page as zeros; the header's page size and page count
+    (valid when its change counter matches the version-valid-for number) tell a truncated file.
+    """
+    with path.open("rb") as stream:
+        header = stream.read(100)
+    if not header.startswith(SQLITE_MAGIC):
+        return  # compressed (``.db3.zstd``) or not SQLite at all: the reader's own checks apply
+    size = path.stat().st_size
+    page_size = int.from_bytes(header[16:18], "big") if len(header) >= 18 else 0
+    page_size = 65536 if page_size == 1 else page_size
+    page_count = int.from_bytes(header[28:32], "big") if len(header) == 100 else 0
+    counter_valid = len(header) == 100 and header[24:28] == header[92:96]
+    expected = page_size * page_count if counter_valid and page_count else None
+    if len(header) < 100 or (expected is not None and size != expected) or (page_size and size % page_size):
+        raise InputError(
+            f"{path.parent}: the rosbag2 bag is truncated or corrupt ({path.name} holds {size} bytes"
+            + (f", its header says {expected})" if expected is not None else ", not whole SQLite pages)"),
+            Layout.ROSBAG2.repair_hint,
+        )
+
+
+def check_storage(path: str | os.PathLike[str], layout: Layout) -> None:
+    """What can be checked of a log before reading it: a rosbag2 bag's storage files are all there, and
+    SQLite files are whole (:func:`check_sqlite_file`)."""
+    path = Path(path)
+    if layout is not Layout.ROSBAG2:
+        return
+    storage = _describe_rosbag2(path)
+    if storage.storage_id == "sqlite3":
+        for file in storage.files:
+            check_sqlite_file(path / file.name)
 
 
 def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> str:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from apsw import Error as SqliteError  # rosbags reads sqlite3 storage through apsw
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
@@ -43,7 +44,15 @@ except ImportError:  # Python < 3.14
 import relpoint
 from formats import ros2
 from formats.atomic import atomic_path
-from formats.layouts import Layout, MessageMigrator, Storage, describe_storage, detect_layout, open_reader
+from formats.layouts import (
+    Layout,
+    MessageMigrator,
+    Storage,
+    check_storage,
+    describe_storage,
+    detect_layout,
+    open_reader,
+)
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -141,7 +150,7 @@ def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
 #: Errors the bag readers and their decompressors raise on damaged files: a chunk whose CRC does not match
 #: (MCAP), a damaged index (ROS 1), a malformed database page (SQLite), a broken zstd frame (rosbag2).
 _READ_ERRORS: tuple[type[BaseException], ...] = (
-    AnyReaderError, ReaderError, Ros1ReaderError, sqlite3.Error, ZstdError, OSError, struct.error, zlib.error,
+    AnyReaderError, ReaderError, Ros1ReaderError, SqliteError, sqlite3.Error, ZstdError, OSError, struct.error, zlib.error,
     ValueError, EOFError, KeyError, IndexError, OverflowError, MemoryError, RuntimeError, AssertionError,
     TypeError, AttributeError, UnicodeDecodeError,
 )  # fmt: skip
@@ -186,6 +195,7 @@ class LogReader:
         self.skipped: Counter[str] = Counter()
         #: How the log is laid out on disk.
         self.layout = detect_layout(self.path)
+        check_storage(self.path, self.layout)
         self._channels = self._read_channels()
 
     # -- summary ---------------------------------------------------------------------------------
@@ -215,6 +225,8 @@ class LogReader:
                 counts[topic] += 1
                 first.setdefault(topic, log_time)
                 last[topic] = log_time
+            if self.layout is Layout.ROSBAG2:
+                self._check_counts(reader, counts)
             topics: dict[str, TopicInfo] = {}
             for connection in reader.connections:
                 if connection.topic in topics:
@@ -230,6 +242,20 @@ class LogReader:
         finally:
             reader.close()
         return topics
+
+    def _check_counts(self, reader: AnyReader, counts: Counter[str]) -> None:
+        """The messages read must be the ones metadata.yaml records: sqlite3 storage has no checksum, and a
+        storage file cut short or swapped for another shows only here."""
+        recorded: Counter[str] = Counter()
+        for connection in reader.connections:
+            recorded[connection.topic] += connection.msgcount
+        for topic, count in recorded.items():
+            if counts[topic] != count:
+                raise InputError(
+                    f"{self.path}: the rosbag2 bag is truncated or corrupt ({counts[topic]} messages on {topic}, "
+                    f"metadata.yaml records {count})",
+                    self.layout.repair_hint,
+                )
 
     @property
     def topic_infos(self) -> dict[str, TopicInfo]:
