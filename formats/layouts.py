@@ -40,7 +40,7 @@ from rosbags.rosbag1.reader import decompressors as ros1_decompressors
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from formats import ros2
 from relpoint.errors import InputError, UsageError
@@ -420,6 +420,10 @@ def _write_ros1(messages: list[RawMessage], target: Path, compression: str) -> N
         connections: dict[str, Any] = {}
         for topic, typename, stamp_ns, raw in messages:
             if topic not in connections:
+                if typename not in noetic.fielddefs:  # not in Noetic's store (tf2_msgs): ROS 1 text of the ROS 2 type
+                    types = get_types_from_msg(ros2.typestore().generate_msgdef(typename, ros_version=1)[0], typename)
+                    types.pop("std_msgs/msg/Header", None)
+                    noetic.register(types)
                 connections[topic] = writer.add_connection(topic, typename, typestore=noetic)
             message = migrate(ros2.deserialize(raw, typename), typename)
             writer.write(connections[topic], stamp_ns, bytes(noetic.serialize_ros1(message, typename)))

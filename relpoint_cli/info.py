@@ -63,6 +63,10 @@ def _utc(stamp_ns: int) -> str:
     return datetime.fromtimestamp(seconds, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S") + f".{nanoseconds:09d}Z"
 
 
+def _seconds(stamp_ns: int) -> str:
+    return f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}"
+
+
 def _size(size_bytes: int) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
         if size_bytes < 1024 or unit == "GiB":
@@ -130,8 +134,8 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         ("files", ", ".join(f["name"] for f in document["files"])),
         ("size", _size(document["size_bytes"])),
         ("duration", f"{document['duration_s']:.9f} s"),
-        ("start", "-" if document["start_ns"] is None else f"{document['start_utc']} ({document['start_ns'] * 1e-9:.9f})"),
-        ("end", "-" if document["end_ns"] is None else f"{document['end_utc']} ({document['end_ns'] * 1e-9:.9f})"),
+        ("start", "-" if document["start_ns"] is None else f"{document['start_utc']} ({_seconds(document['start_ns'])})"),
+        ("end", "-" if document["end_ns"] is None else f"{document['end_utc']} ({_seconds(document['end_ns'])})"),
         ("messages", str(document["message_count"])),
         ("compression", f"{compression['format']} ({compression['mode']})" if compression["mode"] else "none"),
     ]  # fmt: skip

@@ -25,6 +25,7 @@ from formats.simulation_log import write_simulation
 from relpoint.errors import InputError, RelpointError
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint_cli.main import cli
+from tests.conftest import shared_data
 
 SPECS = {
     "rosbag2-mcap": LayoutSpec(Layout.ROSBAG2, "mcap"),
@@ -172,6 +173,26 @@ def test_evaluate_and_export_read_bag_directories(points_log: Path, points_layou
         assert code == 0, err
     from_bag, from_file = (read_ply(tmp_path / f"{source.name}.ply") for source in (bag, points_log))
     assert from_bag.tobytes() == from_file.tobytes() and len(from_bag) > 0
+
+
+def test_a_real_rosbag2_recording_exports_the_same_in_every_layout(tmp_path: Path) -> None:
+    """nav2's turtlebot bag (odometry, TF, AMCL) as recorded, and its messages in other layouts."""
+    bag = shared_data("ros2-bags", "nav2_turtlebot.mcap")
+    messages = list(raw_messages(bag))
+    copies = {name: write_layout(messages, tmp_path / name, SPECS[name])
+              for name in ("rosbag2-sqlite3-zstd-message", "rosbag2-mcap-split", "rosbag1-lz4.bag")}  # fmt: skip
+    selections = {"odom": ["--topic", "/odom"], "amcl": ["--topic", "/amcl_pose"],
+                  "tf": ["--parent", "map", "--child", "base_footprint"]}  # fmt: skip
+    for what, options in selections.items():
+        outputs = {}
+        for name, path in {"recorded": bag, **copies}.items():
+            out = tmp_path / f"{what}-{name}.tum"
+            code, _, err = invoke("export", str(path), *options, "-o", str(out))
+            assert code == 0, err
+            outputs[name] = [line for line in out.read_text().splitlines() if not line.startswith("#")]
+        assert len(outputs["recorded"]) > 100, what
+        for name, lines in outputs.items():
+            assert lines == outputs["recorded"], f"{what} from {name}"
 
 
 def test_output_inside_a_bag_directory_is_refused(points_layouts: dict[str, Path]) -> None:
