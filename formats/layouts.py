@@ -48,6 +48,7 @@ from relpoint.errors import InputError, UsageError
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 ROSBAG2_METADATA = "metadata.yaml"
 
 _LOG_KINDS = "an MCAP file, a rosbag2 directory (metadata.yaml) or a ROS 1 .bag"
@@ -107,10 +108,11 @@ def detect_layout(path: str | os.PathLike[str]) -> Layout:
         return Layout.ROS1
     if head.startswith(b"#ROSBAG V"):
         raise InputError(f"{path} is a ROS 1 bag of an old format version", "migrate it with `rosbag fix`")
-    if head.startswith(SQLITE_MAGIC):
+    if head.startswith(SQLITE_MAGIC) or head.startswith(ZSTD_MAGIC) or path.name == ROSBAG2_METADATA:
+        what = {SQLITE_MAGIC[:4]: "sqlite3 storage file", ZSTD_MAGIC: "zstd-compressed storage file"}.get(head[:4])
         raise InputError(
-            f"{path} is a rosbag2 sqlite3 storage file, not a log on its own",
-            "give the bag directory that holds it with its metadata.yaml",
+            f"{path} is a rosbag2 {what or 'metadata file'}, not a log on its own",
+            f"give the bag directory {path.parent} that holds it with its metadata.yaml",
         )
     raise InputError(f"{path} is not an MCAP file, nor a rosbag2 directory or ROS 1 bag", f"give {_LOG_KINDS}")
 

@@ -106,7 +106,9 @@ def test_layouts_are_told_apart_by_content(points_layouts: dict[str, Path], poin
     for path, message in [
         (tmp_path / "plain", "directory without metadata.yaml"),
         (tmp_path / "text.mcap", "not an MCAP file"),
-        (sqlite_file, "storage file, not a log on its own"),
+        (sqlite_file, "sqlite3 storage file, not a log on its own"),
+        (next(points_layouts["rosbag2-mcap-zstd-file"].glob("*.zstd")), "zstd-compressed storage file"),
+        (points_layouts["rosbag2-mcap"] / "metadata.yaml", "metadata file, not a log"),
         (tmp_path / "absent", "no such file"),
     ]:
         assert not is_log(path)
