@@ -34,6 +34,7 @@ import yaml
 from mcap.reader import make_reader
 from rosbags.convert.converter import migrate_message
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Nodetype
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag1.reader import decompressors as ros1_decompressors
@@ -321,9 +322,12 @@ def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> st
 class MessageMigrator:
     """Turns messages of one typestore's definitions into the same-named types of another.
 
-    Fields are matched by name, and renamed fields (ROS 1 ``K`` -> ROS 2 ``k``) by type, as
-    ``rosbags-convert`` does; fields the target dropped (ROS 1 ``Header.seq``) are left out and fields it
-    added get defaults. Types the target lacks pass unchanged.
+    A message whose source type holds every field of the target type under the same name and shape
+    (recursively; extra source fields such as ROS 1's ``Header.seq`` allowed) reads exactly as the target
+    type would and passes unchanged: that is most types, at no cost. Others are rebuilt as
+    ``rosbags-convert`` rebuilds them: fields matched by name, renamed ones (ROS 1 ``CameraInfo.K`` ->
+    ROS 2 ``k``) by type, dropped ones left out, added ones given defaults. Types either store lacks pass
+    unchanged.
 
     Parameters
     ----------
@@ -337,11 +341,35 @@ class MessageMigrator:
         self._source = source_typestore
         self._target = target_typestore if target_typestore is not None else ros2.typestore()
         self._cache: dict[str, object] = {}
+        self._alike: dict[tuple[str, str], bool] = {}
 
     def __call__(self, message: Any, typename: str) -> Any:
         if typename not in self._target.fielddefs or typename not in self._source.fielddefs:
             return message
+        if self.reads_alike(typename, typename):
+            return message
         return migrate_message(self._source, self._target, typename, typename, self._cache, message)
+
+    def reads_alike(self, source_type: str, target_type: str) -> bool:
+        """Whether every field of ``target_type`` is in ``source_type`` under the same name and shape."""
+        key = (source_type, target_type)
+        if key not in self._alike:
+            self._alike[key] = False  # a recursive type is not taken as alike
+            source = dict(self._source.fielddefs[source_type][1])
+            self._alike[key] = all(
+                name in source and self._same_shape(source[name], desc)
+                for name, desc in self._target.fielddefs[target_type][1]
+            )
+        return self._alike[key]
+
+    def _same_shape(self, source: Any, target: Any) -> bool:
+        if source[0] != target[0]:
+            return False
+        if target[0] == Nodetype.NAME:
+            return self.reads_alike(source[1], target[1])
+        if target[0] in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            return source[1][1] == target[1][1] and self._same_shape(source[1][0], target[1][0])
+        return bool(source == target)
 
 
 # --- writing a log's messages in another layout ------------------------------------------------------
