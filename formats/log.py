@@ -143,6 +143,8 @@ class TopicInfo:
 
 
 def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
+    if isinstance(error, PermissionError):
+        return InputError(f"{path}: cannot read ({error.strerror or error})", "check its permissions")
     detail = str(error) or type(error).__name__
     return InputError(f"{path}: the {layout.noun} is truncated or corrupt ({detail})", layout.repair_hint)
 
@@ -150,9 +152,9 @@ def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
 #: Errors the bag readers and their decompressors raise on damaged files: a chunk whose CRC does not match
 #: (MCAP), a damaged index (ROS 1), a malformed database page (SQLite), a broken zstd frame (rosbag2).
 _READ_ERRORS: tuple[type[BaseException], ...] = (
-    AnyReaderError, ReaderError, Ros1ReaderError, SqliteError, sqlite3.Error, ZstdError, OSError, struct.error, zlib.error,
-    ValueError, EOFError, KeyError, IndexError, OverflowError, MemoryError, RuntimeError, AssertionError,
-    TypeError, AttributeError, UnicodeDecodeError,
+    AnyReaderError, ReaderError, Ros1ReaderError, SqliteError, sqlite3.Error, ZstdError, OSError, struct.error,
+    zlib.error, ValueError, EOFError, KeyError, IndexError, OverflowError, MemoryError, RuntimeError,
+    AssertionError, TypeError, AttributeError, UnicodeDecodeError,
 )  # fmt: skip
 
 
@@ -231,7 +233,7 @@ class LogReader:
             for connection in reader.connections:
                 if connection.topic in topics:
                     continue
-                # ROS 1 messages are migrated to the ROS 2 types as they are decoded
+                # ROS 1 connections name no serialisation format: their messages are ROS 1-serialised
                 encoding = getattr(connection.ext, "serialization_format", ROS1_ENCODING)
                 topics[connection.topic] = TopicInfo(
                     connection.topic, ros2.normalise_typename(connection.msgtype), encoding,
