@@ -159,10 +159,17 @@ def test_dense_runs_give_byte_identical_outputs_from_a_ros1_bag_and_a_sqlite3_ba
         assert run_outputs(layouts[name], tmp_path / name, "dense") == expected, name
 
 
-def test_evaluate_and_export_read_bag_directories(points_log: Path, points_layouts: dict[str, Path], tmp_path: Path) -> None:
+def test_evaluate_export_and_fuse_read_bag_directories(
+    points_log: Path, points_layouts: dict[str, Path], tmp_path: Path
+) -> None:
     bag = points_layouts["rosbag2-sqlite3-split"]
     code, _, err = invoke("run", str(bag), "-e", "relpoint", "-o", str(tmp_path / "run"))
     assert code == 0, err
+    for log in (points_log, bag):
+        code, _, err = invoke("fuse", str(tmp_path / "run"), "--log", str(log), "-o", str(tmp_path / f"fused-{log.name}"))
+        assert code == 0, err
+    fused = [(tmp_path / f"fused-{log.name}" / "trajectory.tum").read_text() for log in (points_log, bag)]
+    assert fused[0] == fused[1] and fused[0]
     figures = {}
     for reference in (points_log, bag, points_layouts["rosbag1.bag"]):
         report = tmp_path / f"{reference.name}.json"
