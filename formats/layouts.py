@@ -9,9 +9,10 @@ writes itself (``docs/log-format.md``), recordings made by other tools come as
 - a **ROS 1 bag** (``.bag``, format 2.0), with chunks stored plain, bz2- or lz4-compressed.
 
 All of them read through rosbags' ``AnyReader`` (:func:`open_reader`). ROS 1 messages decode into the
-ROS 1 definitions the bag carries (``CameraInfo.K``, ``Header.seq``); a :class:`MessageMigrator` turns them
-into the standard ROS 2 types, field by field, with rosbags' own migration (the one ``rosbags-convert``
-uses), so the rest of relpoint sees the same messages whatever the layout.
+ROS 1 definitions the bag carries (``CameraInfo.K``, ``Header.seq``); a :class:`MessageMigrator` gives
+them the standard ROS 2 types' fields (rebuilding, with rosbags' own migration as ``rosbags-convert``
+does, only the types whose fields differ), so the rest of relpoint sees the same messages whatever the
+layout.
 
 :func:`describe_storage` tells what ``ros2 bag info`` tells about the storage (id, files, sizes,
 compression); :func:`write_layout` copies a log's messages into any layout, which the tests and the
@@ -238,7 +239,7 @@ def _describe_ros1(path: Path) -> Storage:
     with Ros1Reader(path) as reader:
         codecs = sorted({names.get(chunk.decompressor, "?") for chunk in getattr(reader, "chunks", {}).values()})
         file = StorageFile(path.name, path.stat().st_size, reader.message_count, reader.start_time,
-                           reader.end_time - reader.start_time if reader.message_count else 0)  # fmt: skip
+                           reader.end_time - 1 - reader.start_time if reader.message_count else 0)  # fmt: skip
     codecs = [codec for codec in codecs if codec != "none"]
     return Storage(Layout.ROS1, "rosbag1", (file,), "+".join(codecs), "chunk" if codecs else "")
 
