@@ -92,7 +92,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
       relpoint info robot.mcap --points-topic /lidar/landmarks --json
     """
     reader = LogReader(log, topics_from(topic_names))
-    storage = storage_document(reader.storage(), reader.topic_infos)
+    storage = reader.storage()
     available = reader.available_roles()
     role_of = {topic: role for role, topic in reader.topics.roles().items()}
     topics = []
@@ -116,9 +116,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         }  # fmt: skip
     document = {
         "path": str(log),
-        "size_bytes": reader.storage().size_bytes,
+        "size_bytes": storage.size_bytes,
         "duration_s": round(reader.duration_s(), 6),
-        **storage,
+        **storage_document(storage, reader.topic_infos),
         "topics": topics,
         "observations": observations,
         **capabilities(available),
