@@ -248,6 +248,17 @@ def test_info_tells_what_ros2_bag_info_tells(points_log: Path, points_layouts: d
     assert "storage id:   sqlite3" in out and "compression:  zstd (message)" in out and "_1.db3" in out
 
 
+def test_topic_options_apply_in_every_layout(points_log: Path, tmp_path: Path) -> None:
+    renamed = [(topic.replace("/points", "/robot/landmarks"), *rest) for topic, *rest in raw_messages(points_log)]
+    expected = info_json(points_log)["observations"]
+    for name in ("rosbag2-sqlite3-split", "rosbag1-lz4.bag"):
+        path = write_layout(renamed, tmp_path / name, SPECS[name])
+        assert info_json(path)["observations"] is None
+        code, out, err = invoke("info", str(path), "--points-topic", "/robot/landmarks", "--json")
+        assert code == 0, err
+        assert json.loads(out)["observations"] == {**expected, "topic": "/robot/landmarks"}
+
+
 def test_batch_plans_take_bag_directories(points_layouts: dict[str, Path], tmp_path: Path) -> None:
     bags = tmp_path / "bags"
     bags.mkdir()
