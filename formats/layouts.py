@@ -47,6 +47,11 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from formats import ros2
 from relpoint.errors import InputError, UsageError
 
+try:  # the zstd codec rosbags writes and reads rosbag2 compression with
+    from compression import zstd
+except ImportError:  # Python < 3.14
+    from backports import zstd  # type: ignore[no-redef]
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -301,6 +306,28 @@ def check_storage(path: str | os.PathLike[str], layout: Layout) -> None:
     if storage.storage_id == "sqlite3":
         for file in storage.files:
             check_sqlite_file(path / file.name)
+
+
+def decompress_bag(path: Path, into: Path) -> Path:
+    """A rosbag2 bag compressed per file, decompressed into the empty directory ``into``; returns ``into``.
+
+    The copy holds the storage files without their ``.zstd`` and a metadata.yaml that says they are not
+    compressed. rosbags would otherwise decompress every file again each time the bag is opened, and a
+    command opens a log two or three times (the summary pass, then the messages it needs).
+    """
+    metadata = _rosbag2_metadata(path)
+    names = []
+    for name in metadata.get("relative_file_paths", []):
+        source = path / Path(name).name
+        target = into / source.name.removesuffix(".zstd")
+        with source.open("rb") as compressed, zstd.open(compressed, "rb") as stream, target.open("wb") as out:
+            shutil.copyfileobj(stream, out, 1 << 20)
+        names.append(target.name)
+    files = [{**f, "path": Path(str(f.get("path", ""))).name.removesuffix(".zstd")}
+             for f in metadata.get("files") or [] if isinstance(f, dict)]  # fmt: skip
+    plain = {**metadata, "relative_file_paths": names, "files": files, "compression_mode": "", "compression_format": ""}
+    (into / ROSBAG2_METADATA).write_text(yaml.safe_dump({"rosbag2_bagfile_information": plain}, sort_keys=False))
+    return into
 
 
 def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> str:

@@ -21,6 +21,7 @@ import logging
 import os
 import sqlite3
 import struct
+import tempfile
 import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -49,6 +50,7 @@ from formats.layouts import (
     MessageMigrator,
     Storage,
     check_storage,
+    decompress_bag,
     describe_storage,
     detect_layout,
     open_reader,
@@ -198,12 +200,27 @@ class LogReader:
         #: How the log is laid out on disk.
         self.layout = detect_layout(self.path)
         check_storage(self.path, self.layout)
+        self._scratch: tempfile.TemporaryDirectory[str] | None = None
+        compressed = self.layout is Layout.ROSBAG2 and self.storage().compression_mode == "file"
+        self._read_path = self._decompressed() if compressed else self.path
         self._channels = self._read_channels()
+
+    def _decompressed(self) -> Path:
+        """A bag compressed per file, decompressed once for all the passes over it (removed with the reader)."""
+        self._scratch = tempfile.TemporaryDirectory(prefix=".relpoint-")
+        try:
+            copy = decompress_bag(self.path, Path(self._scratch.name))
+            check_storage(copy, self.layout)
+        except InputError as error:
+            raise _corrupt(self.path, self.layout, ValueError(f"decompressed: {error.message}")) from None
+        except _READ_ERRORS as error:
+            raise _corrupt(self.path, self.layout, error) from None
+        return copy
 
     # -- summary ---------------------------------------------------------------------------------
 
     def _open(self) -> AnyReader:
-        reader = open_reader(self.path)
+        reader = open_reader(self._read_path)
         try:
             reader.open()
         except _READ_ERRORS as error:
