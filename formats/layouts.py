@@ -131,12 +131,17 @@ def _check_suffix(path: Path, suffix: str) -> None:
 
 
 def is_log(path: str | os.PathLike[str]) -> bool:
-    """Whether ``path`` looks like a log of any layout (no error for anything else)."""
+    """Whether ``path`` holds a log of any layout by its content, even under a name relpoint then refuses
+    (no error for anything else)."""
+    path = Path(path)
     try:
-        detect_layout(path)
-    except InputError:
+        if path.is_dir():
+            return (path / ROSBAG2_METADATA).is_file()
+        with path.open("rb") as stream:
+            head = stream.read(16)
+    except OSError:
         return False
-    return True
+    return head.startswith(MCAP_MAGIC) or head.startswith(ROS1_MAGIC)
 
 
 def open_reader(path: Path) -> AnyReader:

@@ -4,7 +4,8 @@
 
 * a TUM file (8 values per line) or KITTI poses (12 values per line, stamps from a times file);
 * a ``relpoint run`` output directory (its ``trajectory.tum``);
-* a log in any layout (:mod:`formats.layouts`: MCAP file, rosbag2 directory, ROS 1 bag): a relpoint log's ``/ground_truth/pose``, or any topic of any ROS 2 bag carrying
+* a log in any layout of :mod:`formats.layouts` (MCAP file, rosbag2 directory, ROS 1 bag): a relpoint
+  log's ``/ground_truth/pose``, or any topic of any bag carrying
   ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
   ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
   composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).

@@ -114,6 +114,13 @@ def test_layouts_are_told_apart_by_content(points_layouts: dict[str, Path], poin
         assert not is_log(path)
         with pytest.raises(InputError, match=message):
             LogReader(path)
+    misnamed = tmp_path / "recording.log"
+    shutil.copy(points_layouts["rosbag1.bag"], misnamed)
+    assert is_log(misnamed)
+    with pytest.raises(InputError, match=r"not named \*\.bag; rename it"):
+        LogReader(misnamed)
+    code, _, err = invoke("evaluate", str(misnamed), "--reference", str(points_log))
+    assert code == 3 and "rename it to end in .bag" in err
 
 
 @pytest.mark.parametrize("name", sorted(SPECS))
