@@ -143,10 +143,11 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         click.echo(f"  {label + ':':<13} {value}")
     width = max([len(t["topic"]) for t in topics] + [5])
     type_width = max([len(t["type"]) for t in topics] + [4])
-    click.echo(f"  {'topic':<{width}}  {'type':<{type_width}}  {'count':>7}  {'rate Hz':>8}  role")
+    click.echo(f"  {'topic':<{width}}  {'type':<{type_width}}  {'format':<6}  {'count':>7}  {'rate Hz':>8}  role")
     for t in topics:
         rate = "-" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
-        click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['count']:>7}  {rate:>8}  {t['role'] or ''}")
+        click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['serialization_format']:<6}  "
+                   f"{t['count']:>7}  {rate:>8}  {t['role'] or ''}")  # fmt: skip
     if observations:
         click.echo(
             f"observations on {observations['topic']} (frame {', '.join(observations['frame_ids'])}): "
