@@ -33,6 +33,7 @@ from typing import Any
 
 from formats.atomic import write_text
 from formats.config_files import read_document
+from formats.layouts import is_log
 from formats.log import Topics
 from formats.outputs import MARKER, OutputError, check_output_file, probe_writable, register_csv_header
 from relpoint.errors import UsageError
@@ -259,17 +260,28 @@ class _Resolver:
 
     def __init__(self) -> None:
         self._folders: dict[str, str] = {}
+        self._bags: dict[str, bool] = {}
+
+    def _in_bag(self, folder: str) -> bool:
+        if folder not in self._bags:
+            self._bags[folder] = is_log(folder)
+        return self._bags[folder]
 
     def file(self, text: str) -> str | None:
-        """The real path of ``text`` if it is a regular file (or a link to one), else None."""
+        """The real path of ``text`` if it is a regular file (or a link to one) outside a rosbag2 bag, or
+        a rosbag2 bag directory; else None (a bag's storage files are read through its directory)."""
         try:
             mode = os.lstat(text).st_mode
         except OSError:
             return None
+        if stat.S_ISDIR(mode) or (stat.S_ISLNK(mode) and os.path.isdir(text)):
+            return os.path.realpath(text) if is_log(text) else None
         if stat.S_ISLNK(mode):
             real = os.path.realpath(text)
-            return real if os.path.isfile(real) else None
+            return real if os.path.isfile(real) and not self._in_bag(os.path.dirname(real)) else None
         if not stat.S_ISREG(mode):
+            return None
+        if self._in_bag(os.path.dirname(os.path.abspath(text))):
             return None
         folder, name = os.path.split(os.path.abspath(text))
         real_folder = self._folders.get(folder)

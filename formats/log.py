@@ -1,9 +1,10 @@
-"""Reading and writing relpoint logs: single MCAP files, ``ros2`` profile, CDR-encoded standard messages.
+"""Reading and writing relpoint logs: ``ros2`` profile, CDR-encoded standard messages.
 
-The contract is ``docs/log-format.md``. :class:`LogWriter` writes a log (atomically); :class:`LogReader`
-checks a log against the contract, summarises it and yields its messages decoded into relpoint's core
-types, in time order. Topic names are defaults that :class:`Topics` overrides, so real robot bags with
-other names read unchanged.
+The contract is ``docs/log-format.md``. :class:`LogWriter` writes a log (atomically) as a single MCAP
+file; :class:`LogReader` reads a log in any layout of :mod:`formats.layouts` (a single MCAP file, a
+rosbag2 directory with mcap or sqlite3 storage, split or compressed, a ROS 1 bag), checks it against the
+contract, summarises it and yields its messages decoded into relpoint's core types, in time order. Topic
+names are defaults that :class:`Topics` overrides, so real robot bags with other names read unchanged.
 
 Library choice (measured by ``benchmarks/io.py`` on a 10,000-iteration log): reading goes through
 rosbags' ``AnyReader``, which read it about 2.5x faster than the ``mcap`` package's reader with either
@@ -18,7 +19,9 @@ import dataclasses
 import json
 import logging
 import os
+import sqlite3
 import struct
+import tempfile
 import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -26,15 +29,32 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from apsw import Error as SqliteError  # rosbags reads sqlite3 storage through apsw
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.rosbag2.errors import ReaderError
+
+try:  # the zstd codec rosbags decompresses rosbag2 files and messages with
+    from compression.zstd import ZstdError
+except ImportError:  # Python < 3.14
+    from backports.zstd import ZstdError
 
 import relpoint
 from formats import ros2
 from formats.atomic import atomic_path
+from formats.layouts import (
+    Layout,
+    MessageMigrator,
+    Storage,
+    check_storage,
+    decompress_bag,
+    describe_storage,
+    detect_layout,
+    open_reader,
+)
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -43,8 +63,8 @@ log = logging.getLogger(__name__)
 PROFILE = "ros2"
 SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
+ROS1_ENCODING = "ros1"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-_RECOVER_HINT = "re-record it, or repair a cut-off recording with `mcap recover` (the MCAP CLI)"
 
 
 @dataclass(frozen=True)
@@ -124,24 +144,36 @@ class TopicInfo:
         return (self.count - 1) / self.duration_s if self.count > 1 and self.duration_s > 0 else None
 
 
-def _corrupt(path: Path, error: BaseException) -> InputError:
+def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
+    if isinstance(error, PermissionError):
+        return InputError(f"{path}: cannot read ({error.strerror or error})", "check its permissions")
     detail = str(error) or type(error).__name__
-    return InputError(f"{path}: the MCAP file is truncated or corrupt ({detail})", _RECOVER_HINT)
+    return InputError(f"{path}: the {layout.noun} is truncated or corrupt ({detail})", layout.repair_hint)
 
 
-#: Errors the MCAP reader and its decompressors raise on damaged files.
+#: Errors the bag readers and their decompressors raise on damaged files: a chunk whose CRC does not match
+#: (MCAP), a damaged index (ROS 1), a malformed database page (SQLite), a broken zstd frame (rosbag2).
 _READ_ERRORS: tuple[type[BaseException], ...] = (
-    AnyReaderError, ReaderError, struct.error, zlib.error, ValueError, EOFError, KeyError, IndexError,
-    OverflowError, MemoryError, RuntimeError, AssertionError, TypeError, AttributeError, UnicodeDecodeError,
+    AnyReaderError, ReaderError, Ros1ReaderError, SqliteError, sqlite3.Error, ZstdError, OSError, struct.error,
+    zlib.error, ValueError, EOFError, KeyError, IndexError, OverflowError, MemoryError, RuntimeError,
+    AssertionError, TypeError, AttributeError, UnicodeDecodeError,
 )  # fmt: skip
 
 
-def _deserialize(reader: AnyReader, raw: bytes | memoryview, typename: str) -> Any:
-    """CDR bytes to a message with the reader's typestore (built from the file's own schemas)."""
-    try:
-        return reader.deserialize(raw, typename)
-    except Exception as error:  # rosbags raises assorted errors on malformed CDR
-        raise InputError(f"a {typename} message cannot be decoded ({type(error).__name__}: {error})") from None
+class _Decoder:
+    """Message bytes to standard ROS 2 messages with an open reader's typestore (built from the log's own
+    definitions); ROS 1 messages are migrated to the ROS 2 types."""
+
+    def __init__(self, reader: AnyReader) -> None:
+        self._reader = reader
+        self._migrate = None if reader.is2 else MessageMigrator(reader.typestore)
+
+    def __call__(self, raw: bytes | memoryview, typename: str) -> Any:
+        try:
+            message = self._reader.deserialize(raw, typename)
+            return message if self._migrate is None else self._migrate(message, typename)
+        except Exception as error:  # rosbags raises assorted errors on malformed messages
+            raise InputError(f"a {typename} message cannot be decoded ({type(error).__name__}: {error})") from None
 
 
 class LogReader:
@@ -150,14 +182,14 @@ class LogReader:
     Parameters
     ----------
     path:
-        The ``.mcap`` file.
+        The log: a ``.mcap`` file, a rosbag2 directory or a ROS 1 ``.bag`` (see :mod:`formats.layouts`).
     topics:
         Topic names of the roles (defaults: the log format's).
 
     Raises
     ------
     InputError
-        If the file is missing, not an MCAP file, truncated or corrupt.
+        If the log is missing, of no known layout, truncated or corrupt.
     """
 
     def __init__(self, path: str | os.PathLike[str], topics: Topics | None = None) -> None:
@@ -165,32 +197,39 @@ class LogReader:
         self.topics = topics or Topics()
         #: Counts of skipped data, e.g. ``{"points: non-finite points": 12}``.
         self.skipped: Counter[str] = Counter()
-        if not self.path.exists():
-            raise InputError(f"{self.path}: no such file", "check the path")
-        if self.path.is_dir():
-            raise InputError(f"{self.path} is a directory, not an MCAP file", "give the .mcap file inside it")
-        try:
-            with self.path.open("rb") as stream:
-                magic = stream.read(8)
-                if magic != b"\x89MCAP0\r\n":
-                    raise InputError(
-                        f"{self.path} is not an MCAP file",
-                        "relpoint reads ROS 2 logs in MCAP format; convert ROS 1 bags or sqlite3 bag folders "
-                        "with `rosbags-convert` or `ros2 bag convert`",
-                    )
-        except OSError as error:
-            raise InputError(f"{self.path}: cannot read ({error.strerror or error})") from None
+        #: How the log is laid out on disk.
+        self.layout = detect_layout(self.path)
+        check_storage(self.path, self.layout)
+        self._scratch: tempfile.TemporaryDirectory[str] | None = None
+        compressed = self.layout is Layout.ROSBAG2 and self.storage().compression_mode == "file"
+        self._read_path = self._decompressed() if compressed else self.path
         self._channels = self._read_channels()
+
+    def _decompressed(self) -> Path:
+        """A bag compressed per file, decompressed once for all the passes over it (removed with the reader)."""
+        self._scratch = tempfile.TemporaryDirectory(prefix=".relpoint-")
+        try:
+            copy = decompress_bag(self.path, Path(self._scratch.name))
+            check_storage(copy, self.layout)
+        except InputError as error:
+            raise _corrupt(self.path, self.layout, ValueError(f"decompressed: {error.message}")) from None
+        except _READ_ERRORS as error:
+            raise _corrupt(self.path, self.layout, error) from None
+        return copy
 
     # -- summary ---------------------------------------------------------------------------------
 
     def _open(self) -> AnyReader:
-        reader = AnyReader([self.path])
+        reader = open_reader(self._read_path)
         try:
             reader.open()
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, error) from None
+            raise _corrupt(self.path, self.layout, error) from None
         return reader
+
+    def storage(self) -> Storage:
+        """Storage id, files, sizes and compression (what ``ros2 bag info`` shows above the topics)."""
+        return describe_storage(self.path, self.layout)
 
     def _read_channels(self) -> dict[str, TopicInfo]:
         """Every topic with type, count and time range; one pass over the records checks every chunk's CRC."""
@@ -205,20 +244,37 @@ class LogReader:
                 counts[topic] += 1
                 first.setdefault(topic, log_time)
                 last[topic] = log_time
+            if self.layout is Layout.ROSBAG2:
+                self._check_counts(reader, counts)
             topics: dict[str, TopicInfo] = {}
             for connection in reader.connections:
                 if connection.topic in topics:
                     continue
-                encoding = getattr(connection.ext, "serialization_format", MESSAGE_ENCODING)
+                # ROS 1 connections name no serialisation format: their messages are ROS 1-serialised
+                encoding = getattr(connection.ext, "serialization_format", ROS1_ENCODING)
                 topics[connection.topic] = TopicInfo(
                     connection.topic, ros2.normalise_typename(connection.msgtype), encoding,
                     counts[connection.topic], first.get(connection.topic), last.get(connection.topic),
                 )  # fmt: skip
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, error) from None
+            raise _corrupt(self.path, self.layout, error) from None
         finally:
             reader.close()
         return topics
+
+    def _check_counts(self, reader: AnyReader, counts: Counter[str]) -> None:
+        """The messages read must be the ones metadata.yaml records: sqlite3 storage has no checksum, and a
+        storage file cut short or swapped for another shows only here."""
+        recorded: Counter[str] = Counter()
+        for connection in reader.connections:
+            recorded[connection.topic] += connection.msgcount
+        for topic, count in recorded.items():
+            if counts[topic] != count:
+                raise InputError(
+                    f"{self.path}: the rosbag2 bag is truncated or corrupt ({counts[topic]} messages on {topic}, "
+                    f"metadata.yaml records {count})",
+                    self.layout.repair_hint,
+                )
 
     @property
     def topic_infos(self) -> dict[str, TopicInfo]:
@@ -253,7 +309,7 @@ class LogReader:
                     f"{self.path}: {topic} carries {info.typename or 'schemaless data'}, not {ROLE_TYPES[role]}",
                     f"name a {ROLE_TYPES[role]} topic with {option}",
                 )
-            if info.message_encoding != MESSAGE_ENCODING:
+            if info.message_encoding not in (MESSAGE_ENCODING, ROS1_ENCODING):
                 raise InputError(
                     f"{self.path}: {topic} is encoded as {info.message_encoding!r}, not CDR",
                     "relpoint reads ROS 2 (CDR) logs",
@@ -271,12 +327,13 @@ class LogReader:
         wanted = set(topics)
         reader = self._open()
         try:
+            decode = _Decoder(reader)
             connections = [c for c in reader.connections if c.topic in wanted]
             for connection, log_time, raw in reader.messages(connections=connections):
                 typename = ros2.normalise_typename(connection.msgtype)
-                yield connection.topic, typename, log_time, _deserialize(reader, raw, typename)
+                yield connection.topic, typename, log_time, decode(raw, typename)
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, error) from None
+            raise _corrupt(self.path, self.layout, error) from None
         finally:
             reader.close()
 
@@ -292,6 +349,7 @@ class LogReader:
         previous: dict[str, int] = {}
         reader = self._open()
         try:
+            decode = _Decoder(reader)
             connections = [
                 c for c in reader.connections
                 if c.topic in topic_roles and ros2.normalise_typename(c.msgtype) == ROLE_TYPES[topic_roles[c.topic]]
@@ -304,7 +362,7 @@ class LogReader:
                                f"{len(raw)} bytes, over the limit of {ros2.MAX_MESSAGE_BYTES} bytes")  # fmt: skip
                     continue
                 try:
-                    record = self._convert(role, _deserialize(reader, raw, ROLE_TYPES[role]))
+                    record = self._convert(role, decode(raw, ROLE_TYPES[role]))
                 except InputError as error:
                     self._skip(f"{topic}: {getattr(error, 'kind', 'malformed messages')}", str(error))
                     continue
@@ -322,7 +380,7 @@ class LogReader:
                 previous[topic] = record.stamp_ns
                 yield record
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, error) from None
+            raise _corrupt(self.path, self.layout, error) from None
         finally:
             reader.close()
 
@@ -359,12 +417,14 @@ class LogReader:
         return Record(role, ros2.stamp_ns_of(message), value)
 
     def metadata(self) -> dict[str, dict[str, str]]:
-        """The file's metadata records by name (e.g. ``relpoint.simulation``)."""
+        """The file's metadata records by name (e.g. ``relpoint.simulation``); only single MCAP files have them."""
+        if self.layout is not Layout.MCAP:
+            return {}
         try:
             with self.path.open("rb") as stream:
                 return {m.name: dict(m.metadata) for m in make_reader(stream).iter_metadata()}
         except (*_READ_ERRORS, McapError, OSError) as error:
-            raise _corrupt(self.path, error) from None
+            raise _corrupt(self.path, self.layout, error) from None
 
 
 class LogWriter:

@@ -80,6 +80,8 @@ def _refuse_inputs(shown: str | os.PathLike[str], target: Path, inputs: list[tup
             raise OutputError(
                 f"output directory {shown} contains the input {name}", "choose an output directory outside the input's"
             )
+        if resolved.is_dir() and resolved in target.parents:  # a bag directory is an input as a whole
+            raise OutputError(f"output {shown} is inside the input {name}", "write outside the input directory")
 
 
 def _first_existing(path: Path) -> Path:

@@ -7,7 +7,8 @@
   (12 values per line, stamps from a times file, else pose ``i`` at ``i`` s), told apart by
   :func:`formats.trajectory_files.detect_format`;
 * a ``relpoint run`` output directory (its ``trajectory.tum``);
-* an MCAP file: a relpoint log's ``/ground_truth/pose``, or any topic of any ROS 2 bag carrying
+* a log in any layout of :mod:`formats.layouts` (MCAP file, rosbag2 directory, ROS 1 bag): a relpoint
+  log's ``/ground_truth/pose``, or any topic of any bag carrying
   ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
   ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
   composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).
@@ -29,6 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from formats import ros2
+from formats.layouts import is_log
 from formats.log import LogReader
 from formats.ply import read_ply
 from formats.tables import read_map_csv
@@ -304,12 +306,12 @@ def load_trajectory(
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
-    if path.is_dir():
+    if path.is_dir() and not is_log(path):
         tum = path / "trajectory.tum"
         if not tum.is_file():
             raise InputError(f"{path}: a directory without trajectory.tum", "give a relpoint run output directory")
         return read_tum(tum)
-    if is_mcap(path):
+    if is_log(path):
         return mcap_trajectory(path, topic, parent, child)
     if topic is not None or parent is not None or child is not None:
         raise InputError(f"{path} is not an MCAP file; topics and TF frames apply only to MCAP inputs")
@@ -380,7 +382,7 @@ def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
 def load_ground_truth_landmarks(path: str | os.PathLike[str]) -> GroundTruthLandmarks | None:
     """The last ``/ground_truth/landmarks`` message of a relpoint log, or None for other inputs."""
     path = Path(path)
-    if not path.is_file() or not is_mcap(path):
+    if not is_log(path):
         return None
     reader = LogReader(path)
     if not reader.role_present("ground_truth_landmarks"):

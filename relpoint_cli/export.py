@@ -32,9 +32,10 @@ import click
 import numpy as np
 
 from formats.atomic import write_text
+from formats.layouts import is_log
 from formats.outputs import check_output_file, resolve_output
 from formats.ply import landmark_vertices, read_ply, write_ply
-from formats.reference_trajectories import is_mcap, load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.tables import write_map_csv, write_trajectory_csv
 from formats.trajectory_files import write_kitti, write_tum
 from relpoint.errors import InputError, UsageError
@@ -112,10 +113,15 @@ def _is_ply(path: Path) -> bool:
         return False
 
 
+def _is_run_directory(path: Path) -> bool:
+    """A directory that is not a rosbag2 bag: a run's output directory (or nothing relpoint reads)."""
+    return path.is_dir() and not is_log(path)
+
+
 def default_what(source: Path, fmt: Format) -> What:
     """``map`` for a PLY source or PLY output from a run directory, ``landmarks`` for PLY output from a log, else
     ``trajectory``."""
-    if _is_ply(source) or (source.is_dir() and fmt is Format.PLY):
+    if _is_ply(source) or (_is_run_directory(source) and fmt is Format.PLY):
         return What.MAP
     return What.LANDMARKS if fmt is Format.PLY else What.TRAJECTORY
 
@@ -145,12 +151,12 @@ def ground_truth_vertices(truth: GroundTruthLandmarks) -> np.ndarray:
 
 def landmark_source(source: Path) -> tuple[np.ndarray, str]:
     """Landmarks of ``source`` as PLY vertices and a description, from a run's map.csv or a log's ground truth."""
-    if source.is_dir():
+    if _is_run_directory(source):
         landmarks = load_landmark_map(source)
         if landmarks is None:
             raise InputError(f"{source}: a directory without map.csv", "give a relpoint run output directory")
         return landmark_vertices(landmarks), f"relpoint landmark map from {source.name}/map.csv, frame world"
-    if source.is_file() and is_mcap(source):
+    if is_log(source):
         truth = load_ground_truth_landmarks(source)
         if truth is None:
             raise InputError(f"{source}: no /ground_truth/landmarks messages", "landmarks come from relpoint logs")
@@ -160,14 +166,14 @@ def landmark_source(source: Path) -> tuple[np.ndarray, str]:
 
 def map_source(source: Path) -> tuple[np.ndarray, str]:
     """Every vertex property of a run directory's map.ply, or of a PLY file."""
-    if source.is_dir():
+    if _is_run_directory(source):
         ply = source / "map.ply"
         if not ply.is_file():
             raise InputError(f"{source}: a directory without map.ply", "give a relpoint run output directory")
         return read_ply(ply), f"relpoint map from {source.name}/map.ply"
     if source.is_file() and _is_ply(source):
         return read_ply(source), f"relpoint map from {source.name}"
-    if source.is_file() and is_mcap(source):
+    if is_log(source):
         raise InputError(f"{source}: a log holds no map", "--what landmarks exports its ground-truth landmarks")
     raise InputError(f"{source}: maps come from a run directory (map.ply) or a PLY file")
 
@@ -247,7 +253,7 @@ def export_file(
                 path.parent.mkdir(parents=True, exist_ok=True)
         write_trajectory(out, trajectory, fmt, out_times, header=f"relpoint export of {origin}")
         return f"{len(trajectory)} poses"
-    if what is What.LANDMARKS and source.is_dir() and fmt is Format.CSV:
+    if what is What.LANDMARKS and _is_run_directory(source) and fmt is Format.CSV:
         landmarks = load_landmark_map(source)
         if landmarks is None:
             raise InputError(f"{source}: a directory without map.csv", "give a relpoint run output directory")

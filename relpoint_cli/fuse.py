@@ -19,9 +19,10 @@ import numpy as np
 
 import relpoint
 from formats.atomic import atomic_directory
+from formats.layouts import log_sha256
 from formats.log import LogReader
 from formats.outputs import check_output_directory
-from formats.run_output import file_sha256, write_run_directory
+from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_tum, write_tum
 from relpoint.errors import InputError, UsageError
@@ -69,7 +70,7 @@ def fusion_config(params: tuple[str, ...]) -> FusionConfig:
 
 @click.command(epilog=EXAMPLES)
 @click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--log", "log_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
+@click.option("--log", "log_path", type=click.Path(path_type=Path), required=True,
               help="The log the run was made from (its position fixes are read).")  # fmt: skip
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory (replaced atomically).")  # fmt: skip
@@ -145,7 +146,7 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
         "source_run": {"path": str(run_dir), "estimator": previous.get("estimator"),
                        "parameters": previous.get("parameters"), "seed": previous.get("seed")},
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(log_path), "sha256": file_sha256(log_path), "roles": sorted(roles),
+        "input": {"path": str(log_path), "sha256": log_sha256(log_path), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
     }  # fmt: skip
     with atomic_directory(output, command="fuse") as tmp:

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import json
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import click
 import numpy as np
 
-from formats.log import ROLE_TYPES, LogReader
+from formats.layouts import Storage
+from formats.log import ROLE_TYPES, LogReader, TopicInfo
 from relpoint.estimators import ESTIMATORS
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.topics import topic_options, topics_from
@@ -32,20 +34,65 @@ def capabilities(available: set[str]) -> dict[str, Any]:
     }
 
 
+def storage_document(storage: Storage, topic_infos: dict[str, TopicInfo]) -> dict[str, Any]:
+    """What ``ros2 bag info`` tells about a log: layout, storage id, files, size, time range, counts, compression.
+
+    Start and end are the first and last message times over every topic, in ns since the epoch and as UTC.
+    """
+    starts = [i.first_ns for i in topic_infos.values() if i.first_ns is not None]
+    ends = [i.last_ns for i in topic_infos.values() if i.last_ns is not None]
+    start_ns, end_ns = (min(starts), max(ends)) if starts else (None, None)
+    return {
+        "layout": storage.layout.value,
+        "storage_id": storage.storage_id,
+        "files": [
+            {"name": f.name, "size_bytes": f.size_bytes, "message_count": f.message_count} for f in storage.files
+        ],
+        "start_ns": start_ns,
+        "end_ns": end_ns,
+        "start_utc": None if start_ns is None else _utc(start_ns),
+        "end_utc": None if end_ns is None else _utc(end_ns),
+        "message_count": sum(i.count for i in topic_infos.values()),
+        "compression": {"format": storage.compression_format, "mode": storage.compression_mode},
+        "ros_distro": storage.ros_distro or None,
+    }
+
+
+def _utc(stamp_ns: int) -> str:
+    seconds, nanoseconds = divmod(stamp_ns, 1_000_000_000)
+    return datetime.fromtimestamp(seconds, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S") + f".{nanoseconds:09d}Z"
+
+
+def _seconds(stamp_ns: int) -> str:
+    return f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}"
+
+
+def _size(size_bytes: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if size_bytes < 1024 or unit == "GiB":
+            return f"{size_bytes:.0f} {unit}" if unit == "B" else f"{size_bytes:.1f} {unit}"
+        size_bytes /= 1024
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 @click.command()
 @click.argument("log", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON document instead of a table.")
 @topic_options
 @handle_errors
 def info(log: Path, as_json: bool, **topic_names: str) -> None:
-    """Show a log's topics, types, counts, duration and rates, and which estimators can run on it.
+    """Show a log's storage, topics, types, counts, duration and rates, and which estimators can run on it.
+
+    LOG is an MCAP file, a rosbag2 directory (mcap or sqlite3 storage, split or compressed) or a ROS 1 bag.
 
     \b
     Examples:
       relpoint info sample_logs/figure8.mcap
+      relpoint info rosbag2_2026_11_24-10_00_00 --json
       relpoint info robot.mcap --points-topic /lidar/landmarks --json
     """
     reader = LogReader(log, topics_from(topic_names))
+    storage = reader.storage()
     available = reader.available_roles()
     role_of = {topic: role for role, topic in reader.topics.roles().items()}
     topics = []
@@ -53,6 +100,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         role = role_of.get(topic)
         topics.append({
             "topic": topic, "type": item.typename, "count": item.count, "duration_s": round(item.duration_s, 6),
+            "serialization_format": item.message_encoding,
             "rate_hz": None if item.rate_hz is None else round(item.rate_hz, 3),
             "role": role if role and item.typename == ROLE_TYPES[role] else None,
         })  # fmt: skip
@@ -68,8 +116,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         }  # fmt: skip
     document = {
         "path": str(log),
-        "size_bytes": log.stat().st_size,
+        "size_bytes": storage.size_bytes,
         "duration_s": round(reader.duration_s(), 6),
+        **storage_document(storage, reader.topic_infos),
         "topics": topics,
         "observations": observations,
         **capabilities(available),
@@ -78,12 +127,27 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         click.echo(json.dumps(document, indent=2))
         return
     click.echo(f"{log}  {document['size_bytes'] / 1e6:.2f} MB, {document['duration_s']:.3f} s")
+    compression = document["compression"]
+    rows = [
+        ("layout", document["layout"]),
+        ("storage id", document["storage_id"]),
+        ("files", ", ".join(f["name"] for f in document["files"])),
+        ("size", _size(document["size_bytes"])),
+        ("duration", f"{document['duration_s']:.9f} s"),
+        ("start", "-" if document["start_ns"] is None else f"{document['start_utc']} ({_seconds(document['start_ns'])})"),
+        ("end", "-" if document["end_ns"] is None else f"{document['end_utc']} ({_seconds(document['end_ns'])})"),
+        ("messages", str(document["message_count"])),
+        ("compression", f"{compression['format']} ({compression['mode']})" if compression["mode"] else "none"),
+    ]  # fmt: skip
+    for label, value in rows:
+        click.echo(f"  {label + ':':<13} {value}")
     width = max([len(t["topic"]) for t in topics] + [5])
     type_width = max([len(t["type"]) for t in topics] + [4])
-    click.echo(f"  {'topic':<{width}}  {'type':<{type_width}}  {'count':>7}  {'rate Hz':>8}  role")
+    click.echo(f"  {'topic':<{width}}  {'type':<{type_width}}  {'format':<6}  {'count':>7}  {'rate Hz':>8}  role")
     for t in topics:
         rate = "-" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
-        click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['count']:>7}  {rate:>8}  {t['role'] or ''}")
+        click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['serialization_format']:<6}  "
+                   f"{t['count']:>7}  {rate:>8}  {t['role'] or ''}")  # fmt: skip
     if observations:
         click.echo(
             f"observations on {observations['topic']} (frame {', '.join(observations['frame_ids'])}): "

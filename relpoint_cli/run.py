@@ -16,9 +16,10 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
+from formats.layouts import log_sha256
 from formats.log import LogReader, Record
 from formats.outputs import check_output_directory
-from formats.run_output import file_sha256, write_run_directory
+from formats.run_output import write_run_directory
 from relpoint import pipeline
 from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
@@ -173,7 +174,7 @@ def execute_run(
         "parameters": dataclasses.asdict(config),
         "seed": seed,
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(reader.path), "sha256": file_sha256(reader.path), "roles": sorted(roles),
+        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
         "warnings": list(result.warnings),

@@ -1,0 +1,546 @@
+"""Bag layouts a log may come in: a single MCAP file, a rosbag2 directory, a ROS 1 bag.
+
+A *log* is what a relpoint command reads messages from. Besides the single ``.mcap`` file that relpoint
+writes itself (``docs/log-format.md``), recordings made by other tools come as
+
+- a **rosbag2 directory** written by ``ros2 bag record``: ``metadata.yaml`` beside one or more storage
+  files (``mcap`` or ``sqlite3`` storage, split over several files when the recording hit a size or
+  duration limit), optionally zstd-compressed per file (``*.mcap.zstd``) or per message;
+- a **ROS 1 bag** (``.bag``, format 2.0), with chunks stored plain, bz2- or lz4-compressed.
+
+All of them read through rosbags' ``AnyReader`` (:func:`open_reader`). ROS 1 messages decode into the
+ROS 1 definitions the bag carries (``CameraInfo.K``, ``Header.seq``); a :class:`MessageMigrator` gives
+them the standard ROS 2 types' fields (rebuilding, with rosbags' own migration as ``rosbags-convert``
+does, only the types whose fields differ), so the rest of relpoint sees the same messages whatever the
+layout.
+
+:func:`describe_storage` tells what ``ros2 bag info`` tells about the storage (id, files, sizes,
+compression); :func:`write_layout` copies a log's messages into any layout, which the tests and the
+benchmark use to compare layouts on the same messages.
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from mcap.reader import make_reader
+from rosbags.convert.converter import migrate_message
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Nodetype
+from rosbags.rosbag1 import Reader as Ros1Reader
+from rosbags.rosbag1 import Writer as Ros1Writer
+from rosbags.rosbag1.reader import decompressors as ros1_decompressors
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from formats import ros2
+from relpoint.errors import InputError, UsageError
+
+try:  # the zstd codec rosbags writes and reads rosbag2 compression with
+    from compression import zstd
+except ImportError:  # Python < 3.14
+    from backports import zstd  # type: ignore[no-redef]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+ROSBAG2_METADATA = "metadata.yaml"
+
+_LOG_KINDS = "an MCAP file, a rosbag2 directory (metadata.yaml) or a ROS 1 .bag"
+
+
+class Layout(enum.Enum):
+    """How a log is laid out on disk."""
+
+    MCAP = "mcap"  #: one MCAP file (what relpoint writes)
+    ROSBAG2 = "rosbag2"  #: a directory with metadata.yaml and mcap or sqlite3 storage files
+    ROS1 = "rosbag1"  #: a ROS 1 bag, format 2.0
+
+    @property
+    def noun(self) -> str:
+        """How messages name the input, e.g. ``the rosbag2 directory``."""
+        return {Layout.MCAP: "MCAP file", Layout.ROSBAG2: "rosbag2 bag", Layout.ROS1: "ROS 1 bag"}[self]
+
+    @property
+    def repair_hint(self) -> str:
+        """What a user can do about a damaged log of this layout."""
+        return {
+            Layout.MCAP: "re-record it, or repair a cut-off recording with `mcap recover` (the MCAP CLI)",
+            Layout.ROSBAG2: "re-record it, or rebuild a cut-off bag's metadata with `ros2 bag reindex`",
+            Layout.ROS1: "re-record it, or repair a cut-off recording with `rosbag reindex`",
+        }[self]
+
+
+def detect_layout(path: str | os.PathLike[str]) -> Layout:
+    """The layout of the log at ``path``, told by its content (magic bytes, ``metadata.yaml``).
+
+    Raises
+    ------
+    InputError
+        If nothing is at ``path``, it cannot be read, or it is none of the layouts.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or directory", "check the path")
+    if path.is_dir():
+        if (path / ROSBAG2_METADATA).is_file():
+            return Layout.ROSBAG2
+        raise InputError(
+            f"{path} is a directory without {ROSBAG2_METADATA}, not a rosbag2 bag",
+            "give a directory written by `ros2 bag record` (`ros2 bag reindex` rebuilds a lost metadata.yaml), "
+            "or the .mcap or .bag file itself",
+        )
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(16)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+    if head.startswith(MCAP_MAGIC):
+        _check_suffix(path, ".mcap")
+        return Layout.MCAP
+    if head.startswith(ROS1_MAGIC):
+        _check_suffix(path, ".bag")
+        return Layout.ROS1
+    if head.startswith(b"#ROSBAG V"):
+        raise InputError(f"{path} is a ROS 1 bag of an old format version", "migrate it with `rosbag fix`")
+    if head.startswith(SQLITE_MAGIC) or head.startswith(ZSTD_MAGIC) or path.name == ROSBAG2_METADATA:
+        what = {SQLITE_MAGIC[:4]: "sqlite3 storage file", ZSTD_MAGIC: "zstd-compressed storage file"}.get(head[:4])
+        raise InputError(
+            f"{path} is a rosbag2 {what or 'metadata file'}, not a log on its own",
+            f"give the bag directory {path.parent} that holds it with its metadata.yaml",
+        )
+    raise InputError(f"{path} is not an MCAP file, nor a rosbag2 directory or ROS 1 bag", f"give {_LOG_KINDS}")
+
+
+def _check_suffix(path: Path, suffix: str) -> None:
+    # AnyReader chooses its reader by the name, so a mis-named file would fail in a confusing way.
+    if path.suffix != suffix:
+        raise InputError(f"{path} holds a {suffix[1:]} log but is not named *{suffix}", f"rename it to end in {suffix}")
+
+
+def is_log(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` holds a log of any layout by its content, even under a name relpoint then refuses
+    (no error for anything else)."""
+    path = Path(path)
+    try:
+        if path.is_dir():
+            return (path / ROSBAG2_METADATA).is_file()
+        with path.open("rb") as stream:
+            head = stream.read(16)
+    except OSError:
+        return False
+    return head.startswith(MCAP_MAGIC) or head.startswith(ROS1_MAGIC)
+
+
+def open_reader(path: Path) -> AnyReader:
+    """An unopened rosbags ``AnyReader`` over the log at ``path`` (any layout)."""
+    return AnyReader([path])
+
+
+# --- what the storage holds -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StorageFile:
+    """One file of a log's storage; counts and times where the layout records them."""
+
+    name: str
+    size_bytes: int
+    message_count: int | None = None
+    start_ns: int | None = None
+    duration_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class Storage:
+    """How a log is stored: what ``ros2 bag info`` shows above the topic list.
+
+    ``compression_mode`` is ``file`` or ``message`` (rosbag2), ``chunk`` (MCAP chunks, ROS 1 chunks),
+    or empty when nothing is compressed; ``compression_format`` names the codecs (``zstd``, ``lz4``,
+    ``bz2``; several joined by ``+`` when chunks differ).
+    """
+
+    layout: Layout
+    storage_id: str
+    files: tuple[StorageFile, ...]
+    compression_format: str = ""
+    compression_mode: str = ""
+    ros_distro: str = ""
+
+    @property
+    def size_bytes(self) -> int:
+        return sum(f.size_bytes for f in self.files)
+
+
+def storage_paths(path: Path, layout: Layout) -> list[Path]:
+    """Every file that makes up the log (for a rosbag2 directory: metadata.yaml first, then the storage)."""
+    if layout is not Layout.ROSBAG2:
+        return [path]
+    metadata = _rosbag2_metadata(path)
+    return [path / ROSBAG2_METADATA, *(path / Path(name).name for name in metadata.get("relative_file_paths", []))]
+
+
+def _rosbag2_metadata(path: Path) -> dict[str, Any]:
+    try:
+        document = yaml.safe_load((path / ROSBAG2_METADATA).read_text(encoding="utf-8"))
+        info = document["rosbag2_bagfile_information"]
+        if not isinstance(info, dict):
+            raise TypeError("rosbag2_bagfile_information is not a mapping")
+    except (OSError, yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as error:
+        raise InputError(
+            f"{path / ROSBAG2_METADATA}: not a rosbag2 metadata file ({type(error).__name__}: {error})",
+            Layout.ROSBAG2.repair_hint,
+        ) from None
+    return info
+
+
+def describe_storage(path: str | os.PathLike[str], layout: Layout | None = None) -> Storage:
+    """Storage id, files with sizes, and compression of the log at ``path``.
+
+    Raises
+    ------
+    InputError
+        If the log's own description (metadata.yaml, MCAP summary, ROS 1 index) cannot be read.
+    """
+    path = Path(path)
+    layout = layout or detect_layout(path)
+    try:
+        if layout is Layout.MCAP:
+            return _describe_mcap(path)
+        if layout is Layout.ROS1:
+            return _describe_ros1(path)
+        return _describe_rosbag2(path)
+    except InputError:
+        raise
+    except Exception as error:  # the readers raise assorted errors on damaged descriptions
+        raise InputError(
+            f"{path}: the {layout.noun} is truncated or corrupt ({type(error).__name__}: {error})", layout.repair_hint
+        ) from None
+
+
+def _describe_mcap(path: Path) -> Storage:
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    codecs = sorted({c.compression for c in summary.chunk_indexes if c.compression}) if summary else []
+    stats = summary.statistics if summary else None
+    file = StorageFile(
+        path.name, path.stat().st_size,
+        stats.message_count if stats else None,
+        stats.message_start_time if stats else None,
+        stats.message_end_time - stats.message_start_time if stats else None,
+    )  # fmt: skip
+    return Storage(Layout.MCAP, "mcap", (file,), "+".join(codecs), "chunk" if codecs else "")
+
+
+def _describe_ros1(path: Path) -> Storage:
+    names = {function: name for name, function in ros1_decompressors.items()}
+    with Ros1Reader(path) as reader:
+        codecs = sorted({names.get(chunk.decompressor, "?") for chunk in getattr(reader, "chunks", {}).values()})
+        file = StorageFile(path.name, path.stat().st_size, reader.message_count, reader.start_time,
+                           reader.end_time - 1 - reader.start_time if reader.message_count else 0)  # fmt: skip
+    codecs = [codec for codec in codecs if codec != "none"]
+    return Storage(Layout.ROS1, "rosbag1", (file,), "+".join(codecs), "chunk" if codecs else "")
+
+
+def _describe_rosbag2(path: Path) -> Storage:
+    metadata = _rosbag2_metadata(path)
+    per_file = {Path(f["path"]).name: f for f in metadata.get("files") or [] if isinstance(f, dict) and "path" in f}
+    files = []
+    for name in metadata.get("relative_file_paths", []):
+        storage_file = path / Path(name).name
+        if not storage_file.is_file():
+            raise InputError(f"{path}: the storage file {storage_file.name} named in {ROSBAG2_METADATA} is missing",
+                             Layout.ROSBAG2.repair_hint)  # fmt: skip
+        entry = per_file.get(storage_file.name, {})
+        files.append(StorageFile(
+            storage_file.name, storage_file.stat().st_size, entry.get("message_count"),
+            (entry.get("starting_time") or {}).get("nanoseconds_since_epoch"),
+            (entry.get("duration") or {}).get("nanoseconds"),
+        ))  # fmt: skip
+    mode = str(metadata.get("compression_mode") or "").lower()
+    mode = "" if mode == "none" else mode
+    return Storage(
+        Layout.ROSBAG2, str(metadata.get("storage_identifier", "")), tuple(files),
+        str(metadata.get("compression_format") or "") if mode else "", mode, str(metadata.get("ros_distro") or ""),
+    )  # fmt: skip
+
+
+def check_sqlite_file(path: Path) -> None:
+    """Raise :class:`InputError` unless a SQLite file is as long as its header says.
+
+    SQLite has no checksum, and reads a cut-off page as zeros; the header's page size and page count
+    (valid when its change counter matches the version-valid-for number) tell a truncated file.
+    """
+    with path.open("rb") as stream:
+        header = stream.read(100)
+    if not header.startswith(SQLITE_MAGIC):
+        return  # compressed (``.db3.zstd``) or not SQLite at all: the reader's own checks apply
+    size = path.stat().st_size
+    page_size = int.from_bytes(header[16:18], "big") if len(header) >= 18 else 0
+    page_size = 65536 if page_size == 1 else page_size
+    page_count = int.from_bytes(header[28:32], "big") if len(header) == 100 else 0
+    counter_valid = len(header) == 100 and header[24:28] == header[92:96]
+    expected = page_size * page_count if counter_valid and page_count else None
+    if len(header) < 100 or (expected is not None and size != expected) or (page_size and size % page_size):
+        raise InputError(
+            f"{path.parent}: the rosbag2 bag is truncated or corrupt ({path.name} holds {size} bytes"
+            + (f", its header says {expected})" if expected is not None else ", not whole SQLite pages)"),
+            Layout.ROSBAG2.repair_hint,
+        )
+
+
+def check_storage(path: str | os.PathLike[str], layout: Layout) -> None:
+    """What can be checked of a log before reading it: a rosbag2 bag's storage files are all there, and
+    SQLite files are whole (:func:`check_sqlite_file`)."""
+    path = Path(path)
+    if layout is not Layout.ROSBAG2:
+        return
+    storage = _describe_rosbag2(path)
+    if storage.storage_id == "sqlite3":
+        for file in storage.files:
+            check_sqlite_file(path / file.name)
+
+
+def decompress_bag(path: Path, into: Path) -> Path:
+    """A rosbag2 bag compressed per file, decompressed into the empty directory ``into``; returns ``into``.
+
+    The copy holds the storage files without their ``.zstd`` and a metadata.yaml that says they are not
+    compressed. rosbags would otherwise decompress every file again each time the bag is opened, and a
+    command opens a log two or three times (the summary pass, then the messages it needs).
+    """
+    metadata = _rosbag2_metadata(path)
+    names = []
+    for name in metadata.get("relative_file_paths", []):
+        source = path / Path(name).name
+        target = into / source.name.removesuffix(".zstd")
+        with source.open("rb") as compressed, zstd.open(compressed, "rb") as stream, target.open("wb") as out:
+            shutil.copyfileobj(stream, out, 1 << 20)
+        names.append(target.name)
+    files = [{**f, "path": Path(str(f.get("path", ""))).name.removesuffix(".zstd")}
+             for f in metadata.get("files") or [] if isinstance(f, dict)]  # fmt: skip
+    plain = {**metadata, "relative_file_paths": names, "files": files, "compression_mode": "", "compression_format": ""}
+    (into / ROSBAG2_METADATA).write_text(yaml.safe_dump({"rosbag2_bagfile_information": plain}, sort_keys=False))
+    return into
+
+
+def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> str:
+    """SHA-256 of a log: its file's bytes, or for a rosbag2 directory every file's name and bytes in order."""
+    path = Path(path)
+    layout = layout or detect_layout(path)
+    digest = hashlib.sha256()
+    for file in storage_paths(path, layout):
+        if layout is Layout.ROSBAG2:
+            digest.update(file.name.encode("utf-8") + b"\x00")
+        with file.open("rb") as stream:
+            for block in iter(lambda stream=stream: stream.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+# --- ROS 1 messages as ROS 2 messages ---------------------------------------------------------------
+
+
+class MessageMigrator:
+    """Turns messages of one typestore's definitions into the same-named types of another.
+
+    A message whose source type holds every field of the target type under the same name and shape
+    (recursively; extra source fields such as ROS 1's ``Header.seq`` allowed) reads exactly as the target
+    type would and passes unchanged: that is most types, at no cost. Others are rebuilt as
+    ``rosbags-convert`` rebuilds them: fields matched by name, renamed ones (ROS 1 ``CameraInfo.K`` ->
+    ROS 2 ``k``) by type, dropped ones left out, added ones given defaults. Types either store lacks pass
+    unchanged.
+
+    Parameters
+    ----------
+    source_typestore:
+        The definitions the messages were decoded with (for a bag: ``AnyReader.typestore``).
+    target_typestore:
+        The definitions wanted (default: the standard ROS 2 Humble types relpoint reads).
+    """
+
+    def __init__(self, source_typestore: Any, target_typestore: Any = None) -> None:
+        self._source = source_typestore
+        self._target = target_typestore if target_typestore is not None else ros2.typestore()
+        self._cache: dict[str, object] = {}
+        self._alike: dict[tuple[str, str], bool] = {}
+
+    def __call__(self, message: Any, typename: str) -> Any:
+        if typename not in self._target.fielddefs or typename not in self._source.fielddefs:
+            return message
+        if self.reads_alike(typename, typename):
+            return message
+        return migrate_message(self._source, self._target, typename, typename, self._cache, message)
+
+    def reads_alike(self, source_type: str, target_type: str) -> bool:
+        """Whether every field of ``target_type`` is in ``source_type`` under the same name and shape."""
+        key = (source_type, target_type)
+        if key not in self._alike:
+            self._alike[key] = False  # a recursive type is not taken as alike
+            source = dict(self._source.fielddefs[source_type][1])
+            self._alike[key] = all(
+                name in source and self._same_shape(source[name], desc)
+                for name, desc in self._target.fielddefs[target_type][1]
+            )
+        return self._alike[key]
+
+    def _same_shape(self, source: Any, target: Any) -> bool:
+        if source[0] != target[0]:
+            return False
+        if target[0] == Nodetype.NAME:
+            return self.reads_alike(source[1], target[1])
+        if target[0] in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            return source[1][1] == target[1][1] and self._same_shape(source[1][0], target[1][0])
+        return bool(source == target)
+
+
+# --- writing a log's messages in another layout ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LayoutSpec:
+    """A layout to write: rosbag2 ``storage`` (``mcap``/``sqlite3``) with ``compression`` (``none``,
+    ``file``, ``message``) split over ``files`` files, or a ROS 1 bag with ``compression`` ``none``,
+    ``bz2`` or ``lz4``."""
+
+    layout: Layout
+    storage: str = "mcap"
+    compression: str = "none"
+    files: int = 1
+
+    @property
+    def label(self) -> str:
+        if self.layout is Layout.ROS1:
+            return "rosbag1" + ("" if self.compression == "none" else f" {self.compression} chunks")
+        if self.layout is Layout.MCAP:
+            return "single mcap"
+        parts = [f"rosbag2 {self.storage}"]
+        if self.files > 1:
+            parts.append(f"split x{self.files}")
+        if self.compression != "none":
+            parts.append(f"zstd per {self.compression}")
+        return ", ".join(parts)
+
+
+RawMessage = tuple[str, str, int, bytes]
+
+
+def raw_messages(path: Path) -> Iterator[RawMessage]:
+    """``(topic, typename, log_time_ns, cdr_bytes)`` of every message of a ROS 2 log, in log-time order."""
+    with AnyReader([path]) as reader:
+        if not reader.is2:
+            raise UsageError(f"{path}: copying needs a ROS 2 (CDR) log", "give an MCAP file or rosbag2 directory")
+        for connection, log_time, raw in reader.messages():
+            yield connection.topic, ros2.normalise_typename(connection.msgtype), log_time, bytes(raw)
+
+
+def write_layout(messages: Iterable[RawMessage], target: str | os.PathLike[str], spec: LayoutSpec) -> Path:
+    """Write CDR ``messages`` (standard ROS 2 types, time order) as a new log at ``target`` in ``spec``'s layout.
+
+    rosbag2 directories are written by rosbags' writer, as ``ros2 bag record`` would write them; a split
+    bag is ``spec.files`` consecutive parts with one metadata.yaml. ROS 1 bags carry the ROS 1 (Noetic)
+    definitions, messages migrated field by field. Returns ``target``.
+    """
+    target = Path(target)
+    if target.exists():
+        raise UsageError(f"{target} exists already", "give a new path")
+    messages = list(messages)
+    if spec.layout is Layout.MCAP:
+        _write_mcap(messages, target)
+    elif spec.layout is Layout.ROS1:
+        _write_ros1(messages, target, spec.compression)
+    else:
+        _write_rosbag2(messages, target, spec)
+    return target
+
+
+def _write_mcap(messages: list[RawMessage], target: Path) -> None:
+    from formats.log import LogWriter  # the log module reads through this one
+
+    with LogWriter(target) as writer:
+        for topic, typename, stamp_ns, raw in messages:
+            writer.write(topic, typename, ros2.deserialize(raw, typename), stamp_ns)
+
+
+def _write_ros1(messages: list[RawMessage], target: Path, compression: str) -> None:
+    noetic = get_typestore(Stores.ROS1_NOETIC)
+    migrate = MessageMigrator(ros2.typestore(), noetic)
+    writer = Ros1Writer(target)
+    if compression != "none":
+        writer.set_compression(Ros1Writer.CompressionFormat[compression.upper()])
+    with writer:
+        connections: dict[str, Any] = {}
+        for topic, typename, stamp_ns, raw in messages:
+            if topic not in connections:
+                if typename not in noetic.fielddefs:  # not in Noetic's store (tf2_msgs): ROS 1 text of the ROS 2 type
+                    types = get_types_from_msg(ros2.typestore().generate_msgdef(typename, ros_version=1)[0], typename)
+                    types.pop("std_msgs/msg/Header", None)
+                    noetic.register(types)
+                connections[topic] = writer.add_connection(topic, typename, typestore=noetic)
+            message = migrate(ros2.deserialize(raw, typename), typename)
+            writer.write(connections[topic], stamp_ns, bytes(noetic.serialize_ros1(message, typename)))
+
+
+def _write_rosbag2(messages: list[RawMessage], target: Path, spec: LayoutSpec) -> None:
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[spec.storage]
+    parts = max(1, min(spec.files, len(messages)))
+    bounds = [round(k * len(messages) / parts) for k in range(parts + 1)]
+    with tempfile.TemporaryDirectory(dir=target.parent) as scratch:
+        part_dirs = []
+        for k in range(parts):
+            part = Path(scratch) / f"{target.name}_{k}"
+            writer = Rosbag2Writer(part, version=8, storage_plugin=plugin)
+            if spec.compression != "none":
+                writer.set_compression(CompressionMode[spec.compression.upper()], CompressionFormat.ZSTD)
+            with writer:
+                connections: dict[str, Any] = {}
+                for topic, typename, stamp_ns, raw in messages[bounds[k] : bounds[k + 1]]:
+                    if topic not in connections:
+                        connections[topic] = writer.add_connection(topic, typename, typestore=ros2.typestore())
+                    writer.write(connections[topic], stamp_ns, raw)
+            part_dirs.append(part)
+        if parts == 1:
+            shutil.move(part_dirs[0], target)
+            return
+        target.mkdir()
+        infos = []
+        for part in part_dirs:
+            info = _rosbag2_metadata(part)
+            for name in info["relative_file_paths"]:
+                shutil.move(part / name, target / name)
+            infos.append(info)
+        (target / ROSBAG2_METADATA).write_text(yaml.safe_dump(_merge_metadata(infos), sort_keys=False))
+
+
+def _merge_metadata(infos: list[dict[str, Any]]) -> dict[str, Any]:
+    """One rosbag2 metadata document for consecutive parts, as a split recording has."""
+    merged = dict(infos[0])
+    starts = [i["starting_time"]["nanoseconds_since_epoch"] for i in infos]
+    ends = [i["starting_time"]["nanoseconds_since_epoch"] + i["duration"]["nanoseconds"] for i in infos]
+    counts: dict[str, int] = {}
+    topics: dict[str, Any] = {}
+    for info in infos:
+        for entry in info["topics_with_message_count"]:
+            name = entry["topic_metadata"]["name"]
+            topics.setdefault(name, entry["topic_metadata"])
+            counts[name] = counts.get(name, 0) + entry["message_count"]
+    merged.update(
+        relative_file_paths=[name for i in infos for name in i["relative_file_paths"]],
+        files=[entry for i in infos for entry in i.get("files", [])],
+        starting_time={"nanoseconds_since_epoch": min(starts)},
+        duration={"nanoseconds": max(ends) - min(starts)},
+        message_count=sum(i["message_count"] for i in infos),
+        topics_with_message_count=[{"topic_metadata": meta, "message_count": counts[name]} for name, meta in topics.items()],
+    )  # fmt: skip
+    return {"rosbag2_bagfile_information": merged}
