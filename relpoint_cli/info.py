@@ -10,8 +10,10 @@ from typing import Any
 import click
 import numpy as np
 
+from formats import ros2
 from formats.layouts import Storage
 from formats.log import ROLE_TYPES, LogReader, TopicInfo
+from formats.reference_trajectories import POSE_TYPES
 from relpoint.estimators import ESTIMATORS
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.topics import topic_options, topics_from
@@ -114,6 +116,10 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
             "points_min": int(np.min(counts)), "points_max": int(np.max(counts)),
             "skipped": dict(sorted(reader.skipped.items())),
         }  # fmt: skip
+    reference_topics = [
+        topic for topic, item in reader.topic_infos.items() if item.typename in POSE_TYPES and item.count
+    ]
+    tf_topics = [topic for topic, item in reader.topic_infos.items() if item.typename == ros2.TF_MESSAGE and item.count]
     document = {
         "path": str(log),
         "size_bytes": storage.size_bytes,
@@ -122,6 +128,8 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         "topics": topics,
         "observations": observations,
         **capabilities(available),
+        "reference_topics": reference_topics,
+        "tf_topics": tf_topics,
     }
     if as_json:
         click.echo(json.dumps(document, indent=2))
@@ -163,5 +171,14 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         state = "can run" if cap["can_run"] else f"cannot run (missing {', '.join(cap['missing'])})"
         extra = f"; uses {', '.join(cap['also_uses'])}" if cap["also_uses"] and cap["can_run"] else ""
         click.echo(f"  {name:<10} {state}{extra}")
-    click.echo(f"evaluation: trajectory {'yes' if document['evaluate_trajectory'] else 'no (no ground-truth pose)'}, "
+    trajectory = (
+        "yes" if document["evaluate_trajectory"]
+        else "with --reference-topic or --parent/--child (below)" if reference_topics or tf_topics
+        else "no (no pose topic)"
+    )  # fmt: skip
+    click.echo(f"evaluation: trajectory {trajectory}, "
                f"landmarks {'yes' if document['evaluate_landmarks'] else 'no (no ground-truth landmarks)'}")  # fmt: skip
+    if reference_topics:
+        click.echo(f"  pose topics that can serve as --reference-topic or --estimate-topic: {', '.join(reference_topics)}")
+    if tf_topics:
+        click.echo(f"  transforms on {', '.join(tf_topics)}: a reference from a frame chain with --parent/--child")

@@ -242,3 +242,13 @@ def test_bad_inputs_exit_3_with_one_line(tmp_path: Path) -> None:
     code, _, err = invoke("evaluate", bag, "--estimate-topic", "/nothing", "-r", ref)
     assert code == 3
     assert_one_error_line(err, "no messages on /nothing")
+
+
+def test_info_names_the_pose_topics_a_bag_can_be_evaluated_against() -> None:
+    bag = shared_data(*BAG)
+    code, out, _ = invoke("info", bag, "--json")
+    assert code == 0
+    document = json.loads(out)
+    assert document["reference_topics"] == ["/odom", "/amcl_pose"] and document["tf_topics"] == ["/tf", "/tf_static"]
+    code, out, _ = invoke("info", bag)
+    assert "trajectory with --reference-topic" in out and "/amcl_pose" in out
