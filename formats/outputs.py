@@ -72,6 +72,13 @@ def _resolved_inputs(inputs: Iterable[str | os.PathLike[str] | None]) -> list[tu
     return [(str(p), Path(os.path.realpath(p))) for p in inputs if p is not None and os.path.lexists(p)]
 
 
+def _is_bag(path: Path) -> bool:
+    """Whether ``path`` is a log directory (a rosbag2 bag): nothing may be written inside it."""
+    from formats.layouts import is_log
+
+    return path.is_dir() and is_log(path)
+
+
 def _refuse_inputs(shown: str | os.PathLike[str], target: Path, inputs: list[tuple[str, Path]], *, directory: bool):
     for name, resolved in inputs:
         if resolved == target:
@@ -80,7 +87,7 @@ def _refuse_inputs(shown: str | os.PathLike[str], target: Path, inputs: list[tup
             raise OutputError(
                 f"output directory {shown} contains the input {name}", "choose an output directory outside the input's"
             )
-        if resolved.is_dir() and resolved in target.parents:  # a bag directory is an input as a whole
+        if resolved in target.parents and _is_bag(resolved):  # a bag directory is an input as a whole
             raise OutputError(f"output {shown} is inside the input {name}", "write outside the input directory")
 
 
