@@ -71,6 +71,27 @@ def corridor(distance: FloatArray, sway: float = 5.0, wavelength: float = 200.0)
     return positions, tangents
 
 
+def spiral(distance: FloatArray, radius: float, climb: float) -> tuple[FloatArray, FloatArray]:
+    """A helix climbing ``climb`` metres per turn of ``radius``, ``distance`` metres along it (N,).
+
+    Starts at the origin heading along +x and turns counter-clockwise about ``(0, radius)``; after each
+    turn it passes over its start again, ``climb`` metres higher, so it sees the first turn's
+    landmarks from another height. Tangents are unit vectors.
+    """
+    s = np.asarray(distance, dtype=np.float64)
+    rise = climb / (2.0 * np.pi)  # metres of climb per radian of turn
+    norm = np.hypot(radius, rise)
+    angle = s / norm
+    positions = np.stack([radius * np.sin(angle), radius * (1.0 - np.cos(angle)), rise * angle], axis=1)
+    tangents = np.stack([radius * np.cos(angle), radius * np.sin(angle), np.full_like(angle, rise)], axis=1) / norm
+    return positions, tangents
+
+
+def spiral_length(radius: float, climb: float) -> float:
+    """Length of one turn of :func:`spiral` in metres."""
+    return float(np.hypot(2.0 * np.pi * radius, climb))
+
+
 def orientations_from_tangents(tangents: FloatArray) -> FloatArray:
     """Rotation matrices (N, 3, 3) ``R_world_sensor`` with x along the tangent, no roll.
 

@@ -1,0 +1,129 @@
+"""Scenes the estimators were not tuned on: the simulator's scenario options and the robustness floors."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from formats.log import LogReader
+from formats.simulation_log import write_simulation
+from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
+from relpoint_cli.main import cli
+
+# ------------------------------------------------------------------------------------ scenarios
+
+
+def _mover_tracks(config: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """True positions (K, n, 3) of the moving landmarks at every iteration, and of the static ones."""
+    sim = simulate(config)
+    tracks = np.stack([sim.landmark_positions(int(stamp)) for stamp in sim.stamps_ns])
+    return tracks[:, sim.landmarks.dynamic], tracks[:, ~sim.landmarks.dynamic]
+
+
+def test_line_movers_travel_at_the_set_speed_in_a_straight_line() -> None:
+    movers, still = _mover_tracks(SimulationConfig(iterations=80, dynamic=0.2, mover_motion="line", mover_speed=0.3))
+    assert movers.shape[1] == 60
+    steps = np.diff(movers, axis=0)
+    np.testing.assert_allclose(np.linalg.norm(steps, axis=2), 0.3, rtol=1e-9)
+    np.testing.assert_allclose(steps, steps[:1].repeat(len(steps), axis=0), atol=1e-9)  # one direction each
+    assert np.ptp(still, axis=0).max() == 0.0
+
+
+def test_stop_and_go_movers_move_half_the_time() -> None:
+    movers, _ = _mover_tracks(
+        SimulationConfig(iterations=600, dynamic=0.2, mover_motion="stop-and-go", mover_speed=0.1)
+    )
+    step = np.linalg.norm(np.diff(movers, axis=0), axis=2)
+    moving = step > 1e-9
+    assert 0.4 < moving.mean() < 0.6
+    assert step.max() <= 0.1 + 1e-9 and np.median(step[moving]) == pytest.approx(0.1)
+    assert np.all(moving.any(axis=0)) and np.all((~moving).any(axis=0))  # every mover both moves and stops
+
+
+def test_static_then_moving_movers_start_within_the_run_and_keep_going() -> None:
+    movers, _ = _mover_tracks(SimulationConfig(iterations=500, dynamic=0.2, mover_motion="static-then-moving"))
+    step = np.linalg.norm(np.diff(movers, axis=0), axis=2)
+    first_move = np.argmax(step > 1e-9, axis=0)
+    assert np.all(first_move >= 0.2 * 500 - 1) and np.all(first_move <= 0.6 * 500)
+    assert np.all(step[-1] > 0.099)
+
+
+def test_random_walk_steps_have_the_set_mean_square() -> None:
+    movers, _ = _mover_tracks(
+        SimulationConfig(iterations=300, dynamic=0.3, mover_motion="random-walk", mover_speed=0.2)
+    )
+    step = np.diff(movers, axis=0)
+    assert np.sqrt(np.mean(np.sum(step**2, axis=2))) == pytest.approx(0.2, rel=0.03)
+    assert abs(float(np.mean(step))) < 0.01
+
+
+def test_oscillating_movers_are_the_default_and_stay_near_their_centres() -> None:
+    config = SimulationConfig(iterations=300, dynamic=0.2, dynamic_amplitude=2.0)
+    assert config.mover_motion == "oscillate"
+    movers, _ = _mover_tracks(config)
+    assert np.ptp(movers, axis=0).max() <= 4.0 + 1e-9
+
+
+def test_spiral_passes_over_its_start_one_turn_higher() -> None:
+    radius, climb = 40.0, 12.0
+    turn = paths.spiral_length(radius, climb)
+    positions, tangents = paths.spiral(np.linspace(0.0, 2 * turn, 2001), radius, climb)
+    np.testing.assert_allclose(positions[0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(positions[1000], [0.0, 0.0, climb], atol=1e-9)
+    np.testing.assert_allclose(positions[2000], [0.0, 0.0, 2 * climb], atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(tangents, axis=1), 1.0)
+    np.testing.assert_allclose(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum(), 2 * turn, rtol=1e-5)
+    sim = simulate(SimulationConfig(scenario="spiral", passes=2, radius=radius, climb=climb, step=1.0))
+    assert len(sim) == round(2 * turn)
+    np.testing.assert_allclose(sim.ground_truth.positions[-1], [0.0, 0.0, 2 * climb], atol=1.5)
+
+
+def test_indoor_scale_shrinks_the_scene_not_the_noise() -> None:
+    outdoor = simulate(SimulationConfig(iterations=60, noise=0.0, seed=4))
+    indoor = simulate(SimulationConfig(iterations=60, noise=0.0, scale=0.1, seed=4))
+    assert len(indoor.landmarks.ids) == len(outdoor.landmarks.ids)
+    np.testing.assert_allclose(indoor.landmarks.positions, 0.1 * outdoor.landmarks.positions, atol=1e-9)
+    np.testing.assert_allclose(indoor.ground_truth.positions, 0.1 * outdoor.ground_truth.positions, atol=1e-9)
+    for a, b in zip(indoor.steps(), outdoor.steps(), strict=True):
+        np.testing.assert_array_equal(a.observation.ids, b.observation.ids)
+        np.testing.assert_allclose(a.observation.points, 0.1 * b.observation.points, atol=1e-9)
+    noisy = next(iter(simulate(SimulationConfig(iterations=1, noise=0.05, scale=0.1, density=400, seed=4)).steps()))
+    assert np.max(np.linalg.norm(noisy.observation.points, axis=1)) < 7.0 + 0.5
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("motion", MOVER_MOTIONS)
+def test_every_scenario_option_gives_byte_identical_logs_for_a_seed(
+    runner: CliRunner, tmp_path: Path, motion: str
+) -> None:
+    args = ["--scenario", "spiral", "--iterations", "40", "--dynamic", "0.2", "--mover-motion", motion,
+            "--mover-speed", "0.25", "--noise", "0.05", "--scale", "0.1", "--odometry-noise", "0.02",
+            "--fix-every", "3", "--fix-noise", "0.5"]  # fmt: skip
+    logs = [tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "c.mcap"]
+    for log, seed in zip(logs, ("5", "5", "6"), strict=True):
+        result = runner.invoke(cli, ["simulate", "-o", str(log), "--seed", seed, *args])
+        assert result.exit_code == 0, result.stderr
+    assert _sha256(logs[0]) == _sha256(logs[1]) != _sha256(logs[2])
+    settings = LogReader(logs[0]).metadata()["relpoint.simulation"]
+    assert settings.get("mover_motion", '"oscillate"') == f'"{motion}"' and settings["scale"] == "0.1"
+
+
+def test_logs_of_the_older_settings_record_only_the_older_settings(tmp_path: Path) -> None:
+    config = SimulationConfig(iterations=5, dynamic=0.2)
+    write_simulation(simulate(config), tmp_path / "old.mcap")
+    stored = LogReader(tmp_path / "old.mcap").metadata()["relpoint.simulation"]
+    assert not {"mover_motion", "mover_speed", "scale"} & set(stored)
+    assert set(stored) == set(config.to_dict()) - {"mover_motion", "mover_speed", "scale"}
+
+
+def test_an_unknown_mover_motion_is_a_usage_error(runner: CliRunner, tmp_path: Path) -> None:
+    result = runner.invoke(cli, ["simulate", "-o", str(tmp_path / "x.mcap"), "--mover-motion", "teleport"])
+    assert result.exit_code == 2 and "teleport" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "x.mcap").exists()
