@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from pathlib import Path
 
@@ -11,7 +12,10 @@ from click.testing import CliRunner
 
 from formats.log import LogReader
 from formats.simulation_log import write_simulation
+from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
+from relpoint.types import PositionFix
 from relpoint_cli.main import cli
 
 # ------------------------------------------------------------------------------------ scenarios
@@ -127,3 +131,46 @@ def test_an_unknown_mover_motion_is_a_usage_error(runner: CliRunner, tmp_path: P
     result = runner.invoke(cli, ["simulate", "-o", str(tmp_path / "x.mcap"), "--mover-motion", "teleport"])
     assert result.exit_code == 2 and "teleport" in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "x.mcap").exists()
+
+
+# ------------------------------------------------------------------------------------ fix fusion
+
+
+def test_fix_gate_holds_back_outliers_then_follows_a_persistent_disagreement() -> None:
+    gate = FixGate(probability=0.999, patience=2)
+    assert gate.inflation(1.0) == 1.0
+    assert gate.inflation(100.0) is None and gate.inflation(100.0) is None  # two held back
+    assert gate.inflation(100.0) == pytest.approx(100.0 / gate.threshold)  # the third: inflated to the edge
+    assert gate.inflation(2.0) == 1.0 and gate.inflation(100.0) is None  # inside resets the run
+    assert gate.summary() == {"fixes_gated_out": 3, "fixes_inflated": 1}
+    assert FixGate(probability=1.0).inflation(1e12) == 1.0 and FixGate(probability=1.0).summary() == {}
+
+
+@pytest.fixture(scope="module")
+def dense_fix_run() -> tuple[EkfSlam, int]:
+    """An EKF after 160 iterations of the figure eight with a 1 m fix every iteration, and its last stamp."""
+    sim = simulate(SimulationConfig(iterations=160, odometry_noise=0.05, fix_every=1, fix_noise=1.0, seed=2))
+    ekf = EkfSlam(EkfConfig())
+    for step in sim.steps():
+        ekf.step(step.observation)
+        ekf.add_odometry(step.odometry)
+        ekf.add_fix(step.fix)
+    return ekf, int(sim.stamps_ns[-1])
+
+
+def test_dense_fixes_along_a_curve_pin_the_frame(dense_fix_run: tuple[EkfSlam, int]) -> None:
+    # A fix every iteration: a window of the latest 100 (120 m of a 95 m radius arc) never spread
+    # 8 m from their line, so the frame was never pinned and no fix was ever fused.
+    ekf, _ = dense_fix_run
+    assert ekf.frame_fit is not None and ekf.summary()["fixes"] > 0
+
+
+def test_ekf_holds_back_a_fix_that_contradicts_it(dense_fix_run: tuple[EkfSlam, int]) -> None:
+    ekf, stamp = copy.deepcopy(dense_fix_run[0]), dense_fix_run[1]
+    before = np.array(ekf.pose().position)
+    gated_out = ekf.summary()["fixes_gated_out"]
+    ekf.add_fix(PositionFix(stamp, before + np.array([30.0, 0.0, 0.0]), np.eye(3)))
+    np.testing.assert_allclose(ekf.pose().position, before, atol=1e-9)
+    assert ekf.summary()["fixes_gated_out"] == gated_out + 1
+    ekf.add_fix(PositionFix(stamp, before + np.array([0.5, 0.0, 0.0]), np.eye(3)))
+    assert ekf.pose().position[0] > before[0]  # one inside the gate is fused

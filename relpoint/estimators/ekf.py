@@ -44,6 +44,7 @@ from relpoint.estimators._association import (
     twist_step,
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
@@ -67,7 +68,7 @@ class EkfConfig(Settings):
         "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
         "linear_acceleration_noise": (0.0, 1e4), "angular_acceleration_noise": (0.0, 1e3),
         "initial_speed_sigma": (0.0, 1e4), "initial_turn_rate_sigma": (0.0, 1e2), "initial_orientation_sigma": (0.0, 10.0),
-        "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
+        "fix_min_spread": (1e-3, 1e6), "fix_gate_probability": (0.0, 1.0), "fix_gate_patience": (0, 1_000_000), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
         "jcbb_max_nodes": (1, 10_000_000),
     }  # fmt: skip
 
@@ -109,6 +110,12 @@ class EkfConfig(Settings):
     frame, then fuses every later fix as a position measurement; ``none`` fuses every fix at once
     in one frame (the first fix places the start, the orientation prior is
     ``initial_orientation_sigma``)."""
+    fix_gate_probability: float = 0.999
+    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
+    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
+    fix_gate_patience: int = 3
+    """Fixes in a row outside the gate that are held back; the ones after are fused with their
+    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
     fix_min_spread: float = 8.0
     """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
     fix_drift: float = 0.0
@@ -197,6 +204,7 @@ class EkfSlam(Estimator):
         if self.config.fix_alignment == "rigid":
             self._frame = FixFrame(min_spread=self.config.fix_min_spread)
         self._frame_fit: FrameFit | None = None
+        self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
         self._position_at_fix: FloatArray | None = None
 
@@ -237,7 +245,8 @@ class EkfSlam(Estimator):
         """Fuse an absolute position as a direct, covariance-weighted measurement of ``p`` (eq. 31-32).
 
         With ``fix_alignment="rigid"`` the fixes before the frame is pinned only collect pairs for
-        the fit (see :meth:`step`); the later ones are fused.
+        the fit (see :meth:`step`); the later ones are fused if they pass the fix gate
+        (``fix_gate_probability``, :class:`~relpoint.estimators._fix_gate.FixGate`).
         """
         if self._frame is not None:
             self._frame.add_fix(fix)
@@ -253,7 +262,12 @@ class EkfSlam(Estimator):
         if self._frame_fit is not None:
             self._add_drift()
         innovation = np.asarray(fix.position) - self._position
-        self._kalman_update(np.arange(3), np.eye(3), innovation, np.asarray(fix.covariance))
+        R_fix = np.asarray(fix.covariance, dtype=np.float64)
+        d2 = float(innovation @ np.linalg.solve(self._P[:3, :3] + R_fix, innovation))
+        inflation = self._fix_gate.inflation(d2)
+        if inflation is None:
+            return  # held back: it contradicts the filter's position (see relpoint.estimators._fix_gate)
+        self._kalman_update(np.arange(3), np.eye(3), innovation, R_fix * inflation)
         self._stats["fixes"] += 1
 
     def landmark_map(self) -> LandmarkMap:
@@ -278,6 +292,7 @@ class EkfSlam(Estimator):
             "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
+            **self._fix_gate.summary(),
         }
 
     # ------------------------------------------------------------------------------------- accessors
