@@ -83,6 +83,7 @@ def test_spiral_passes_over_its_start_one_turn_higher() -> None:
     np.testing.assert_allclose(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum(), 2 * turn, rtol=1e-5)
     sim = simulate(SimulationConfig(scenario="spiral", passes=2, radius=radius, climb=climb, step=1.0))
     assert len(sim) == round(2 * turn)
+    np.testing.assert_allclose(sim.ground_truth.matrices()[0], np.eye(4), atol=1e-12)  # starts at the identity
     np.testing.assert_allclose(sim.ground_truth.positions[-1], [0.0, 0.0, 2 * climb], atol=1.5)
 
 
