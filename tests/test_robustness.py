@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from click.testing import CliRunner
 from formats.log import LogReader
 from formats.simulation_log import write_simulation
 from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
 from relpoint.types import PositionFix
@@ -175,3 +177,37 @@ def test_ekf_holds_back_a_fix_that_contradicts_it(dense_fix_run: tuple[EkfSlam, 
     assert ekf.summary()["fixes_gated_out"] == gated_out + 1
     ekf.add_fix(PositionFix(stamp, before + np.array([0.5, 0.0, 0.0]), np.eye(3)))
     assert ekf.pose().position[0] > before[0]  # one inside the gate is fused
+
+
+# ------------------------------------------------------------------------------------ movers
+
+
+def test_moved_landmarks_pairs_nearest_first_within_the_radius() -> None:
+    landmarks = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    points = np.array([[10.5, 0.0, 0.0], [0.4, 0.0, 0.0], [0.9, 0.0, 0.0], [30.0, 0.0, 0.0]])
+    rows, moved = moved_landmarks(points, landmarks, np.array([0, 1]), radius=1.0)
+    assert sorted(zip(rows.tolist(), moved.tolist(), strict=True)) == [(0, 1), (1, 0)]  # one point a landmark
+
+
+def test_a_track_follows_its_point_and_expires() -> None:
+    tracks = MoverTracks(radius=1.0, memory=2)
+    tracks.start(np.zeros(3), 4, Counter({7: 4}), iteration=0)
+    claimed = tracks.claim(np.array([[0.8, 0.0, 0.0], [5.0, 0.0, 0.0]]), np.array([7, 3]), iteration=1)
+    assert claimed.tolist() == [True, False] and tracks.observations == [5] and tracks.votes[0][7] == 5
+    np.testing.assert_allclose(tracks.positions[0], [0.8, 0.0, 0.0])
+    assert not tracks.claim(np.array([[0.9, 0.0, 0.0]]), None, iteration=4).any()  # unseen for 3 > 2
+
+
+def test_fast_movers_leave_no_duplicate_landmarks_in_the_ekf() -> None:
+    # 40 % of the landmarks cross the view at 0.5 m an iteration: before the movers were followed,
+    # each left a trail of landmarks (two thirds of the EKF's map were duplicates).
+    sim = simulate(SimulationConfig(iterations=120, dynamic=0.4, mover_motion="line", mover_speed=0.5, seed=1))
+    ekf = EkfSlam(EkfConfig())
+    for step in sim.steps():
+        ekf.step(step.observation)
+    landmarks = ekf.landmark_map()
+    known = landmarks.gt_id[landmarks.gt_id >= 0]
+    duplicates = known.size - np.unique(known).size
+    assert duplicates <= 0.03 * len(landmarks)
+    flagged = landmarks.dynamic
+    assert flagged.any() and np.all(sim.landmarks.dynamic[landmarks.gt_id[flagged]])  # only movers flagged
