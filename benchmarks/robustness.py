@@ -345,7 +345,7 @@ def cell_rows(
             row["dup_pct_worst"] = float(max(r["dup_pct"] for r in runs))
             row["dyn_precision_worst"] = float(np.nanmin([r["dyn_precision"] for r in runs] + [np.inf]))
             row["dyn_recall_worst"] = float(np.nanmin([r["dyn_recall"] for r in runs] + [np.inf]))
-            adjustment = [r["summary"].get("final_adjustment_kept") for r in runs]
+            adjustment = [r["summary"].get("final_adjustment", {}).get("kept") for r in runs]
             if any(a is not None for a in adjustment):
                 row["adjustment_kept"] = "/".join(str(a) for a in adjustment)
             rows.append(row)

@@ -16,8 +16,10 @@ from formats.simulation_log import write_simulation
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
+from relpoint.estimators.relative_point import RelativePointEstimator
+from relpoint.estimators.relative_point import estimator as relative_point_estimator
 from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
-from relpoint.types import PositionFix
+from relpoint.types import PositionFix, Trajectory
 from relpoint_cli.main import cli
 
 # ------------------------------------------------------------------------------------ scenarios
@@ -211,3 +213,42 @@ def test_fast_movers_leave_no_duplicate_landmarks_in_the_ekf() -> None:
     assert duplicates <= 0.03 * len(landmarks)
     flagged = landmarks.dynamic
     assert flagged.any() and np.all(sim.landmarks.dynamic[landmarks.gt_id[flagged]])  # only movers flagged
+
+
+# ------------------------------------------------------------------------- final adjustment
+
+
+def _relative_point_run() -> tuple[RelativePointEstimator, Trajectory]:
+    sim = simulate(SimulationConfig(iterations=150, noise=0.3, dynamic=0.1, seed=5))
+    estimator = RelativePointEstimator()
+    poses = [estimator.step(step.observation) for step in sim.steps()]
+    stamps = np.array([p.stamp_ns for p in poses], dtype=np.int64)
+    return estimator, Trajectory(stamps, np.array([p.position for p in poses]), np.array([p.quat_xyzw for p in poses]))
+
+
+def test_final_adjustment_reports_its_check_and_keeps_the_adjusted_solution_that_passes() -> None:
+    estimator, incremental = _relative_point_run()
+    final = estimator.finish(incremental)
+    report = estimator.summary()["final_adjustment"]
+    assert report["kept"] == "adjusted"
+    assert report["support_residual_after"] <= 1.05 * report["support_residual_before"]
+    assert not np.allclose(final.positions, incremental.positions)
+
+
+def test_final_adjustment_that_fails_its_check_leaves_the_incremental_solution(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    estimator, incremental = _relative_point_run()
+    before = estimator.landmark_map()
+    # A tolerance below -100 % fails every adjustment: the incremental map and trajectory must come back.
+    monkeypatch.setattr(relative_point_estimator, "ADJUSTMENT_TOLERANCE", -1.01)
+    final = estimator.finish(incremental)
+    report = estimator.summary()["final_adjustment"]
+    assert report["kept"] == "incremental" and "m from their points" in report["reason"]
+    np.testing.assert_array_equal(final.positions, incremental.positions)
+    after = estimator.landmark_map()
+    static = ~after.dynamic
+    assert np.count_nonzero(static) >= 0.9 * np.count_nonzero(~before.dynamic)
+    index = {int(g): i for i, g in enumerate(before.gt_id)}
+    rows = [index[int(g)] for g in after.gt_id[static]]
+    np.testing.assert_allclose(after.positions[static], before.positions[rows], atol=1e-6)
