@@ -173,6 +173,9 @@ class EkfConfig(Settings):
 #: A landmark seen within this many iterations that a point near it does not match may have moved
 #: (a moving point can fall between the two gates for an iteration or two before it starts one).
 MOVER_RECENT = 3
+#: Landmarks are only taken for movers while at least this many landmarks match, and more of the
+#: recently seen ones match than not (otherwise the filter's pose is off, and every landmark seems to move).
+MOVER_MIN_MATCHED = 8
 
 
 class EkfSlam(Estimator):
@@ -607,7 +610,8 @@ class EkfSlam(Estimator):
         """Split the points that would start landmarks (``fresh``) into new landmarks and moving points.
 
         Points near a live track move it; points near a landmark seen within ``MOVER_RECENT``
-        iterations and not matched now are that landmark moving (see :mod:`relpoint.estimators._movers`). Returns the
+        iterations and not matched now are that landmark moving, while most recently seen landmarks
+        still match (see :mod:`relpoint.estimators._movers`). Returns the
         points still to start landmarks, and the (point, landmark) pairs of landmarks that moved.
         """
         assert self._movers is not None
@@ -617,7 +621,11 @@ class EkfSlam(Estimator):
         fresh, world = fresh[~claimed], world[~claimed]
         matched = np.zeros(len(self._landmarks), dtype=bool)
         matched[assignment[assignment >= 0]] = True
-        candidates = np.flatnonzero((self._last_seen >= iteration - MOVER_RECENT) & ~matched)
+        recent = self._last_seen >= iteration - MOVER_RECENT
+        candidates = np.flatnonzero(recent & ~matched)
+        if np.count_nonzero(matched) < MOVER_MIN_MATCHED or len(candidates) > np.count_nonzero(recent & matched):
+            # Most of what was just seen no longer matches: the pose has drifted, not the landmarks.
+            candidates = candidates[:0]
         rows, moved = moved_landmarks(world, self._landmarks, candidates, self._movers.radius)
         self._stats["claimed_by_movers"] += int(np.count_nonzero(claimed))
         return np.delete(fresh, rows), fresh[rows], moved
