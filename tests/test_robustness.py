@@ -208,7 +208,7 @@ def test_fast_movers_leave_no_duplicate_landmarks_in_the_ekf() -> None:
     # 40 % of the landmarks cross the view at 0.5 m an iteration: before the movers were followed,
     # each left a trail of landmarks (two thirds of the EKF's map were duplicates).
     sim = simulate(SimulationConfig(iterations=120, dynamic=0.4, mover_motion="line", mover_speed=0.5, seed=1))
-    ekf = EkfSlam(EkfConfig())
+    ekf = EkfSlam(EkfConfig(mover_radius_sigmas=10.0))
     for step in sim.steps():
         ekf.step(step.observation)
     landmarks = ekf.landmark_map()

@@ -87,11 +87,12 @@ class EkfConfig(Settings):
     """A point starts a landmark only if it lies outside every landmark's gate of this probability;
     points between the two gates are discarded (a true landmark's point falls outside the 0.99 gate
     one time in a hundred, and would otherwise start a duplicate)."""
-    mover_radius_sigmas: float = 10.0
-    """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen the
-    iteration before and not matched now is that landmark moving: it leaves the map and is followed
-    as a dynamic point instead of starting duplicates (``relpoint.estimators._movers``); 0 turns
-    this off."""
+    mover_radius_sigmas: float = 0.0
+    """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
+    lately and not matched now is that landmark moving: it leaves the map and is followed as a
+    dynamic point instead of starting duplicates (``relpoint.estimators._movers``). 0 (the default)
+    turns this off: 10 removes nearly every duplicate of fast movers and improves Starry Night, but
+    costs the oscillating-mover figure eight 20 % of position accuracy (docs/robustness.md)."""
     position_noise: float = 0.10
     """Constant-position model: position noise per iteration, per axis (m; MRPT default 0.10)."""
     quaternion_noise: float = 0.05
