@@ -27,7 +27,7 @@ def write_simulation(
     """
     topics = topics or Topics()
     counts = {"points": 0, "ground_truth_pose": 0, "ground_truth_landmarks": 0, "odometry": 0, "fix": 0}
-    metadata = {"relpoint.simulation": metadata_json(simulation.config.to_dict())}
+    metadata = {"relpoint.simulation": metadata_json(simulation.config.log_settings())}
     truth = simulation.ground_truth
     with LogWriter(path, compression=compression, metadata=metadata) as writer:
         for step in simulation.steps():

@@ -349,7 +349,7 @@ def simulation_complete(step: SimulationStep) -> bool:
         stored = LogReader(step.output).metadata().get("relpoint.simulation")
     except RelpointError:
         return False
-    return stored == metadata_json(step.config.to_dict())
+    return stored == metadata_json(step.config.log_settings())
 
 
 # --- executors ---------------------------------------------------------------------------------------

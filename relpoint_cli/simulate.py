@@ -13,7 +13,7 @@ from formats.log import COMPRESSIONS
 from formats.outputs import check_output_file
 from formats.simulation_log import write_simulation
 from relpoint.errors import UsageError
-from relpoint.simulation import SCENARIOS, SimulationConfig
+from relpoint.simulation import MOVER_MOTIONS, SCENARIOS, SimulationConfig
 from relpoint.simulation import simulate as make_simulation
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import config_options, explicit_options, overwrite_option
@@ -54,7 +54,7 @@ A config file holds the same settings by name (dashes or underscores), e.g. in T
     help="MCAP chunk compression.",
 )
 @click.option("--resolution", type=click.Choice(["320x240", "640x480"]), help="Image size (scenario room only).")
-@config_options(SimulationConfig, choices={"scenario": (*SCENARIOS, "room")})
+@config_options(SimulationConfig, choices={"scenario": (*SCENARIOS, "room"), "mover_motion": MOVER_MOTIONS})
 @overwrite_option
 @click.pass_context
 @handle_errors

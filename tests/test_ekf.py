@@ -247,8 +247,10 @@ def test_known_association_needs_ids() -> None:
 
 def test_fix_is_fused_weighted_by_covariances() -> None:
     # fix_alignment="none": every fix is fused at once, in one frame (the default waits for the fixes
-    # to pin the frame; tests/test_fix_fusion_in_loop.py covers it).
-    ekf = EkfSlam(EkfConfig(motion="constant_position", position_noise=0.2, fix_alignment="none"))
+    # to pin the frame; tests/test_fix_fusion_in_loop.py covers it); ungated, as the fix is 4.5 sigma out.
+    ekf = EkfSlam(
+        EkfConfig(motion="constant_position", position_noise=0.2, fix_alignment="none", fix_gate_probability=1.0)
+    )
     ekf.step(_observe(0, (10.0, 0.0, 0.0)))
     # Predicting to the fix's stamp gives the position variance 0.2^2; the fix has variance 0.1^2.
     ekf.add_fix(PositionFix(DT_NS, np.array([1.0, 0.0, 0.0]), np.eye(3) * 0.1**2))

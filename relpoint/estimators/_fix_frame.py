@@ -14,6 +14,13 @@ mapped by a provisional transform: the fixes' offset with one fix, plus the smal
 the local direction of travel onto the fixes' once the fixes span a distance (a line of fixes
 leaves the rotation about itself free).
 
+Both the fit and the provisional transform first test the null hypothesis that the fixes' frame is
+the local frame itself (a chi-square test of the pairs' residuals against their covariances): when
+the fixes cannot reject it, the transform is the identity, without uncertainty (the frames are one),
+because a transform fitted to metres of fix noise would move a centimetre-accurate filter by that
+noise; the later fixes are then plain measurements of its position, held back by the fix gate
+(:mod:`relpoint.estimators._fix_gate`) if the hypothesis turns out wrong.
+
 The transform's uncertainty is a 6-vector ``(dt, dphi)`` in ``world`` about the pairs' weighted
 centroid ``c``: a point ``y`` placed by the fit is truly at ``c + Exp(dphi) (y - c) + dt``, so
 ``dy = dt - [y - c]x dphi``, and an orientation ``R_world_sensor`` has the right-perturbation error
@@ -30,6 +37,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators._association import skew
@@ -38,6 +46,9 @@ from relpoint.geometry import FloatArray, fit_rigid
 from relpoint.types import PositionFix
 
 logger = logging.getLogger(__name__)
+
+#: Chi-square probability up to which the fixes are taken to agree with the local frame itself.
+AGREEMENT_PROBABILITY = 0.999
 
 
 @dataclass(frozen=True)
@@ -105,7 +116,8 @@ class FixFrame:
     min_fixes: fixes needed before a fit is tried (at least 3).
     min_spread: the fixes' RMS distance from their best line (m) needed for a fit; below it the
         rotation about the line is not determined.
-    max_fixes: only the latest this many fixes (and the local positions since the oldest) are kept.
+    max_fixes: at most this many fixes are kept: beyond it every other one is dropped (see
+        :meth:`_thin`), so the kept ones thin out but still span every fix so far.
     """
 
     def __init__(self, min_fixes: int = 3, min_spread: float = 8.0, max_fixes: int = 100) -> None:
@@ -137,12 +149,26 @@ class FixFrame:
         self._fix_stamps.append(int(fix.stamp_ns))
         self._fix_positions.append(np.array(fix.position, dtype=np.float64))
         self._fix_covariances.append(np.array(fix.covariance, dtype=np.float64))
-        if len(self._fix_stamps) > self.max_fixes:
-            # A window of the latest fixes bounds the cost when they never spread (a straight run).
-            del self._fix_stamps[0], self._fix_positions[0], self._fix_covariances[0]
-            keep = int(np.searchsorted(np.asarray(self._stamps, dtype=np.int64), self._fix_stamps[0]))
-            del self._stamps[:keep], self._positions[:keep], self._covariances[:keep]
         self._update_provisional()
+
+    def _thin(self) -> None:
+        """Drop every other fix, and the local positions up to the last fix but those nearest a kept one.
+
+        This bounds the cost when the fixes never spread (a straight run) but keeps their whole span:
+        a window of the latest fixes at a high rate covers too short a stretch of a curving path to
+        ever reach ``min_spread``. The pairs before the last fix then sit on the kept fixes, where
+        the interpolation is exact, instead of between fixes that are now far apart.
+        """
+        for kept in (self._fix_stamps, self._fix_positions, self._fix_covariances):
+            kept[:] = kept[-1::-2][::-1]
+        if not self._stamps:
+            return
+        stamps = np.asarray(self._stamps, dtype=np.int64)
+        nearest = np.abs(stamps[:, None] - np.asarray(self._fix_stamps, dtype=np.int64)[None, :]).argmin(axis=0)
+        keep = stamps > self._fix_stamps[-1]
+        keep[nearest] = True
+        for local in (self._stamps, self._positions, self._covariances):
+            local[:] = [value for value, kept in zip(local, keep.tolist(), strict=True) if kept]
 
     def add_local(self, stamp_ns: int, position: npt.ArrayLike, covariance: npt.ArrayLike) -> None:
         """Keep the filter's local position (3,) m and its covariance (3, 3) m² at an observation time."""
@@ -153,6 +179,8 @@ class FixFrame:
             self._stamps.append(int(stamp_ns))
             self._positions.append(np.array(position, dtype=np.float64))
             self._covariances.append(np.array(covariance, dtype=np.float64))
+        if len(self._fix_stamps) > self.max_fixes:
+            self._thin()  # here, not in add_fix: the local position at the newest fix is now in
         if len(self._fix_stamps) == 1 or (self._fix_stamps and self._stamps[-1] <= self._fix_stamps[-1]):
             self._update_provisional()  # otherwise the pairs, and so the transform, have not changed
 
@@ -188,11 +216,33 @@ class FixFrame:
         )
         return np.asarray(self._positions)[inside], np.asarray(self._covariances)[inside], world, world_cov
 
+    def _agree_with_local(
+        self, local: FloatArray, local_cov: FloatArray, world: FloatArray, world_cov: FloatArray
+    ) -> bool:
+        """Whether the fixes are consistent with ``world`` being the local frame itself.
+
+        The null hypothesis of the frame fit: the pairs' residuals ``world - local`` tested against
+        their covariances (chi-square at ``AGREEMENT_PROBABILITY``, the pairs between two fixes
+        counted once per fix, as in :meth:`fit`). When the fixes cannot tell their frame from the
+        filter's, moving the filter by a transform fitted to their noise only adds that noise.
+        """
+        residual = world - local
+        try:
+            W = np.linalg.inv(world_cov + local_cov)
+        except np.linalg.LinAlgError:
+            return False
+        fixes = max(1, int(np.count_nonzero(np.asarray(self._fix_stamps) <= self._stamps[-1])))
+        chi2 = float(np.einsum("na,nab,nb->", residual, W, residual)) * min(1.0, fixes / len(local))
+        return chi2 <= float(stats.chi2.ppf(AGREEMENT_PROBABILITY, 3 * min(fixes, len(local))))
+
     def _update_provisional(self) -> None:
         pairs = self._pairs()
         if pairs is None:
             return
-        local, _, world, _ = pairs
+        local, local_cov, world, world_cov = pairs
+        if self._agree_with_local(local, local_cov, world, world_cov):
+            self._provisional = np.eye(4)
+            return
         rotation = np.eye(3)
         travel_local, travel_world = local[-1] - local[0], world[-1] - world[0]
         if len(local) >= 2 and np.linalg.norm(travel_world) > 3.0 * np.sqrt(np.trace(self._fix_covariances[-1])):
@@ -217,10 +267,11 @@ class FixFrame:
             return None  # the local path has not spread (yet) as the fixes have: no rotation to fit
         weights = 1.0 / np.maximum(np.trace(world_cov + local_cov, axis1=1, axis2=2), 1e-12)
         result = fit_rigid(local, world, weights=weights)
-        T = result.as_matrix()
-        placed = local @ result.rotation.T + result.translation
+        agree = self._agree_with_local(local, local_cov, world, world_cov)
+        T = np.eye(4) if agree else result.as_matrix()
+        placed = local @ T[:3, :3].T + T[:3, 3]
         # Information of (dt, dphi) about the weighted centroid, from every pair, counted once per fix.
-        noise = world_cov + result.rotation @ local_cov @ result.rotation.T
+        noise = world_cov + T[:3, :3] @ local_cov @ T[:3, :3].T
         try:
             W = np.linalg.inv(noise)
         except np.linalg.LinAlgError:
@@ -232,12 +283,13 @@ class FixFrame:
         fixes_spanned = int(np.count_nonzero(np.asarray(self._fix_stamps) <= self._stamps[-1]))
         information = np.einsum("nai,nab,nbj->ij", J, W, J) * min(1.0, max(fixes_spanned, 3) / len(local))
         residual = world - placed
-        chi2 = float(np.mean(np.einsum("na,nab,nb->n", residual, W, residual))) / 3.0
+        chi2 = 1.0 if agree else float(np.mean(np.einsum("na,nab,nb->n", residual, W, residual))) / 3.0
         try:
             covariance = np.linalg.inv(information) * max(1.0, chi2)
         except np.linalg.LinAlgError:
             return None
-        covariance = 0.5 * (covariance + covariance.T)
+        # Frames that agree are one frame: no transform, so no transform error for the filter to carry.
+        covariance = np.zeros((6, 6)) if agree else 0.5 * (covariance + covariance.T)
         logger.debug(
             "frame pinned by %d fixes (%d pairs, spread %.1f m, rms %.2f m)",
             fixes_spanned,
@@ -245,7 +297,8 @@ class FixFrame:
             spread,
             result.rms,
         )
-        return FrameFit(T, covariance, centre, len(local), fixes_spanned, result.rms, spread)
+        rms = float(np.sqrt(np.sum(weights * np.sum(residual**2, axis=1)) / np.sum(weights))) if agree else result.rms
+        return FrameFit(T, covariance, centre, len(local), fixes_spanned, rms, spread)
 
 
 def frame_summary(rigid: bool, fit: FrameFit | None) -> dict[str, Any]:

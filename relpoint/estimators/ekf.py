@@ -44,6 +44,8 @@ from relpoint.estimators._association import (
     twist_step,
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
@@ -67,8 +69,8 @@ class EkfConfig(Settings):
         "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
         "linear_acceleration_noise": (0.0, 1e4), "angular_acceleration_noise": (0.0, 1e3),
         "initial_speed_sigma": (0.0, 1e4), "initial_turn_rate_sigma": (0.0, 1e2), "initial_orientation_sigma": (0.0, 10.0),
-        "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
-        "jcbb_max_nodes": (1, 10_000_000),
+        "fix_min_spread": (1e-3, 1e6), "fix_gate_probability": (0.0, 1.0), "fix_gate_patience": (0, 1_000_000), "fix_drift": (0.0, 10.0), "fix_window": (0, 1_000_000),
+        "jcbb_max_nodes": (1, 10_000_000), "mover_radius_sigmas": (0.0, 1e6),
     }  # fmt: skip
 
     association: str = "nn"
@@ -85,6 +87,12 @@ class EkfConfig(Settings):
     """A point starts a landmark only if it lies outside every landmark's gate of this probability;
     points between the two gates are discarded (a true landmark's point falls outside the 0.99 gate
     one time in a hundred, and would otherwise start a duplicate)."""
+    mover_radius_sigmas: float = 0.0
+    """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
+    lately and not matched now is that landmark moving: it leaves the map and is followed as a
+    dynamic point instead of starting duplicates (``relpoint.estimators._movers``). 0 (the default)
+    turns this off: 10 removes nearly every duplicate of fast movers and improves Starry Night, but
+    costs the oscillating-mover figure eight 20 % of position accuracy (docs/robustness.md)."""
     position_noise: float = 0.10
     """Constant-position model: position noise per iteration, per axis (m; MRPT default 0.10)."""
     quaternion_noise: float = 0.05
@@ -109,6 +117,12 @@ class EkfConfig(Settings):
     frame, then fuses every later fix as a position measurement; ``none`` fuses every fix at once
     in one frame (the first fix places the start, the orientation prior is
     ``initial_orientation_sigma``)."""
+    fix_gate_probability: float = 0.999
+    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
+    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
+    fix_gate_patience: int = 3
+    """Fixes in a row outside the gate that are held back; the ones after are fused with their
+    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
     fix_min_spread: float = 8.0
     """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
     fix_drift: float = 0.0
@@ -157,6 +171,14 @@ class EkfConfig(Settings):
             raise UsageError(f"jcbb_max_nodes must be a positive integer, got {self.jcbb_max_nodes!r}")
 
 
+#: A landmark seen within this many iterations that a point near it does not match may have moved
+#: (a moving point can fall between the two gates for an iteration or two before it starts one).
+MOVER_RECENT = 3
+#: Landmarks are only taken for movers while at least this many landmarks match, and more of the
+#: recently seen ones match than not (otherwise the filter's pose is off, and every landmark seems to move).
+MOVER_MIN_MATCHED = 8
+
+
 class EkfSlam(Estimator):
     """Joint EKF over the sensor pose (error state) and every 3D point landmark.
 
@@ -197,6 +219,9 @@ class EkfSlam(Estimator):
         if self.config.fix_alignment == "rigid":
             self._frame = FixFrame(min_spread=self.config.fix_min_spread)
         self._frame_fit: FrameFit | None = None
+        self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
+        radius = self.config.mover_radius_sigmas * self.config.observation_sigma
+        self._movers = MoverTracks(radius) if radius > 0 else None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
         self._position_at_fix: FloatArray | None = None
 
@@ -214,9 +239,14 @@ class EkfSlam(Estimator):
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
             fresh = np.flatnonzero(may_start)
+            moved_points, moved = np.zeros(0, np.int64), np.zeros(0, np.int64)
+            if len(fresh) and self._movers is not None:
+                fresh, moved_points, moved = self._follow_movers(points, fresh, assignment, observation.ids)
             if len(fresh):
                 self._add_landmarks(points[fresh])
             self._record(observation.ids, paired, assignment[paired], fresh)
+            if len(moved):
+                self._start_tracks(points[moved_points], moved, observation.ids, moved_points)
             self._stats["paired"] += len(paired)
             self._stats["started"] += len(fresh)
             self._stats["discarded"] += len(points) - len(paired) - len(fresh)
@@ -237,7 +267,8 @@ class EkfSlam(Estimator):
         """Fuse an absolute position as a direct, covariance-weighted measurement of ``p`` (eq. 31-32).
 
         With ``fix_alignment="rigid"`` the fixes before the frame is pinned only collect pairs for
-        the fit (see :meth:`step`); the later ones are fused.
+        the fit (see :meth:`step`); the later ones are fused if they pass the fix gate
+        (``fix_gate_probability``, :class:`~relpoint.estimators._fix_gate.FixGate`).
         """
         if self._frame is not None:
             self._frame.add_fix(fix)
@@ -253,21 +284,32 @@ class EkfSlam(Estimator):
         if self._frame_fit is not None:
             self._add_drift()
         innovation = np.asarray(fix.position) - self._position
-        self._kalman_update(np.arange(3), np.eye(3), innovation, np.asarray(fix.covariance))
+        R_fix = np.asarray(fix.covariance, dtype=np.float64)
+        d2 = float(innovation @ np.linalg.solve(self._P[:3, :3] + R_fix, innovation))
+        inflation = self._fix_gate.inflation(d2)
+        if inflation is None:
+            return  # held back: it contradicts the filter's position (see relpoint.estimators._fix_gate)
+        self._kalman_update(np.arange(3), np.eye(3), innovation, R_fix * inflation)
         self._stats["fixes"] += 1
 
     def landmark_map(self) -> LandmarkMap:
+        """The landmarks, then the moving points followed outside the map (flagged dynamic, last position)."""
         n = len(self._landmarks)
-        gt_id = np.array([votes.most_common(1)[0][0] if votes else -1 for votes in self._id_votes], dtype=np.int64)
+        votes = self._id_votes + (self._movers.votes if self._movers is not None else [])
+        observations = self._observations + (self._movers.observations if self._movers is not None else [])
+        gt_id = np.array([v.most_common(1)[0][0] if v else -1 for v in votes], dtype=np.int64)
         positions = self._landmarks.copy()
+        if self._movers is not None:
+            positions = np.vstack([positions, self._movers.positions])
         if self._frame is not None:
             T = self._frame.provisional
             positions = positions @ T[:3, :3].T + T[:3, 3]
-        return LandmarkMap(positions, np.array(self._observations, dtype=np.int64), np.zeros(n, bool), gt_id)
+        dynamic = np.arange(len(positions)) >= n
+        return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id)
 
     @property
     def map_size(self) -> int:
-        return len(self._landmarks)
+        return len(self._landmarks) + (len(self._movers) if self._movers is not None else 0)
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -278,6 +320,7 @@ class EkfSlam(Estimator):
             "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
+            **self._fix_gate.summary(),
         }
 
     # ------------------------------------------------------------------------------------- accessors
@@ -561,6 +604,61 @@ class EkfSlam(Estimator):
         grown[N:, N:] = 0.5 * (P_nn + P_nn.T)
         self._P = grown
         self._landmarks = np.vstack([self._landmarks, self._position + points @ R.T])
+
+    def _follow_movers(
+        self, points: FloatArray, fresh: np.ndarray, assignment: np.ndarray, ids: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Split the points that would start landmarks (``fresh``) into new landmarks and moving points.
+
+        Points near a live track move it; points near a landmark seen within ``MOVER_RECENT``
+        iterations and not matched now are that landmark moving, while most recently seen landmarks
+        still match (see :mod:`relpoint.estimators._movers`). Returns the
+        points still to start landmarks, and the (point, landmark) pairs of landmarks that moved.
+        """
+        assert self._movers is not None
+        iteration = self._stats["iterations"]
+        world = self._position + points[fresh] @ self._rotation.T
+        claimed = self._movers.claim(world, None if ids is None else np.asarray(ids)[fresh], iteration)
+        fresh, world = fresh[~claimed], world[~claimed]
+        matched = np.zeros(len(self._landmarks), dtype=bool)
+        matched[assignment[assignment >= 0]] = True
+        recent = self._last_seen >= iteration - MOVER_RECENT
+        candidates = np.flatnonzero(recent & ~matched)
+        if np.count_nonzero(matched) < MOVER_MIN_MATCHED or len(candidates) > np.count_nonzero(recent & matched):
+            # Most of what was just seen no longer matches: the pose has drifted, not the landmarks.
+            candidates = candidates[:0]
+        rows, moved = moved_landmarks(world, self._landmarks, candidates, self._movers.radius)
+        self._stats["claimed_by_movers"] += int(np.count_nonzero(claimed))
+        return np.delete(fresh, rows), fresh[rows], moved
+
+    def _start_tracks(
+        self, points: FloatArray, landmarks: np.ndarray, ids: np.ndarray | None, rows: np.ndarray
+    ) -> None:
+        """Take ``landmarks`` (c,) out of the state (marginalised) and follow them from ``points`` (c, 3)."""
+        assert self._movers is not None
+        iteration = self._stats["iterations"]
+        world = self._position + points @ self._rotation.T
+        for j, position, row in zip(landmarks.tolist(), world, rows.tolist(), strict=True):
+            votes = Counter(self._id_votes[j])
+            if ids is not None:
+                votes[int(ids[row])] += 1
+            self._movers.start(position, self._observations[j] + 1, votes, iteration)
+        self._remove_landmarks(landmarks)
+        self._stats["movers"] += len(landmarks)
+
+    def _remove_landmarks(self, indices: np.ndarray) -> None:
+        """Drop landmarks from the state: their rows and columns of ``P`` (marginalisation) and their records."""
+        keep = np.ones(len(self._landmarks), dtype=bool)
+        keep[indices] = False
+        cols = np.concatenate([np.arange(self._nv), self._landmark_columns(np.flatnonzero(keep))])
+        self._P = self._P[np.ix_(cols, cols)]
+        self._landmarks = self._landmarks[keep]
+        self._last_seen = self._last_seen[keep]
+        self._observations = [o for o, k in zip(self._observations, keep.tolist(), strict=True) if k]
+        self._id_votes = [v for v, k in zip(self._id_votes, keep.tolist(), strict=True) if k]
+        if self._known:
+            new_index = np.cumsum(keep) - 1
+            self._known = {i: int(new_index[j]) for i, j in self._known.items() if keep[j]}
 
     def _record(self, ids: np.ndarray | None, paired: np.ndarray, indices: np.ndarray, fresh: np.ndarray) -> None:
         """Count observations per landmark and their ground-truth ids (for gt_id; never used to estimate)."""

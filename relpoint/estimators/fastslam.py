@@ -45,6 +45,7 @@ from scipy.special import logsumexp
 from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
@@ -83,7 +84,7 @@ class FastSlamConfig(Settings):
         "observation_sigma": (1e-6, 1e3), "linear_acceleration_noise": (0.0, 1e4),
         "angular_acceleration_noise": (0.0, 1e3), "initial_speed_sigma": (0.0, 1e4),
         "initial_turn_rate_sigma": (0.0, 1e2), "pose_noise": (0.0, 1e2), "resample_threshold": (0.0, 1.0),
-        "search_radius": (1e-6, 1e6), "fix_min_spread": (1e-3, 1e6), "fix_drift": (0.0, 10.0),
+        "search_radius": (1e-6, 1e6), "fix_min_spread": (1e-3, 1e6), "fix_gate_probability": (0.0, 1.0), "fix_gate_patience": (0, 1_000_000), "fix_drift": (0.0, 10.0),
         "fix_window": (0, 1_000_000),
     }  # fmt: skip
 
@@ -122,6 +123,12 @@ class FastSlamConfig(Settings):
     positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
     by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
     proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
+    fix_gate_probability: float = 0.999
+    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
+    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
+    fix_gate_patience: int = 3
+    """Fixes in a row outside the gate that are held back; the ones after are fused with their
+    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
     fix_min_spread: float = 8.0
     """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
     fix_drift: float = 0.1
@@ -236,6 +243,7 @@ class FastSlam(Estimator):
         # Fix frame (``rigid``): None once the particles are in the fixes' frame (or with ``ignore``).
         self._frame: FixFrame | None = FixFrame(min_spread=cfg.fix_min_spread) if cfg.fix_alignment == "rigid" else None
         self._frame_fit: FrameFit | None = None
+        self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
 
     # ------------------------------------------------------------------------------------ interface
 
@@ -297,7 +305,8 @@ class FastSlam(Estimator):
         ``N(fix; p, C + P_fix)`` and fuses with it by eq. 31-32, moving the particle's pose and the
         landmarks it saw within ``fix_window`` iterations together (a particle's map cannot
         follow its pose otherwise: conditioned on the path, the points never pull the map towards the
-        fixes).
+        fixes). A fix that no particle can explain is held back by the fix gate
+        (``fix_gate_probability``, :class:`~relpoint.estimators._fix_gate.FixGate`).
         """
         if self.config.fix_alignment == "ignore":
             return
@@ -311,6 +320,13 @@ class FastSlam(Estimator):
         S = C + P_fix + np.eye(3) * 1e-12  # the floor keeps a zero-covariance fix invertible
         S_inv = np.linalg.inv(S)
         nu = np.asarray(fix.position, dtype=np.float64) - self.positions  # (n, 3)
+        # Gated as a whole: held back only if no particle can explain it (relpoint.estimators._fix_gate).
+        inflation = self._fix_gate.inflation(float(np.min(np.einsum("pa,pab,pb->p", nu, S_inv, nu))))
+        if inflation is None:
+            return
+        if inflation != 1.0:
+            S = C + P_fix * inflation + np.eye(3) * 1e-12
+            S_inv = np.linalg.inv(S)
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
@@ -393,6 +409,7 @@ class FastSlam(Estimator):
             "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
+            **self._fix_gate.summary(),
         }
 
     def pose(self) -> Pose:

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, ClassVar
 
 from relpoint.errors import UsageError
 from relpoint.settings import Settings, require_non_negative, require_positive
 
-SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps")
+SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps", "spiral")
+#: How moving landmarks move (see :mod:`relpoint.simulation.movers`).
+MOVER_MOTIONS = ("oscillate", "line", "random-walk", "stop-and-go", "static-then-moving")
+#: Settings added after logs were first written: a log records them only when they differ from
+#: their defaults, so the same older settings still give a byte-identical file.
+_LATER_SETTINGS = ("mover_motion", "mover_speed", "scale")
 
 
 def setting(default: Any, help: str) -> Any:
@@ -28,7 +33,7 @@ class SimulationConfig(Settings):
         "passes": (1, 1_000), "iterations": (1, 1_000_000), "step": (1e-4, 1e3), "rate": (1e-3, 1e4),
         "start_time": (0.0, 4e9), "density": (1e-3, 1e4), "range": (1e-3, 1e5), "min_range": (0.0, 1e5),
         "noise": (0.0, 1e3), "clutter": (0.0, 1e5), "fix_every": (0, 1_000_000), "fix_noise": (0.0, 1e4),
-        "seed": (0, 2**63 - 1),
+        "seed": (0, 2**63 - 1), "mover_speed": (0.0, 1e3), "scale": (1e-3, 1e3),
     }  # fmt: skip
 
     scenario: str = setting(
@@ -49,7 +54,14 @@ class SimulationConfig(Settings):
     spread_vertical: float = setting(10.0, "Landmarks lie up to this far above/below the path.")
     noise: float = setting(0.3, "Standard deviation of the white Gaussian observation noise, per axis.")
     dynamic: float = setting(0.0, "Fraction of landmarks that move (paper: up to 0.5).")
-    dynamic_amplitude: float = setting(5.0, "Largest excursion of a moving landmark from its centre, per axis.")
+    dynamic_amplitude: float = setting(
+        5.0, "Largest excursion of a moving landmark from its centre, per axis (oscillate)."
+    )
+    mover_motion: str = setting(
+        "oscillate",
+        "How moving landmarks move: ``oscillate`` (about their centre, ``dynamic_amplitude``), ``line`` (constant velocity along a straight line), ``random-walk``, ``stop-and-go`` (along a line, moving half the time) or ``static-then-moving`` (still, then along a line from a random iteration on).",
+    )
+    mover_speed: float = setting(0.1, "Speed of a moving landmark, metres per iteration (all motions but oscillate).")
     clutter: float = setting(0.0, "Mean number of spurious points (id -1) per iteration, uniform in the frustum.")
     odometry_noise: float | None = setting(
         None, "Linear velocity noise sigma (m/s); set to write /odom (0 = perfect odometry)."
@@ -62,15 +74,21 @@ class SimulationConfig(Settings):
     radius: float = setting(95.0, "Figure-eight loop radius (95 m gives about 1200 m per pass).")
     climb: float = setting(25.0, "Height of the middle crossing above the start, figure eight.")
     length: float = setting(1200.0, "Corridor length.")
+    scale: float = setting(
+        1.0,
+        "Scale of the scene: multiplies every length of path and landmarks (step, range, spreads, radius, climb, length, amplitude; density stays per 100 m scaled), not the noise or mover speed. 1 = outdoor (70 m range), 0.1 = indoor (7 m).",
+    )
     seed: int = setting(0, "Seed of every random draw.")
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
             raise UsageError(f"unknown scenario {self.scenario!r}", f"choose one of {', '.join(SCENARIOS)}")
+        if self.mover_motion not in MOVER_MOTIONS:
+            raise UsageError(f"unknown mover motion {self.mover_motion!r}", f"choose one of {', '.join(MOVER_MOTIONS)}")
         positive = {
             "passes": self.passes, "step": self.step, "rate": self.rate, "density": self.density,
             "range": self.range, "fov_horizontal": self.fov_horizontal, "fov_vertical": self.fov_vertical,
-            "radius": self.radius, "length": self.length,
+            "radius": self.radius, "length": self.length, "scale": self.scale,
         }  # fmt: skip
         require_positive(positive)
         non_negative = {
@@ -79,7 +97,7 @@ class SimulationConfig(Settings):
             "spread_vertical": self.spread_vertical, "min_range": self.min_range, "climb": self.climb,
             "odometry_noise": 0.0 if self.odometry_noise is None else self.odometry_noise,
             "odometry_angular_noise": 0.0 if self.odometry_angular_noise is None else self.odometry_angular_noise,
-            "start_time": self.start_time,
+            "start_time": self.start_time, "mover_speed": self.mover_speed,
         }  # fmt: skip
         require_non_negative(non_negative)
         if not 0.0 <= self.dynamic <= 1.0:
@@ -92,3 +110,21 @@ class SimulationConfig(Settings):
             raise UsageError(f"iterations must be at least 1, got {self.iterations}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise UsageError(f"seed must be a non-negative integer, got {self.seed!r}")
+
+    def log_settings(self) -> dict[str, Any]:
+        """The settings as a log records them: later additions only where they differ from their defaults."""
+        values = self.to_dict()
+        defaults = {f.name: f.default for f in fields(self)}
+        return {key: value for key, value in values.items() if key not in _LATER_SETTINGS or value != defaults[key]}
+
+    def scene(self) -> SimulationConfig:
+        """These settings with :attr:`scale` folded into every length (``scale`` 1)."""
+        if self.scale == 1.0:
+            return self
+        s = self.scale
+        lengths = {
+            name: getattr(self, name) * s
+            for name in ("step", "range", "min_range", "spread_lateral", "spread_vertical", "dynamic_amplitude",
+                         "radius", "climb", "length")
+        }  # fmt: skip
+        return replace(self, **lengths, density=self.density / s, scale=1.0)

@@ -71,6 +71,33 @@ def corridor(distance: FloatArray, sway: float = 5.0, wavelength: float = 200.0)
     return positions, tangents
 
 
+def spiral(distance: FloatArray, radius: float, climb: float) -> tuple[FloatArray, FloatArray]:
+    """A spiral climbing ``climb`` metres per turn of ``radius``, about ``distance`` metres along it (N,).
+
+    Starts at the origin heading along +x (level, so the first true pose is the identity) and turns
+    counter-clockwise about ``(0, radius)``; after each turn it passes over its start again, level and
+    ``climb`` metres higher, so it sees the first turn's landmarks from another height. The height
+    ``z = rise (a - sin a)`` at turn angle ``a`` (``rise = climb / 2 pi``) climbs smoothly, steepest
+    half way round. The angle advances by ``distance`` over the mean speed of a turn, which the
+    climb changes by less than ``(climb / radius)**2 / 2`` (0.03 % at the defaults). Tangents are unit.
+    """
+    s = np.asarray(distance, dtype=np.float64)
+    rise = climb / (2.0 * np.pi)  # mean metres of climb per radian of turn
+    angle = s * 2.0 * np.pi / spiral_length(radius, climb)
+    positions = np.stack(
+        [radius * np.sin(angle), radius * (1.0 - np.cos(angle)), rise * (angle - np.sin(angle))], axis=1
+    )
+    tangents = np.stack([radius * np.cos(angle), radius * np.sin(angle), rise * (1.0 - np.cos(angle))], axis=1)
+    return positions, tangents / np.linalg.norm(tangents, axis=1, keepdims=True)
+
+
+def spiral_length(radius: float, climb: float, samples: int = 20_000) -> float:
+    """Length of one turn of :func:`spiral` in metres (numerical quadrature)."""
+    angle = (np.arange(samples) + 0.5) / samples * 2.0 * np.pi
+    rise = climb / (2.0 * np.pi)
+    return float(np.mean(np.hypot(radius, rise * (1.0 - np.cos(angle)))) * 2.0 * np.pi)
+
+
 def orientations_from_tangents(tangents: FloatArray) -> FloatArray:
     """Rotation matrices (N, 3, 3) ``R_world_sensor`` with x along the tangent, no roll.
 

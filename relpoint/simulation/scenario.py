@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relpoint.geometry import FloatArray, body_twist
-from relpoint.simulation import paths
+from relpoint.simulation import movers, paths
 from relpoint.simulation.config import SimulationConfig
 from relpoint.types import (
     GroundTruthLandmarks,
@@ -38,7 +38,8 @@ GAP_PHASES = ((0.20, 0.30), (0.70, 0.80))
 #: unknown place is (position in metres, heading in degrees about z).
 GAPS_START_POSITION = (60.0, -40.0, -15.0)
 GAPS_START_HEADING = 35.0
-_STREAMS = ("landmarks", "dynamics", "noise", "clutter", "odometry", "fixes")
+#: Random streams, one per concern; new ones go at the end so the older streams (and logs) stay the same.
+_STREAMS = ("landmarks", "dynamics", "noise", "clutter", "odometry", "fixes", "movers")
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,21 +71,30 @@ class Simulation:
 
     def __init__(self, config: SimulationConfig) -> None:
         self.config = config
+        scene = config.scene()  # the lengths at the configured scale
+        self._scene = scene
         rngs = _random_streams(config.seed)
-        self._poses = _sensor_poses(config)
+        self._poses = _sensor_poses(scene)
         self.stamps_ns = _stamps_ns(config, len(self._poses))
         self.ground_truth = Trajectory.from_matrices(self.stamps_ns, self._poses)
-        self._centres = _scatter_landmarks(config, rngs["landmarks"])
+        self._centres = _scatter_landmarks(scene, rngs["landmarks"])
         n = len(self._centres)
         dyn_rng = rngs["dynamics"]
         self._dynamic = np.zeros(n, dtype=bool)
         n_dynamic = int(round(config.dynamic * n))
         if n_dynamic:
             self._dynamic[dyn_rng.choice(n, size=n_dynamic, replace=False)] = True
-        # Moving landmarks oscillate about their centre: a * sin(2 pi t / period + phase), per axis.
-        self._amplitude = dyn_rng.uniform(-config.dynamic_amplitude, config.dynamic_amplitude, (n, 3))
-        self._period = dyn_rng.uniform(20.0, 60.0, (n, 3))
-        self._phase = dyn_rng.uniform(0.0, 2.0 * np.pi, (n, 3))
+        # Oscillation is drawn for every landmark (the draws of the original simulator, whatever the motion).
+        self._oscillation = movers.OscillatingMovers(
+            dyn_rng.uniform(-scene.dynamic_amplitude, scene.dynamic_amplitude, (n, 3))[self._dynamic],
+            dyn_rng.uniform(20.0, 60.0, (n, 3))[self._dynamic],
+            dyn_rng.uniform(0.0, 2.0 * np.pi, (n, 3))[self._dynamic],
+        )
+        self._travel = None
+        if config.mover_motion != "oscillate":
+            self._travel = movers.draw_travelling_movers(
+                rngs["movers"], config.mover_motion, n_dynamic, config.mover_speed, len(self._poses)
+            )
         self.landmarks = GroundTruthLandmarks(
             self.landmark_positions(self.stamps_ns[0]), np.arange(n, dtype=np.int64), self._dynamic
         )
@@ -93,16 +103,25 @@ class Simulation:
         return len(self._poses)
 
     def landmark_positions(self, stamp_ns: int) -> FloatArray:
-        """True positions (M, 3) of every landmark at ``stamp_ns``, in ``world``."""
-        t = stamp_ns * 1e-9
+        """True positions (M, 3) of every landmark at ``stamp_ns``, in ``world``.
+
+        Oscillating movers move with time; travelling ones by iteration (the stamp's, counted from the
+        first stamp at the configured rate).
+        """
         positions = self._centres.copy()
         d = self._dynamic
-        positions[d] += self._amplitude[d] * np.sin(2.0 * np.pi * t / self._period[d] + self._phase[d])
+        if self._travel is None:
+            positions[d] += self._oscillation.excursion(stamp_ns * 1e-9)
+        else:
+            period_ns = int(round(1e9 / self.config.rate))
+            k = max(0, int(round((int(stamp_ns) - int(self.stamps_ns[0])) / period_ns)))
+            # A travelling mover starts where an oscillating one would have been at the first stamp.
+            positions[d] += self._oscillation.excursion(self.stamps_ns[0] * 1e-9) + self._travel.displacement(k)
         return positions
 
     def steps(self) -> Iterator[SimulatedStep]:
         """Yield every iteration in order; the draws are the same on every call."""
-        config = self.config
+        config = self._scene
         rngs = _random_streams(config.seed)
         half_h = np.deg2rad(config.fov_horizontal) / 2.0
         half_v = np.deg2rad(config.fov_vertical) / 2.0
@@ -144,7 +163,7 @@ class Simulation:
 
     def _next_pose(self) -> FloatArray:
         """The pose one step past the end of the run (so the last odometry has a target)."""
-        return _sensor_poses(self.config, extra=1)[-1]
+        return _sensor_poses(self._scene, extra=1)[-1]
 
 
 def _random_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -167,6 +186,8 @@ def _iteration_count(config: SimulationConfig) -> int:
         return max(1, int(round(per_pass * config.passes)))
     if config.scenario == "corridor":
         return max(1, int(round(config.length / config.step)))
+    if config.scenario == "spiral":
+        return max(1, int(round(paths.spiral_length(config.radius, config.climb) * config.passes / config.step)))
     return STATIONARY_ITERATIONS
 
 
@@ -178,6 +199,8 @@ def _sensor_poses(config: SimulationConfig, extra: int = 0) -> FloatArray:
     if config.scenario in ("figure8", "figure8-gaps"):
         pass_length = paths.figure8_length(config.radius, config.climb)
         positions, tangents = paths.figure8(np.arange(n) * config.step / pass_length, config.radius, config.climb)
+    elif config.scenario == "spiral":
+        positions, tangents = paths.spiral(np.arange(n) * config.step, config.radius, config.climb)
     else:
         positions, tangents = paths.corridor(np.arange(n) * config.step)
     poses = np.zeros((n, 4, 4))
@@ -211,6 +234,10 @@ def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> Fl
         count = max(3, int(round(config.density * pass_length / 100.0)))
         phase = rng.uniform(0.0, 1.0, count)
         base, tangents = paths.figure8(phase, config.radius, config.climb)
+    elif config.scenario == "spiral":
+        length = paths.spiral_length(config.radius, config.climb) * config.passes
+        count = max(3, int(round(config.density * length / 100.0)))
+        base, tangents = paths.spiral(rng.uniform(0.0, length, count), config.radius, config.climb)
     else:
         length = config.length + config.range  # landmarks ahead of the end stay in view to the last step
         count = max(3, int(round(config.density * length / 100.0)))

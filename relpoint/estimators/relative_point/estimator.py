@@ -108,6 +108,11 @@ from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 logger = logging.getLogger(__name__)
 
 
+#: The final adjustment is kept unless it places the log's observations (each iteration's kept ones,
+#: by its pose, against their points) this much farther from their points than the incremental map.
+ADJUSTMENT_TOLERANCE = 0.05
+
+
 @dataclass(frozen=True)
 class RelativePointConfig(Settings):
     """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
@@ -431,8 +436,18 @@ class RelativePointEstimator(Estimator):
         the observations it kept (``relocate_points``) to the adjusted global positions. An iteration
         that cannot be fitted again (too few of its points still mapped) keeps the correction of the
         nearest iteration before it. ``trajectory`` holds the poses :meth:`step` returned.
+
+        The result is checked against the incremental solution on the log's own observations
+        (:meth:`_support_residual`): if the adjusted map and poses place them more than
+        ``ADJUSTMENT_TOLERANCE`` farther from their points, the incremental map and trajectory are
+        kept; ``final_adjustment`` in :meth:`summary` says which was kept and why.
         """
-        if not self.config.final_adjustment or len(trajectory) != self._iteration or not self.adjust():
+        if not self.config.final_adjustment or len(trajectory) != self._iteration:
+            return trajectory
+        T_incremental = trajectory_matrices(trajectory)
+        residual_before = self._support_residual(T_incremental)
+        incremental_poses = [(group, group.T_world_group.copy()) for group in self.groups.groups.values()]
+        if not self.adjust():
             return trajectory
         flagged = self._flag_disagreeing()
         if len(flagged):
@@ -466,8 +481,46 @@ class RelativePointEstimator(Estimator):
             else:
                 T_after[k] = correction @ T_before[k]
         self.adjustment_report["relocated_iterations"] = relocated
+        residual_after = self._support_residual(T_after)
+        report = self.adjustment_report
+        report["support_residual_before"] = round(residual_before, 4)
+        report["support_residual_after"] = round(residual_after, 4)
+        if residual_after > (1.0 + ADJUSTMENT_TOLERANCE) * residual_before:
+            # The adjusted map explains the log's own observations worse than the incremental one:
+            # keep the incremental map and trajectory (the points flagged dynamic stay flagged).
+            for group, T_world_group in incremental_poses:
+                self.groups.move(group, T_world_group)
+            self._refresh_index()
+            report["kept"] = "incremental"
+            report["reason"] = (
+                f"adjusted observations {residual_after:.3f} m from their points against "
+                f"{residual_before:.3f} m before (median RMS over iterations)"
+            )
+            return trajectory
+        report["kept"] = "adjusted"
         orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
         return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
+
+    def _support_residual(self, T_world_sensor: FloatArray) -> float:
+        """Median over iterations of the RMS distance (m) of each one's kept observations, placed by its
+        pose (K, 4, 4), from their points' current global positions (static mapped points only)."""
+        store = self.store
+        live = store.live_ids()
+        row_of = dict(zip(store.uid[live].tolist(), live.tolist(), strict=True))
+        per_iteration = []
+        for k, support in enumerate(self._support):
+            if support is None:
+                continue
+            uids, observed = support
+            rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
+            usable = rows >= 0
+            usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
+            if np.count_nonzero(usable) < 3:
+                continue
+            T = T_world_sensor[k]
+            placed = observed[usable].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            per_iteration.append(np.sqrt(np.mean(np.sum((placed - store.positions(rows[usable])) ** 2, axis=1))))
+        return float(np.median(per_iteration)) if per_iteration else float("nan")
 
     def _flag_disagreeing(self) -> IntArray:
         """Flag the points whose groups still disagree about their position after the adjustment.
