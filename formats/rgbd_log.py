@@ -1,7 +1,7 @@
 """Writing a simulated RGB-D sequence (``relpoint.simulation.rgbd``) as a relpoint log, with its scene beside it.
 
 Per frame, at its stamp and in this order: ``/camera/depth/camera_info`` (first frame only),
-``/ground_truth/pose`` (``T_world_camera``), ``/camera/color/image`` (rgb8, registered to the depth) and
+``/ground_truth/pose`` (``T_world_camera``) and the same as ``/tf`` (world -> camera), ``/camera/color/image`` (rgb8, registered to the depth) and
 ``/camera/depth/image`` (16UC1 millimetres, 0 = none). The settings go into a ``relpoint.simulation`` metadata record. The
 scene's reference cloud (points and normals sampled over the meshes, in ``world``) can be written as a
 PLY file for map-accuracy evaluation.
@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from formats import ros2
 from formats.log import LogWriter, Topics, metadata_json
 from formats.ply import write_ply
 from relpoint.simulation.rgbd import RgbdSimulation
@@ -33,7 +34,7 @@ def write_rgbd_simulation(
     ``on_frame(k)`` is called after frame ``k`` (for progress bars).
     """
     topics = topics or Topics()
-    counts = {"camera_info": 0, "depth": 0, "color": 0, "ground_truth_pose": 0}
+    counts = {"camera_info": 0, "depth": 0, "color": 0, "ground_truth_pose": 0, "tf": 0}
     metadata = {"relpoint.simulation": metadata_json({"scenario": "room", **simulation.config.to_dict()})}
     with LogWriter(path, compression=compression, metadata=metadata) as writer:
         for index, frame in enumerate(simulation.frames()):
@@ -41,8 +42,11 @@ def write_rgbd_simulation(
             if index == 0:
                 writer.write_camera_info(stamp, frame.intrinsics, topics.camera_info)
                 counts["camera_info"] += 1
-            writer.write_ground_truth_pose(Pose.from_matrix(stamp, simulation.poses[index]), topics.ground_truth_pose)
+            pose = Pose.from_matrix(stamp, simulation.poses[index])
+            writer.write_ground_truth_pose(pose, topics.ground_truth_pose)
             counts["ground_truth_pose"] += 1
+            writer.write("/tf", ros2.TF_MESSAGE, ros2.tf_to_msg(stamp, "world", "camera", pose.position, pose.quat_xyzw), stamp)
+            counts["tf"] += 1
             if frame.color is not None:  # colour first: a reader can attach it to the depth that follows
                 writer.write_color(stamp, frame.color, topics.color)
                 counts["color"] += 1

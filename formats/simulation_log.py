@@ -5,9 +5,13 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
+from formats import ros2
 from formats.log import LogWriter, Topics, metadata_json
 from relpoint.simulation import Simulation
 from relpoint.types import Pose
+
+#: Where simulated logs put the true sensor pose as a transform, as ROS does.
+TF_TOPIC = "/tf"
 
 
 def write_simulation(
@@ -21,12 +25,13 @@ def write_simulation(
     """Write every iteration of ``simulation`` to ``path`` (atomically) and return message counts.
 
     Per iteration, at its stamp: ``/ground_truth/landmarks`` (first iteration only), the true pose on
-    ``/ground_truth/pose``, the observation on ``/points``, then ``/odom`` and ``/fix`` when the
+    ``/ground_truth/pose`` and as ``/tf`` (world -> the observation's frame, so that Foxglove places
+    ``/points``), the observation on ``/points``, then ``/odom`` and ``/fix`` when the
     configuration asks for them. The settings are stored as a ``relpoint.simulation`` metadata record.
     ``on_step(k)`` is called after iteration ``k`` (for progress bars).
     """
     topics = topics or Topics()
-    counts = {"points": 0, "ground_truth_pose": 0, "ground_truth_landmarks": 0, "odometry": 0, "fix": 0}
+    counts = {"points": 0, "ground_truth_pose": 0, "ground_truth_landmarks": 0, "odometry": 0, "fix": 0, "tf": 0}
     metadata = {"relpoint.simulation": metadata_json(simulation.config.log_settings())}
     truth = simulation.ground_truth
     with LogWriter(path, compression=compression, metadata=metadata) as writer:
@@ -37,6 +42,9 @@ def write_simulation(
             position, quat = truth.positions[step.index], truth.quats_xyzw[step.index]
             pose = Pose(step.stamp_ns, tuple(position.tolist()), tuple(quat.tolist()))  # type: ignore[arg-type]
             writer.write_ground_truth_pose(pose, topics.ground_truth_pose)
+            writer.write(TF_TOPIC, ros2.TF_MESSAGE,
+                         ros2.tf_to_msg(step.stamp_ns, "world", step.observation.frame_id, position, quat), step.stamp_ns)  # fmt: skip
+            counts["tf"] += 1
             writer.write_observation(step.observation, topics.points)
             counts["ground_truth_pose"] += 1
             counts["points"] += 1
