@@ -62,7 +62,7 @@ class BuildKernels(build_ext):
             objects, _ = compiler._compile_object_files(self.build_temp)
             ext.extra_objects = objects
             super().build_extension(ext)
-        except Exception as error:  # noqa: BLE001 - optional speed-up: report and go on
+        except Exception as error:  # an optional speed-up: report and go on
             print(f"relpoint: kernels not compiled ahead of time ({error}); they compile on first use", file=sys.stderr)
 
 
