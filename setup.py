@@ -16,9 +16,11 @@ from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
+from setuptools.modified import newer
 
 PACKAGE = "relpoint.estimators.relative_point"
-KERNELS = Path(__file__).parent / "relpoint" / "estimators" / "relative_point" / "_kernels.py"
+KERNELS_SOURCE = "relpoint/estimators/relative_point/_kernels.py"
+KERNELS = Path(__file__).parent / KERNELS_SOURCE
 EXTENSION = "_kernels_aot"
 
 
@@ -52,6 +54,8 @@ class BuildKernels(build_ext):
     def build_extension(self, ext) -> None:
         if ext.name != f"{PACKAGE}.{EXTENSION}":
             return super().build_extension(ext)
+        if not (self.force or newer(str(KERNELS), self.get_ext_fullpath(ext.name))):
+            return
         try:
             compiler = _kernel_compiler()
             ext.sources = compiler._get_mixin_sources()
@@ -67,6 +71,6 @@ class BuildKernels(build_ext):
 
 
 setup(
-    ext_modules=[Extension(f"{PACKAGE}.{EXTENSION}", sources=[], optional=True)],
+    ext_modules=[Extension(f"{PACKAGE}.{EXTENSION}", sources=[], depends=[KERNELS_SOURCE], optional=True)],
     cmdclass={"build_ext": BuildKernels},
 )
