@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 from setuptools import Extension, setup
@@ -27,6 +28,8 @@ EXTENSION = "_kernels_aot"
 def _kernel_compiler():  # -> numba.pycc.CC
     """A pycc compiler with every kernel of ``_kernels.py`` (and its source digest) exported."""
     os.environ["RELPOINT_KERNELS"] = "jit"  # the source module must hand out numba dispatchers
+    # Cached machine code names the module it was compiled in: keep this copy's out of the package's cache.
+    os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="relpoint-kernels-build-")
     spec = importlib.util.spec_from_file_location(f"{PACKAGE}._kernels_source", KERNELS)
     kernels = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = kernels
