@@ -134,8 +134,8 @@ def run(
     estimator.prepare()
     seconds_prepare = time.perf_counter() - start
     if seconds_prepare > 1.0:
-        log.warning("%s: %.1f s compiling its code before the first iteration (kept out of the per-iteration times)",
-                    estimator.name, seconds_prepare)  # fmt: skip
+        log.warning("%s: %.1f s compiling or loading its compiled code before the first iteration "
+                    "(not in the per-iteration times)", estimator.name, seconds_prepare)  # fmt: skip
     for item in inputs:
         if isinstance(item, OdometryMeasurement):
             if (odometry := screen.odometry(item)) is not None:
