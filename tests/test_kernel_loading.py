@@ -37,7 +37,7 @@ def test_every_kernel_declares_its_argument_types() -> None:
     source = inspect.getsource(_kernels)
     declared = set(_kernels.SIGNATURES)
     defined = {line.split("(")[0].removeprefix("def ") for line in source.splitlines() if line.startswith("def ")}
-    helpers = {"source_digest", "_ahead_of_time", "kernel", "prepare"}
+    helpers = {"source_digest", "_ahead_of_time", "kernel", "_checked", "prepare"}
     assert declared == defined - helpers
     assert len(declared) == 23
 
@@ -74,6 +74,21 @@ def test_prebuilt_kernels_equal_the_jit_ones_bit_for_bit(monkeypatch: pytest.Mon
             prebuilt, compiled = getattr(_kernels, name)(*arguments), getattr(jit, name)(*arguments)
             for a, b in zip(prebuilt, compiled, strict=True):
                 assert np.asarray(a).tobytes() == np.asarray(b).tobytes(), name
+
+
+@pytest.mark.skipif(not _kernels.COMPILED_AHEAD, reason="the kernels were not compiled ahead of time at install")
+def test_prebuilt_kernels_refuse_arrays_they_would_misread() -> None:
+    sums, weights, ids = np.arange(30.0).reshape(10, 3), np.ones(10), np.array([0, 4, 9])
+    np.testing.assert_array_equal(_kernels.gather_positions(sums, weights, ids), sums[ids])
+    for bad in (
+        (np.asfortranarray(sums), weights, ids),
+        (sums[::2], weights[::2], ids[:2]),
+        (sums.astype(np.float32), weights, ids),
+        (sums, weights, ids.astype(np.int32)),
+        (sums, weights, [0, 4, 9]),
+    ):
+        with pytest.raises(TypeError, match="gather_positions: argument"):
+            _kernels.gather_positions(*bad)
 
 
 class _Recording:

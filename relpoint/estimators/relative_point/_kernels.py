@@ -19,9 +19,11 @@ seconds of compilation each, so the callers sort and the 3x3 rotation is solved 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -64,12 +66,39 @@ def kernel(argument_types: str) -> Callable[[Callable[..., Any]], Any]:
     def declare(function: Callable[..., Any]) -> Any:
         SIGNATURES[function.__name__] = argument_types
         if _PREBUILT is not None:
-            return getattr(_PREBUILT, function.__name__)
+            return _checked(getattr(_PREBUILT, function.__name__), function, argument_types)
         from numba import njit
 
         return njit(cache=True)(function)
 
     return declare
+
+
+_DTYPES = {"f8": np.dtype(np.float64), "i8": np.dtype(np.int64), "b1": np.dtype(np.bool_)}
+_ARGUMENT = re.compile(r"(\w+)(?:\[([^\]]*)\])?")
+
+
+def _checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument_types: str) -> Callable[..., Any]:
+    """``prebuilt`` behind a check of its array arguments' dtype, dimensions and C order.
+
+    A prebuilt kernel reads its arrays as declared without looking (a strided view would be read
+    wrongly, a float32 array past its end), where a numba dispatcher would compile a variant; so a
+    call with any other array is refused with a TypeError naming the kernel and argument.
+    """
+    arrays = [
+        (position, _DTYPES[code], dimensions.count(",") + 1)
+        for position, (code, dimensions) in enumerate(_ARGUMENT.findall(argument_types))
+        if dimensions
+    ]
+
+    def call(*arguments: Any) -> Any:
+        for position, dtype, ndim in arrays:
+            array = arguments[position]
+            if array.__class__ is not np.ndarray or array.dtype != dtype or array.ndim != ndim or not array.flags.c_contiguous:
+                raise TypeError(f"{function.__name__}: argument {position} must be a C-ordered {ndim}-d {dtype} array")
+        return prebuilt(*arguments)
+
+    return functools.update_wrapper(call, function)
 
 
 def prepare() -> None:
