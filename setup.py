@@ -47,12 +47,20 @@ def _kernel_compiler():  # -> numba.pycc.CC
         returned = dispatcher.overloads[arguments].signature.return_type
         compiler.export(name, returned(*arguments))(dispatcher.py_func)
     digest = kernels.source_digest()
-    compiler.export("source_digest", "i8()")(eval(f"lambda: {digest}"))
+
+    def source_digest() -> int:  # the digest is frozen into the machine code as a constant
+        return digest
+
+    compiler.export("source_digest", "i8()")(source_digest)
     return compiler
 
 
 class BuildKernels(build_ext):
-    """build_ext that first has numba write the kernels' object file; any failure leaves them to the JIT."""
+    """build_ext that first has numba write the kernels' object file; any failure leaves them to the JIT.
+
+    It does what ``CC.distutils_extension`` sets up, but only when the extension is built, so that
+    reading ``setup.py`` (metadata, sdists) compiles nothing.
+    """
 
     def build_extension(self, ext) -> None:
         if ext.name != f"{PACKAGE}.{EXTENSION}":
