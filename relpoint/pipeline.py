@@ -42,6 +42,7 @@ class RunResult:
     seconds: (N,) wall time of each ``step`` call.
     summary: estimator summary figures (JSON-serialisable).
     seconds_finish: wall time of the estimator's work once the log ended (a final adjustment).
+    seconds_prepare: wall time of compiling or loading compiled code before the first iteration.
     """
 
     trajectory: Trajectory
@@ -55,6 +56,7 @@ class RunResult:
     dense_map: tuple[np.ndarray, ...] | None = None
     """For dense estimators: (positions (M,3) m, normals (M,3), colours (M,3) uint8, weights (M,)) in ``world``."""
     seconds_finish: float = 0.0
+    seconds_prepare: float = 0.0
     skipped: dict[str, int] = field(default_factory=dict)
     """Inputs dropped before the estimator saw them, and iterations it could not compute, by kind."""
     warnings: tuple[str, ...] = ()
@@ -63,16 +65,17 @@ class RunResult:
     """The map as it grew: at most :data:`MAX_TIMELINE` snapshots at evenly spaced iterations."""
 
     def timing_summary(self) -> dict[str, float]:
-        """Mean, median and total wall time per iteration, and the time after the last one, in seconds."""
+        """Mean, median and total wall time per iteration, and the times before the first and after the last, in s."""
         if len(self.seconds) == 0:
             return {"iterations": 0, "seconds_total": 0.0, "seconds_mean": 0.0, "seconds_median": 0.0,
-                    "seconds_finish": self.seconds_finish}  # fmt: skip
+                    "seconds_finish": self.seconds_finish, "seconds_prepare": self.seconds_prepare}  # fmt: skip
         return {
             "iterations": len(self.seconds),
             "seconds_total": float(self.seconds.sum()),
             "seconds_mean": float(self.seconds.mean()),
             "seconds_median": float(np.median(self.seconds)),
             "seconds_finish": self.seconds_finish,
+            "seconds_prepare": self.seconds_prepare,
         }
 
 
@@ -127,6 +130,12 @@ def run(
     timeline_every = 4
     screen = InputScreen()
     failed = 0
+    start = time.perf_counter()
+    estimator.prepare()
+    seconds_prepare = time.perf_counter() - start
+    if seconds_prepare > 1.0:
+        log.warning("%s: %.1f s compiling or loading its compiled code before the first iteration "
+                    "(not in the per-iteration times)", estimator.name, seconds_prepare)  # fmt: skip
     for item in inputs:
         if isinstance(item, OdometryMeasurement):
             if (odometry := screen.odometry(item)) is not None:
@@ -211,6 +220,7 @@ def run(
         map_history=tuple(snapshots),
         dense_map=dense_map,
         seconds_finish=seconds_finish,
+        seconds_prepare=seconds_prepare,
         skipped=skipped,
         warnings=tuple(warnings),
         map_timeline=tuple(timeline),

@@ -39,6 +39,9 @@ class Estimator(abc.ABC):
     def step(self, observation: PointObservation) -> Pose:
         """Process one iteration's untransformed points; return the sensor pose at its stamp."""
 
+    def prepare(self) -> None:  # noqa: B027 - optional hook
+        """Compile or load what :meth:`step` runs, once, before the first iteration (timed apart from them)."""
+
     def add_odometry(self, odometry: OdometryMeasurement) -> None:  # noqa: B027 - optional hook
         """Take a body-frame velocity measurement (ignored by estimators that do not use odometry)."""
 

@@ -6,24 +6,118 @@ do the same arithmetic in compiled loops. Each docstring gives the numpy express
 equals (up to floating-point rounding); ``tests/test_relative_point_parts.py`` checks every kernel
 against that expression on random inputs.
 
-``cache=True`` keeps the machine code beside this module (``__pycache__``, or ``NUMBA_CACHE_DIR``),
-so only the first run after installing or editing this module pays for compilation (about a quarter
-of a minute for all kernels; loading them from the cache takes under half a second). The kernels are
-plain loops over scalars: numpy's sorting, linear algebra and broadcasting inside a kernel cost
+An install builds all kernels ahead of time into the extension module ``_kernels_aot`` (numba's
+``pycc``, from the argument types each :func:`kernel` names; see ``setup.py``), so no run pays for
+compilation and numba itself is not even imported. Without that module (no C compiler at install,
+a source checkout, or ``RELPOINT_KERNELS=jit``), or when it was built from another version of this
+file, each kernel is compiled on its first call instead (``cache=True`` keeps the machine code in
+``__pycache__`` or ``NUMBA_CACHE_DIR``: about ten seconds of CPU once, under half a second to load
+later). Both are the same LLVM code of the same loops and give bit-identical results. The kernels
+are plain loops over scalars: numpy's sorting, linear algebra and broadcasting inside a kernel cost
 seconds of compilation each, so the callers sort and the 3x3 rotation is solved by hand.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+import os
+import re
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import numpy as np
-from numba import njit
+
+SIGNATURES: dict[str, str] = {}
+"""Argument types of every kernel in numba's notation, by name: what the ahead-of-time build compiles."""
+
+
+def source_digest() -> int:
+    """First 60 bits of the SHA-256 of this file: the ahead-of-time module must have been built from it."""
+    return int(hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:15], 16)
+
+
+def _ahead_of_time() -> ModuleType | None:
+    """The prebuilt ``_kernels_aot`` module if present, wanted and built from this very source; else None."""
+    if os.environ.get("RELPOINT_KERNELS", "auto") == "jit":
+        return None
+    try:
+        from relpoint.estimators.relative_point import _kernels_aot  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return _kernels_aot if _kernels_aot.source_digest() == source_digest() else None
+
+
+_PREBUILT = _ahead_of_time()
+COMPILED_AHEAD = _PREBUILT is not None
+"""Whether the kernels below are the prebuilt machine code (True) or compiled on first call (False)."""
+
+
+def kernel(argument_types: str) -> Callable[[Callable[..., Any]], Any]:
+    """Declare a compiled kernel taking ``argument_types`` (numba notation, e.g. ``"f8[:, ::1], i8"``).
+
+    The name is bound to the prebuilt function when :data:`COMPILED_AHEAD`, else to a lazily
+    compiling ``numba.njit(cache=True)`` dispatcher of the same loops.
+    """
+
+    def declare(function: Callable[..., Any]) -> Any:
+        SIGNATURES[function.__name__] = argument_types
+        if _PREBUILT is not None:
+            return _checked(getattr(_PREBUILT, function.__name__), function, argument_types)
+        from numba import njit
+
+        return njit(cache=True)(function)
+
+    return declare
+
+
+_DTYPES = {"f8": np.dtype(np.float64), "i8": np.dtype(np.int64), "b1": np.dtype(np.bool_)}
+_ARGUMENT = re.compile(r"(\w+)(?:\[([^\]]*)\])?")
+
+
+def _checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument_types: str) -> Callable[..., Any]:
+    """``prebuilt`` behind a check of its array arguments' dtype, dimensions and C order.
+
+    A prebuilt kernel reads its arrays as declared without looking (a strided view would be read
+    wrongly, a float32 array past its end), where a numba dispatcher would compile a variant; so a
+    call with any other array is refused with a TypeError naming the kernel and argument.
+    """
+    arrays = [
+        (position, _DTYPES[code], dimensions.count(",") + 1)
+        for position, (code, dimensions) in enumerate(_ARGUMENT.findall(argument_types))
+        if dimensions
+    ]
+
+    def call(*arguments: Any) -> Any:
+        for position, dtype, ndim in arrays:
+            array = arguments[position]
+            if array.__class__ is not np.ndarray or array.dtype != dtype or array.ndim != ndim or not array.flags.c_contiguous:
+                raise TypeError(f"{function.__name__}: argument {position} must be a C-ordered {ndim}-d {dtype} array")
+        return prebuilt(*arguments)
+
+    return functools.update_wrapper(call, function)
+
+
+def prepare() -> None:
+    """Compile every public kernel for its declared argument types, or load it from numba's cache.
+
+    Nothing to do when :data:`COMPILED_AHEAD`. Otherwise a run calls this before its first
+    iteration, so compilation is timed on its own and not inside an iteration; a kernel called
+    with other types (a strided view, say) still compiles for those on first call.
+    """
+    if COMPILED_AHEAD:
+        return
+    for name, argument_types in SIGNATURES.items():
+        if not name.startswith("_"):
+            globals()[name].compile(f"({argument_types},)")
 
 # -- RltLSF (section II-B): least-squares rigid fitting ------------------------------------------
 
 
-@njit(cache=True)
+@kernel("f8, f8, f8, f8, f8, f8")
 def off_line_rms(a: float, b: float, c: float, d: float, e: float, f: float) -> float:
     """RMS distance off the best line of a scatter ``[[a, d, e], [d, b, f], [e, f, c]]`` (m^2 entries).
 
@@ -44,7 +138,7 @@ def off_line_rms(a: float, b: float, c: float, d: float, e: float, f: float) -> 
     return math.sqrt(max(trace - largest, 0.0))
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1]")
 def _largest_eigenvector4(N: np.ndarray) -> tuple[float, float, float, float]:
     """Unit eigenvector (4,) of the largest eigenvalue of a symmetric 4x4 matrix (cyclic Jacobi rotations).
 
@@ -95,7 +189,7 @@ def _largest_eigenvector4(N: np.ndarray) -> tuple[float, float, float, float]:
     return V[0, best], V[1, best], V[2, best], V[3, best]
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1]")
 def best_rotation_into(T: np.ndarray, H: np.ndarray) -> None:
     """``T[:3, :3] = R``, the proper rotation maximising ``trace(R H)`` for a cross-covariance ``H`` (3, 3).
 
@@ -136,7 +230,7 @@ def best_rotation_into(T: np.ndarray, H: np.ndarray) -> None:
     T[2, 2] = 1.0 - 2.0 * (x * x + y * y)
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[::1], b1[::1]")
 def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, float]:
     """Arun / Umeyama fit of the pairs ``use`` (N,) bool: 4x4 ``T`` with ``target ≈ R source + t``, and spread.
 
@@ -192,7 +286,7 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray, use: 
     return T, spread
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[:, ::1]")
 def pair_residuals(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Distance (N,) between each target and its mapped source, m.
 
@@ -210,7 +304,7 @@ def pair_residuals(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.
     return out
 
 
-@njit(cache=True)
+@kernel("f8[::1], i8")
 def _kth_smallest(values: np.ndarray, k: int) -> float:
     """The ``k``-th smallest entry (0-based) of ``values`` (reordered in place; quickselect).
 
@@ -238,7 +332,7 @@ def _kth_smallest(values: np.ndarray, k: int) -> float:
     return values[k]
 
 
-@njit(cache=True)
+@kernel("f8[::1], b1[::1]")
 def _masked_median(values: np.ndarray, use: np.ndarray) -> float:
     """numpy: ``np.median(values[use])`` (finite values, at least one used)."""
     selected = np.empty(values.shape[0])
@@ -258,7 +352,7 @@ def _masked_median(values: np.ndarray, use: np.ndarray) -> float:
     return 0.5 * (lower + upper)
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[::1], f8[:, ::1], b1[::1], f8, f8, i8, f8")
 def trimmed_fit(
     source: np.ndarray,
     target: np.ndarray,
@@ -300,7 +394,7 @@ def trimmed_fit(
 # -- OVLQPQuadTree (section II-A): local point matching -------------------------------------------
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], i8[::1], f8[:, ::1], f8")
 def nearest_two(
     reference: np.ndarray, order: np.ndarray, query: np.ndarray, bound: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -348,7 +442,7 @@ def nearest_two(
     return j, d
 
 
-@njit(cache=True)
+@kernel("i8[:, ::1], f8[:, ::1], i8")
 def claim_one_to_one(j: np.ndarray, d: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one assignment of queries to their nearest (then second-nearest) free reference.
 
@@ -381,7 +475,7 @@ def claim_one_to_one(j: np.ndarray, d: np.ndarray, m: int) -> tuple[np.ndarray, 
     return index, distance
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[::1]")
 def mutual_nearest(reference: np.ndarray, query: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """Row of ``reference`` (R, 3) each query (Q, 3) matches as mutual nearest neighbours within ``bounds`` (R,).
 
@@ -420,7 +514,7 @@ def mutual_nearest(reference: np.ndarray, query: np.ndarray, bounds: np.ndarray)
     return index
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], i8[::1]")
 def transform_by_age(T_curr_prev: np.ndarray, points: np.ndarray, age: np.ndarray) -> np.ndarray:
     """Points (N, 3) carried ``age`` (N,) steps (1 or more) of the motion ``T_curr_prev`` (4, 4).
 
@@ -453,7 +547,7 @@ def transform_by_age(T_curr_prev: np.ndarray, points: np.ndarray, age: np.ndarra
 # -- RltGroup (section II-B): combination of the groups' placements --------------------------------
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[::1], i8[::1]")
 def gather_positions(pos_sum: np.ndarray, pos_weight: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """Least-squares global positions (N, 3) of points ``ids`` (N,); NaN rows where unmapped.
 
@@ -473,7 +567,7 @@ def gather_positions(pos_sum: np.ndarray, pos_weight: np.ndarray, ids: np.ndarra
     return out
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8[::1]")
 def gather_spread(pos_sum: np.ndarray, pos_weight: np.ndarray, pos_sq: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """RMS disagreement (N,) between the global positions the groups of points ``ids`` give them (m).
 
@@ -491,7 +585,7 @@ def gather_spread(pos_sum: np.ndarray, pos_weight: np.ndarray, pos_sq: np.ndarra
     return out
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8[::1], f8[:, ::1], f8, f8[:, ::1], f8")
 def replace_contribution(
     pos_sum: np.ndarray,
     pos_weight: np.ndarray,
@@ -537,7 +631,7 @@ def replace_contribution(
 # -- RltGroup (section II-B): basis frames and relative maps ----------------------------------------
 
 
-@njit(cache=True)
+@kernel("f8[:, :, ::1], i8, i8, i8, f8")
 def basis_coordinates(
     observations: np.ndarray, i0: int, i1: int, i2: int, min_spread: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -576,7 +670,7 @@ def basis_coordinates(
     return relative, valid
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], i8")
 def _row_mean(points: np.ndarray, m: int) -> tuple[float, float, float]:
     """Mean of the first ``m`` rows of ``points`` (N, 3). numpy: ``points[:m].mean(axis=0)``."""
     c0 = c1 = c2 = 0.0
@@ -587,7 +681,7 @@ def _row_mean(points: np.ndarray, m: int) -> tuple[float, float, float]:
     return c0 / m, c1 / m, c2 / m
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8")
 def spread_basis(points: np.ndarray, min_spread: float) -> tuple[int, int, int]:
     """Rows of three well-spread, non-collinear points of ``points`` (M, 3); ``(-1, -1, -1)`` if none.
 
@@ -633,7 +727,7 @@ def spread_basis(points: np.ndarray, min_spread: float) -> tuple[int, int, int]:
 # -- RltMapper (section II-C): member selection of a new group ------------------------------------
 
 
-@njit(cache=True)
+@kernel("b1[:, ::1], b1[::1], i8[::1], i8, i8")
 def interval_members(
     presence: np.ndarray, grouped: np.ndarray, order: np.ndarray, creation: int, seeds: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -693,7 +787,7 @@ def interval_members(
 # -- RltPoint / RltInterval (section II-A): reading the observation rings --------------------------
 
 
-@njit(cache=True)
+@kernel("f8[:, :, ::1], i8[:, ::1], i8[::1], i8[::1]")
 def ring_observations(
     obs: np.ndarray, obs_iter: np.ndarray, ids: np.ndarray, iterations: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -721,7 +815,7 @@ def ring_observations(
     return xyz, valid
 
 
-@njit(cache=True)
+@kernel("i8[:, ::1], i8[::1], i8, i8")
 def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) -> np.ndarray:
     """Whether points ``ids`` (N,) were observed in each iteration of ``[first, last]`` (N, last - first + 1).
 
@@ -741,7 +835,7 @@ def ring_presence(obs_iter: np.ndarray, ids: np.ndarray, first: int, last: int) 
 # -- dynamic detection (section II-C): the periodic sweep against verified points -----------------
 
 
-@njit(cache=True)
+@kernel("f8[:, :, ::1], b1[:, ::1], i8[::1], i8, i8")
 def reference_deviations(
     tracks: np.ndarray, valid: np.ndarray, references: np.ndarray, min_common: int, block: int
 ) -> np.ndarray:
@@ -800,7 +894,7 @@ def reference_deviations(
     return deviation
 
 
-@njit(cache=True)
+@kernel("f8[:, :, ::1], b1[:, ::1], f8[:, :, ::1], i8")
 def block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray, block: int) -> np.ndarray:
     """RMS scatter (N,) of each track's block-mean world position (NaN under three usable blocks).
 

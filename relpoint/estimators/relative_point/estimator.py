@@ -77,6 +77,7 @@ from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
+from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import adjust_network
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references, world_block_deviation
@@ -383,6 +384,10 @@ class RelativePointEstimator(Estimator):
         )  # fmt: skip
 
     # -- Estimator interface ---------------------------------------------------------------------
+
+    def prepare(self) -> None:
+        """Compile or load the compiled inner loops (:mod:`._kernels`) before the first iteration."""
+        _kernels.prepare()
 
     def step(self, observation: PointObservation) -> Pose:
         """Process one iteration's untransformed points (sensor frame); return ``T_world_sensor``."""
