@@ -195,3 +195,62 @@ def test_real_7scenes_points_agree_with_the_reference_poses(tmp_path: Path, runn
         np.linalg.norm(np.array(p) - np.median(p, axis=0), axis=1) for p in world.values() if len(p) >= 10
     ])  # fmt: skip
     assert np.median(residuals) < 0.04  # m: real Kinect depth at about 2 m, reference poses from KinectFusion
+
+
+# --- observation noise from the data ------------------------------------------------------------
+
+
+def _scene_observations(rng: np.random.Generator, sigma: float, scale: float = 1.0, frames: int = 8,
+                        repeat_noise: bool = False) -> list:  # fmt: skip
+    """Static points seen by a moving sensor with per-axis noise ``sigma``; ``repeat_noise``: every frame
+    has the same noise (a fully correlated error that registration cannot see)."""
+    from scipy.spatial.transform import Rotation
+
+    from relpoint.types import PointObservation
+
+    world = rng.uniform(-1, 1, (150, 3)) * scale + [0, 0, 2 * scale]
+    fixed = rng.normal(0, sigma, world.shape)
+    observations = []
+    for k in range(frames):
+        R = Rotation.from_rotvec([0.0, 0.01 * k, 0.0]).as_matrix()
+        t = np.array([0.01 * k, 0.0, 0.0]) * scale
+        noise = fixed if repeat_noise else rng.normal(0, sigma, world.shape)
+        observations.append(PointObservation(k * 10**8, (world - t) @ R + noise, np.arange(len(world))))
+    return observations
+
+
+def test_registration_residuals_recover_independent_noise_at_any_scale() -> None:
+    from relpoint.estimators._noise import estimate_observation_noise, registration_noise
+
+    for scale, sigma in ((1.0, 0.02), (30.0, 0.6)):
+        observations = _scene_observations(np.random.default_rng(5), sigma, scale)
+        assert registration_noise(observations) == pytest.approx(sigma, rel=0.15)
+        assert estimate_observation_noise(observations) == pytest.approx(sigma, rel=0.15)
+
+
+def test_noise_that_repeats_from_frame_to_frame_is_floored_relative_to_range() -> None:
+    from relpoint.estimators._noise import RANGE_FRACTION, estimate_observation_noise, registration_noise
+
+    observations = _scene_observations(np.random.default_rng(6), 0.02, repeat_noise=True)
+    assert registration_noise(observations) < 0.002
+    ranges = np.concatenate([np.linalg.norm(o.points, axis=1) for o in observations])
+    assert estimate_observation_noise(observations) == pytest.approx(RANGE_FRACTION * np.median(ranges))
+
+
+@pytest.mark.parametrize("name", ["relpoint", "ekf"])
+def test_estimated_noise_run_equals_a_run_given_that_noise(name: str, small_log: Path) -> None:
+    import dataclasses
+
+    from relpoint.estimators import ESTIMATORS
+    from relpoint.pipeline import run
+
+    inputs = [r.value for r in LogReader(small_log).records(["points"])][:60]
+    spec = ESTIMATORS[name]
+    auto = run(inputs, spec.factory(spec.config_class(), np.random.default_rng(0)))
+    sigma = auto.summary["observation_sigma"]
+    assert auto.summary["observation_sigma_estimated"] and 0.2 < sigma < 0.4  # the simulator's 0.3 m
+    given = run(inputs, spec.factory(dataclasses.replace(spec.config_class(), observation_sigma=sigma),
+                                     np.random.default_rng(0)))  # fmt: skip
+    np.testing.assert_array_equal(auto.trajectory.positions, given.trajectory.positions)
+    np.testing.assert_array_equal(auto.trajectory.quats_xyzw, given.trajectory.quats_xyzw)
+    assert len(auto.landmarks) == len(given.landmarks)
