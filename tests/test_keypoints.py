@@ -254,3 +254,19 @@ def test_estimated_noise_run_equals_a_run_given_that_noise(name: str, small_log:
     np.testing.assert_array_equal(auto.trajectory.positions, given.trajectory.positions)
     np.testing.assert_array_equal(auto.trajectory.quats_xyzw, given.trajectory.quats_xyzw)
     assert len(auto.landmarks) == len(given.landmarks)
+
+
+def test_rigid_motion_check_finds_the_points_that_do_not_move_with_the_rest() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from relpoint.frontend.keypoints import rigid_outliers
+
+    rng = np.random.default_rng(7)
+    previous = rng.uniform(-1, 1, (40, 3)) + np.array([0.0, 0.0, 2.0])
+    R = Rotation.from_rotvec([0.02, -0.03, 0.01]).as_matrix()
+    current = (previous - [0.05, 0.0, 0.02]) @ R + rng.normal(0, 0.002, previous.shape)  # the camera moved
+    current[[3, 17, 30]] += [0.0, 0.08, 0.0]  # three corners slid 8 cm
+    tolerance = 0.01 * current[:, 2] + 0.005
+    outliers = rigid_outliers(previous, current, tolerance, 100, np.random.default_rng(0))
+    assert np.flatnonzero(outliers).tolist() == [3, 17, 30]
+    assert not rigid_outliers(previous[:5], current[:5], tolerance[:5], 100, np.random.default_rng(0)).any()

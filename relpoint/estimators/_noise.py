@@ -37,7 +37,7 @@ from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, P
 #: Median length of a 3D Gaussian vector with unit per-axis deviation, times sqrt(2) (two noisy points).
 _PAIR_MEDIAN = 1.5382 * math.sqrt(2.0)
 #: Observations of at least ``MIN_POINTS`` points held back for the estimate ...
-NOISE_FRAMES = 10
+NOISE_FRAMES = 30
 MIN_POINTS = 4
 #: ... but never more iterations than this (a log that rarely sees four points).
 MAX_HELD = 200

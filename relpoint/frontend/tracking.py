@@ -39,6 +39,9 @@ class KeypointSettings(Settings):
         "depth_jump": (0.0, 10.0),
         "min_depth": (0.0, 1000.0),
         "max_depth": (0.0, 1e6),
+        "rigid_tolerance": (0.0, 1.0),
+        "rigid_floor": (0.0, 10.0),
+        "rigid_samples": (1, 100_000),
     }
 
     #: Corners kept per frame (tracked plus new).
@@ -60,6 +63,14 @@ class KeypointSettings(Settings):
     #: Trusted depth range of the sensor, m.
     min_depth: float = 0.3
     max_depth: float = 5.0
+    #: Tracks whose 3D point does not follow the rigid motion shared by the tracks seen in both this
+    #: frame and the previous one, by more than ``rigid_tolerance`` times its depth plus ``rigid_floor``
+    #: (m), are ended: a corner sliding along an edge or across an occlusion. 0 disables the check.
+    rigid_tolerance: float = 0.01
+    rigid_floor: float = 0.005
+    #: RANSAC draws (three-point samples) of that check; they come from ``seed``.
+    rigid_samples: int = 100
+    seed: int = 0
 
     def __post_init__(self) -> None:
         require_positive({"forward_backward_px": self.forward_backward_px, "max_depth": self.max_depth})

@@ -123,6 +123,18 @@ class RelativePointConfig(Settings):
     """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
 
     settings_name: ClassVar[str] = "relpoint"
+    #: What ``relpoint config`` says about the settings that matter.
+    key_settings: ClassVar[dict[str, str]] = {
+        "observation_sigma": "per-axis point noise (m). Every distance bound (match_bound, global_match_bound, "
+        "merge_bound, trim_floor, consensus_bound, spread_floor, adjustment_robust, loop_search, "
+        "min_basis_spread, collinear_tolerance) is written for the simulator's 0.3 m and scaled by "
+        "observation_sigma / 0.3. Unset, it is estimated from the first observations; 0.3 keeps the bounds as "
+        "written.",
+        "match_bound": "local matching: must exceed the noise plus the error of the motion prediction.",
+        "min_basis_spread, collinear_tolerance": "how spread a group's basis must be: a fit's rotation error is "
+        "about the noise over this distance. Too large for the scene and no group forms.",
+        "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view.",
+    }
     limits: ClassVar[dict[str, tuple[float, float]]] = {
         "ring_size": (1, 65_536), "match_window": (1, 1_000), "dynamic_window": (1, 10_000),
         "dynamic_references": (1, 1_000), "max_groups_per_point": (1, 1_000), "relocate_points": (3, 10_000),
