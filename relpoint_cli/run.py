@@ -211,12 +211,12 @@ def config_command(estimator_name: str) -> None:
     if estimator_name not in ESTIMATORS:
         raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {', '.join(sorted(ESTIMATORS))}")
     spec = ESTIMATORS[estimator_name]
+    click.echo(f"[{spec.name}]  # {spec.description}")
     key_settings = getattr(spec.config_class, "key_settings", {})
     if key_settings:
         click.echo("# The settings that matter (the others rarely need changing):")
         for name, why in key_settings.items():
             click.echo(f"#   {name}: {why}")
-    click.echo(f"[{spec.name}]  # {spec.description}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
         help_text = f.metadata.get("help", "")
