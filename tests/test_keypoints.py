@@ -201,9 +201,10 @@ def test_real_7scenes_points_agree_with_the_reference_poses(tmp_path: Path, runn
 
 
 def _scene_observations(rng: np.random.Generator, sigma: float, scale: float = 1.0, frames: int = 8,
-                        repeat_noise: bool = False) -> list:  # fmt: skip
+                        repeat_noise: bool = False, walk: bool = False) -> list:  # fmt: skip
     """Static points seen by a moving sensor with per-axis noise ``sigma``; ``repeat_noise``: every frame
-    has the same noise (a fully correlated error that registration cannot see)."""
+    has the same noise (a fully correlated error that registration cannot see); ``walk``: the noise
+    drifts by a random walk, ``sigma`` over the whole sequence (little from one frame to the next)."""
     from scipy.spatial.transform import Rotation
 
     from relpoint.types import PointObservation
@@ -214,7 +215,9 @@ def _scene_observations(rng: np.random.Generator, sigma: float, scale: float = 1
     for k in range(frames):
         R = Rotation.from_rotvec([0.0, 0.01 * k, 0.0]).as_matrix()
         t = np.array([0.01 * k, 0.0, 0.0]) * scale
-        noise = fixed if repeat_noise else rng.normal(0, sigma, world.shape)
+        if walk:
+            fixed = fixed + rng.normal(0, sigma / np.sqrt(frames), world.shape)
+        noise = fixed if repeat_noise or walk else rng.normal(0, sigma, world.shape)
         observations.append(PointObservation(k * 10**8, (world - t) @ R + noise, np.arange(len(world))))
     return observations
 
@@ -235,6 +238,17 @@ def test_noise_that_repeats_from_frame_to_frame_is_floored_relative_to_range() -
     assert registration_noise(observations) < 0.002
     ranges = np.concatenate([np.linalg.norm(o.points, axis=1) for o in observations])
     assert estimate_observation_noise(observations) == pytest.approx(RANGE_FRACTION * np.median(ranges))
+
+
+def test_noise_that_drifts_slowly_shows_over_the_wider_baseline() -> None:
+    from relpoint.estimators._noise import registration_noise
+
+    observations = _scene_observations(np.random.default_rng(8), 0.04, frames=16, walk=True)
+    consecutive, wide = registration_noise(observations, baseline=1), registration_noise(observations)
+    # A random walk of 16 steps of 0.01 m per axis: two observations k steps apart differ by 0.01 sqrt(k)
+    # per axis, which the estimator reads as two independent errors of 0.01 sqrt(k / 2).
+    assert consecutive == pytest.approx(0.01 / np.sqrt(2), rel=0.2)
+    assert wide == pytest.approx(0.01 * np.sqrt(8 / 2), rel=0.2)
 
 
 @pytest.mark.parametrize("name", ["relpoint", "ekf"])
