@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
 from relpoint.settings import Settings, require_positive
 from relpoint.types import IntArray
@@ -75,8 +76,6 @@ class KeypointSettings(Settings):
     def __post_init__(self) -> None:
         require_positive({"forward_backward_px": self.forward_backward_px, "max_depth": self.max_depth})
         if self.min_depth >= self.max_depth:
-            from relpoint.errors import UsageError
-
             raise UsageError(f"keypoint min_depth {self.min_depth} must be below max_depth {self.max_depth}")
 
 
