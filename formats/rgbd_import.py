@@ -23,10 +23,12 @@ attach it to the depth frame that follows. Images are read with Pillow.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import os
 import re
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -143,27 +145,39 @@ def _nearest_pose(
     return Pose(_stamp_ns(t), tuple(positions[nearest]), tuple(quats[nearest]))  # type: ignore[arg-type]
 
 
-def import_tum(
+@dataclass(frozen=True, eq=False)
+class RgbdFrame:
+    """One frame of an RGB-D sequence as read from its folder.
+
+    ``depth`` (H, W) float32 metres (0 = none) in the depth camera's optical frame; ``color`` (H, W, 3)
+    uint8 resized to the depth size, or None; ``pose`` the ground-truth ``T_world_camera`` at
+    ``stamp_ns``, or None.
+    """
+
+    stamp_ns: int
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    color: np.ndarray | None = None
+    pose: Pose | None = None
+
+
+def tum_frames(
     folder: str | os.PathLike[str],
-    output: str | os.PathLike[str],
     *,
     intrinsics: Intrinsics | None = None,
     tolerance: float = 0.02,
-    compression: str = "zstd",
-    topics: Topics | None = None,
-    on_frame: Callable[[int], None] | None = None,
-) -> ImportCounts:
-    """Convert a TUM RGB-D folder to a relpoint log.
+    skipped: Counter[str] | None = None,
+) -> Iterator[RgbdFrame]:
+    """The frames of a TUM RGB-D folder, one per depth image, in ``depth.txt`` order.
 
     Parameters
     ----------
     folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional).
-    output: the ``.mcap`` to write.
     intrinsics: the depth camera's intrinsics (default: Freiburg 1); the size is taken from the images.
     tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
+    skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one.
     """
     folder = Path(folder)
-    topics = topics or Topics()
     depth_rows = _read_list(folder / "depth.txt")
     if not depth_rows:
         raise InputError(f"{folder / 'depth.txt'} lists no depth image")
@@ -176,40 +190,132 @@ def import_tum(
         order = np.argsort(values[:, 0])
         truth = values[order]
     base = intrinsics or TUM_DEFAULT_INTRINSICS
-    depth_count = color_count = pose_count = skipped = 0
-    metadata = {"relpoint.import": metadata_json({"layout": "tum", "source": folder.name, "tolerance": tolerance})}
+    camera = None
     previous = None
-    with LogWriter(output, compression=compression, metadata=metadata) as writer:
-        for index, ((stamp_s, fields), colour_index) in enumerate(zip(depth_rows, colour_match, strict=True)):
-            stamp = _stamp_ns(stamp_s)
-            if previous is not None and stamp <= previous:
-                skipped += 1
-                if skipped == 1:
-                    log.warning("depth frame %s at %.6f s is not after the previous one; skipped (further ones "
-                                "are counted)", fields[0], stamp_s)  # fmt: skip
-                continue
-            depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
-            h, w = depth.shape
-            if depth_count == 0:
-                k = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy)
-                writer.write_camera_info(stamp, k, topics.camera_info)
-            if truth is not None:
-                pose = _nearest_pose(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
-                if pose is not None:
-                    writer.write_ground_truth_pose(Pose(stamp, pose.position, pose.quat_xyzw), topics.ground_truth_pose)
-                    pose_count += 1
-            if colour_index is not None:
-                writer.write_color(stamp, _read_rgb(folder / rgb_rows[colour_index][1][0], (w, h)), topics.color)
-                color_count += 1
-            writer.write_depth(stamp, depth, topics.depth)
-            depth_count += 1
-            previous = stamp
-            if on_frame is not None:
-                on_frame(index)
-    return ImportCounts(depth_count, color_count, pose_count, skipped)
+    out_of_order = 0
+    for (stamp_s, fields), colour_index in zip(depth_rows, colour_match, strict=True):
+        stamp = _stamp_ns(stamp_s)
+        if previous is not None and stamp <= previous:
+            if skipped is not None:
+                skipped["depth"] += 1
+            out_of_order += 1
+            if out_of_order == 1:
+                log.warning("depth frame %s at %.6f s is not after the previous one; skipped (further ones are "
+                            "counted)", fields[0], stamp_s)  # fmt: skip
+            continue
+        depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
+        h, w = depth.shape
+        if camera is None:
+            camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy)
+        pose = None
+        if truth is not None:
+            nearest = _nearest_pose(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
+            if nearest is not None:
+                pose = Pose(stamp, nearest.position, nearest.quat_xyzw)
+        colour = None
+        if colour_index is not None:
+            colour = _read_rgb(folder / rgb_rows[colour_index][1][0], (w, h))
+        previous = stamp
+        yield RgbdFrame(stamp, depth, camera, colour, pose)
 
 
 _SEVEN_SCENES_FRAME = re.compile(r"frame-(\d+)\.depth\.png$")
+
+
+def seven_scenes_frames(
+    folder: str | os.PathLike[str], *, rate: float = SEVEN_SCENES_RATE, first: int = 0, count: int | None = None
+) -> Iterator[RgbdFrame]:
+    """The frames of a 7-Scenes sequence folder (frame ``i`` stamped ``i / rate`` s).
+
+    ``first`` and ``count`` select a range of frames (by position in the sorted frame list).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such folder")
+    frames = sorted(
+        (int(m.group(1)), p) for p in folder.iterdir() if (m := _SEVEN_SCENES_FRAME.search(p.name)) is not None
+    )
+    frames = frames[first : None if count is None else first + count]
+    if not frames:
+        raise InputError(f"{folder}: no frame-NNNNNN.depth.png files", "give a 7-Scenes sequence folder (seq-NN)")
+    intrinsics = SEVEN_SCENES_INTRINSICS
+    if (folder / "camera-intrinsics.txt").is_file():
+        K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
+        intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    camera = None
+    invalid_poses = 0
+    for number, depth_path in frames:
+        stamp = _stamp_ns(number / rate)
+        depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
+        h, w = depth.shape
+        if camera is None:
+            camera = Intrinsics(w, h, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+        stem = depth_path.name[: -len(".depth.png")]
+        pose = None
+        pose_path = folder / f"{stem}.pose.txt"
+        if pose_path.is_file():
+            T = np.loadtxt(pose_path).reshape(4, 4)
+            if np.all(np.isfinite(T)) and abs(T[3, 3]) > 0:
+                pose = Pose.from_matrix(stamp, T)
+            else:
+                invalid_poses += 1
+                if invalid_poses == 1:
+                    log.warning("%s holds an invalid pose; no ground truth for that frame (further ones are "
+                                "counted)", pose_path.name)  # fmt: skip
+        color_path = folder / f"{stem}.color.jpg"
+        if not color_path.is_file():
+            color_path = folder / f"{stem}.color.png"
+        colour = _read_rgb(color_path, (w, h)) if color_path.is_file() else None
+        yield RgbdFrame(stamp, depth, camera, colour, pose)
+    if invalid_poses > 1:
+        log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
+
+
+def write_rgbd_log(
+    frames: Iterable[RgbdFrame],
+    output: str | os.PathLike[str],
+    *,
+    metadata: dict[str, dict[str, str]],
+    compression: str = "zstd",
+    topics: Topics | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> ImportCounts:
+    """Write ``frames`` as an RGB-D relpoint log (camera info once, then pose, colour and depth per frame)."""
+    topics = topics or Topics()
+    depth_count = color_count = pose_count = 0
+    with LogWriter(output, compression=compression, metadata=metadata) as writer:
+        for index, frame in enumerate(frames):
+            if depth_count == 0:
+                writer.write_camera_info(frame.stamp_ns, frame.intrinsics, topics.camera_info)
+            if frame.pose is not None:
+                writer.write_ground_truth_pose(frame.pose, topics.ground_truth_pose)
+                pose_count += 1
+            if frame.color is not None:
+                writer.write_color(frame.stamp_ns, frame.color, topics.color)
+                color_count += 1
+            writer.write_depth(frame.stamp_ns, frame.depth, topics.depth)
+            depth_count += 1
+            if on_frame is not None:
+                on_frame(index)
+    return ImportCounts(depth_count, color_count, pose_count)
+
+
+def import_tum(
+    folder: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    *,
+    intrinsics: Intrinsics | None = None,
+    tolerance: float = 0.02,
+    compression: str = "zstd",
+    topics: Topics | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> ImportCounts:
+    """Convert a TUM RGB-D folder to a relpoint log (see :func:`tum_frames` for the parameters)."""
+    skipped: Counter[str] = Counter()
+    frames = tum_frames(folder, intrinsics=intrinsics, tolerance=tolerance, skipped=skipped)
+    metadata = {"relpoint.import": metadata_json({"layout": "tum", "source": Path(folder).name, "tolerance": tolerance})}
+    counts = write_rgbd_log(frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame)
+    return dataclasses.replace(counts, skipped_depth=skipped["depth"])
 
 
 def import_7scenes(
@@ -223,56 +329,7 @@ def import_7scenes(
     topics: Topics | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> ImportCounts:
-    """Convert a 7-Scenes sequence folder to a relpoint log (frame ``i`` stamped ``i / rate`` s).
-
-    ``first`` and ``count`` select a range of frames (by position in the sorted frame list).
-    """
-    folder = Path(folder)
-    topics = topics or Topics()
-    if not folder.is_dir():
-        raise InputError(f"{folder}: no such folder")
-    frames = sorted(
-        (int(m.group(1)), p) for p in folder.iterdir() if (m := _SEVEN_SCENES_FRAME.search(p.name)) is not None
-    )
-    frames = frames[first : None if count is None else first + count]
-    if not frames:
-        raise InputError(f"{folder}: no frame-NNNNNN.depth.png files", "give a 7-Scenes sequence folder (seq-NN)")
-    intrinsics = SEVEN_SCENES_INTRINSICS
-    if (folder / "camera-intrinsics.txt").is_file():
-        K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
-        intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    depth_count = color_count = pose_count = invalid_poses = 0
-    metadata = {"relpoint.import": metadata_json({"layout": "7scenes", "source": folder.name, "rate": rate})}
-    with LogWriter(output, compression=compression, metadata=metadata) as writer:
-        for position, (number, depth_path) in enumerate(frames):
-            stamp = _stamp_ns(number / rate)
-            depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
-            h, w = depth.shape
-            if depth_count == 0:
-                k = Intrinsics(w, h, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-                writer.write_camera_info(stamp, k, topics.camera_info)
-            stem = depth_path.name[: -len(".depth.png")]
-            pose_path = folder / f"{stem}.pose.txt"
-            if pose_path.is_file():
-                T = np.loadtxt(pose_path).reshape(4, 4)
-                if np.all(np.isfinite(T)) and abs(T[3, 3]) > 0:
-                    writer.write_ground_truth_pose(Pose.from_matrix(stamp, T), topics.ground_truth_pose)
-                    pose_count += 1
-                else:
-                    invalid_poses += 1
-                    if invalid_poses == 1:
-                        log.warning("%s holds an invalid pose; no ground truth for that frame (further ones are "
-                                    "counted)", pose_path.name)  # fmt: skip
-            color_path = folder / f"{stem}.color.jpg"
-            if not color_path.is_file():
-                color_path = folder / f"{stem}.color.png"
-            if color_path.is_file():
-                writer.write_color(stamp, _read_rgb(color_path, (w, h)), topics.color)
-                color_count += 1
-            writer.write_depth(stamp, depth, topics.depth)
-            depth_count += 1
-            if on_frame is not None:
-                on_frame(position)
-    if invalid_poses > 1:
-        log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
-    return ImportCounts(depth_count, color_count, pose_count)
+    """Convert a 7-Scenes sequence folder to a relpoint log (see :func:`seven_scenes_frames`)."""
+    frames = seven_scenes_frames(folder, rate=rate, first=first, count=count)
+    metadata = {"relpoint.import": metadata_json({"layout": "7scenes", "source": Path(folder).name, "rate": rate})}
+    return write_rgbd_log(frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_tum, write_tum
 from relpoint.errors import InputError, UsageError
-from relpoint.estimators import ESTIMATORS
+from relpoint.estimators import ESTIMATORS, SIMULATOR_SIGMA
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import run_segmented
 from relpoint.pipeline import RunResult
@@ -185,6 +186,22 @@ def _read_run(run_dir: Path, *, need_outputs: bool) -> dict[str, Any]:
     return document if isinstance(document, dict) else {}
 
 
+def _with_noise_of(previous: dict[str, Any], parameters: dict[str, Any], config_class: type) -> dict[str, Any]:
+    """``parameters`` with the observation noise the previous run used, when it estimated it.
+
+    Every restarted local SLAM must use one noise, known from its first step: one that estimates it
+    would hold its first observations back and break the segmentation. A run.json from before the
+    noise was estimated used the simulator's 0.3 m.
+    """
+    if "observation_sigma" not in {f.name for f in dataclasses.fields(config_class)}:
+        return parameters
+    if parameters.get("observation_sigma") is not None:
+        return parameters
+    sigma = (previous.get("summary") or {}).get("observation_sigma")
+    valid = isinstance(sigma, int | float) and not isinstance(sigma, bool) and 0 < sigma < math.inf
+    return {**parameters, "observation_sigma": float(sigma) if valid else SIMULATOR_SIGMA}
+
+
 def _restarted(
     previous: dict[str, Any], reader: LogReader, config: FusionConfig
 ) -> tuple[FusionResult, np.ndarray, np.ndarray, np.ndarray, list[str]]:
@@ -195,8 +212,9 @@ def _restarted(
                          f"known estimators: {', '.join(sorted(ESTIMATORS))}")  # fmt: skip
     spec = ESTIMATORS[name]
     parameters = previous.get("parameters") or {}
+    parameters = _with_noise_of(previous, parameters if isinstance(parameters, dict) else {}, spec.config_class)
     try:
-        estimator_config = spec.build_config(parameters if isinstance(parameters, dict) else {})
+        estimator_config = spec.build_config(parameters)
     except UsageError as error:
         raise InputError(f"run.json parameters do not fit {name}: {error}") from None
     seed = int(previous.get("seed", 0))

@@ -1,4 +1,5 @@
-"""``relpoint import``: RGB-D dataset folders (TUM RGB-D, 7-Scenes) to relpoint logs."""
+"""``relpoint import``: RGB-D dataset folders (TUM RGB-D, 7-Scenes) to relpoint logs, and RGB-D
+sequences (those folders or an RGB-D log) to point logs of tracked corners (``--points``)."""
 
 from __future__ import annotations
 
@@ -6,18 +7,21 @@ from pathlib import Path
 
 import click
 
-from formats.log import COMPRESSIONS
+from formats.log import COMPRESSIONS, Topics
 from relpoint.errors import InputError, UsageError
 from relpoint.types import Intrinsics
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
+from relpoint_cli.topics import topic_options, topics_from
 
 EXAMPLES = """\b
 Examples:
   relpoint import tum rgbd_dataset_freiburg1_xyz -o fr1_xyz.mcap
   relpoint import tum fr3_office -o office.mcap --intrinsics 535.4,539.2,320.1,247.6
   relpoint import 7scenes redkitchen/seq-01 -o kitchen.mcap --count 400
+  relpoint import 7scenes redkitchen/seq-01 -o kitchen_points.mcap --points
+  relpoint import log kitchen.mcap -o kitchen_points.mcap --points --param max_corners=500
 """
 
 
@@ -33,8 +37,8 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 
 
 @click.command("import", epilog=EXAMPLES)
-@click.argument("layout", type=click.Choice(["tum", "7scenes"]))
-@click.argument("folder", type=click.Path(path_type=Path))
+@click.argument("layout", type=click.Choice(["tum", "7scenes", "log"]))
+@click.argument("source", type=click.Path(path_type=Path))
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap log to write."
 )
@@ -45,29 +49,55 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 @click.option("--rate", type=float, default=30.0, show_default=True, help="7-Scenes: frames per second.")
 @click.option("--first", type=int, default=0, show_default=True, help="7-Scenes: first frame to import.")
 @click.option("--count", type=int, help="7-Scenes: number of frames (default: all).")
+@click.option(
+    "--points", is_flag=True,
+    help="Write tracked corners as /points (with the ground truth) instead of the images: a log for relpoint, ekf "
+    "and fastslam. See docs/keypoints.md.",
+)  # fmt: skip
+@click.option(
+    "--param", "params", multiple=True, metavar="KEY=VALUE",
+    help="With --points: a keypoint setting (max_corners, min_distance, forward_backward_px, depth_jump, ...); repeatable.",
+)  # fmt: skip
 @click.option("--compression", type=click.Choice(sorted(COMPRESSIONS)), default="zstd", show_default=True)
+@topic_options
 @overwrite_option
 @click.pass_context
 @handle_errors
 def import_command(
-    ctx: click.Context, layout: str, folder: Path, output: Path, intrinsics: str | None, tolerance: float,
-    rate: float, first: int, count: int | None, compression: str, overwrite: bool,
+    ctx: click.Context, layout: str, source: Path, output: Path, intrinsics: str | None, tolerance: float,
+    rate: float, first: int, count: int | None, points: bool, params: tuple[str, ...], compression: str,
+    overwrite: bool, **topic_params: str,
 ) -> None:  # fmt: skip
-    """Convert an RGB-D dataset FOLDER in LAYOUT (tum or 7scenes) to a relpoint log.
+    """Convert an RGB-D SOURCE in LAYOUT to a relpoint log.
 
+    LAYOUT is tum or 7scenes (SOURCE a dataset folder), or log (SOURCE an RGB-D relpoint log; needs
+    --points). With --points the log holds tracked corners in the camera frame with persistent track
+    ids, and the ground-truth poses; without it, depth and colour images for the dense estimator.
     The log is written atomically; an existing OUTPUT is replaced only when relpoint wrote it (or with
-    --overwrite), and never when it is one of the folder's files.
+    --overwrite), and never when it is one of SOURCE's files.
     """
     from formats.outputs import check_output_file
     from formats.rgbd_import import import_7scenes, import_tum
 
-    if not folder.is_dir():
-        problem = "not a folder" if folder.exists() else "no such folder"
-        raise InputError(f"{folder}: {problem}", f"give the {layout} dataset's folder")
-    # The folder's files and those of its image folders (TUM keeps depth/ and rgb/ beside its lists).
-    image_folders = [path for path in folder.iterdir() if path.is_dir()]
-    check_output_file(output, inputs=read_paths(folder, *image_folders), overwrite=overwrite)
+    if layout != "log":
+        if not source.is_dir():
+            problem = "not a folder" if source.exists() else "no such folder"
+            raise InputError(f"{source}: {problem}", f"give the {layout} dataset's folder")
+        # The folder's files and those of its image folders (TUM keeps depth/ and rgb/ beside its lists).
+        image_folders = [path for path in source.iterdir() if path.is_dir()]
+        check_output_file(output, inputs=read_paths(source, *image_folders), overwrite=overwrite)
+    else:
+        check_output_file(output, inputs=read_paths(source), overwrite=overwrite)
 
+    if layout == "log" and not points:
+        raise UsageError("an RGB-D log is already a relpoint log", "add --points to track its corners into /points")
+    if params and not points:
+        raise UsageError("--param sets keypoint settings and needs --points")
+    if points:
+        _import_points(ctx, layout, source, output, intrinsics, tolerance, rate, first, count, params, compression,
+                       topics_from(topic_params))  # fmt: skip
+        return
+    folder = source
     with progress_bar(None, f"import {layout}", unit="frame") as bar:
         if layout == "tum":
             counts = import_tum(
@@ -83,5 +113,36 @@ def import_command(
         click.echo(
             f"wrote {output}: {counts.depth} depth frames, {counts.color} colour images, "
             f"{counts.ground_truth_pose} ground-truth poses, {counts.skipped_depth} depth images skipped",
+            err=True,
+        )
+
+
+def _import_points(
+    ctx: click.Context, layout: str, source: Path, output: Path, intrinsics: str | None, tolerance: float,
+    rate: float, first: int, count: int | None, params: tuple[str, ...], compression: str, topics: Topics,
+) -> None:  # fmt: skip
+    from formats.keypoint_import import log_frames, write_keypoint_log
+    from formats.rgbd_import import seven_scenes_frames, tum_frames
+    from relpoint.frontend import KeypointSettings
+
+    settings = KeypointSettings.from_strings(params)
+    if layout == "tum":
+        frames = tum_frames(source, intrinsics=parse_intrinsics(intrinsics), tolerance=tolerance)
+    elif layout == "7scenes":
+        frames = seven_scenes_frames(source, rate=rate, first=first, count=count)
+    else:
+        frames = log_frames(source, topics)
+    with progress_bar(None, f"import {layout} --points", unit="frame") as bar:
+        counts = write_keypoint_log(
+            frames, output, settings=settings, source={"layout": layout, "source": source.name},
+            compression=compression, topics=topics, on_frame=lambda _: bar.update(1),
+        )  # fmt: skip
+    if not ctx.find_root().obj.get("quiet"):
+        per_frame = counts.points / max(counts.observations, 1)
+        click.echo(
+            f"wrote {output}: {counts.observations} point observations from {counts.frames} frames "
+            f"({per_frame:.0f} points per frame, {counts.tracks} tracks), {counts.ground_truth_pose} ground-truth "
+            f"poses, {counts.frames_without_colour} frames without colour, "
+            f"{counts.frames_without_points} without a point of valid depth",
             err=True,
         )

@@ -274,6 +274,11 @@ def config_command(estimator_name: str) -> None:
         raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {', '.join(sorted(ESTIMATORS))}")
     spec = ESTIMATORS[estimator_name]
     click.echo(f"[{spec.name}]  # {spec.description}")
+    key_settings = getattr(spec.config_class, "key_settings", {})
+    if key_settings:
+        click.echo("# The settings that matter (the others rarely need changing):")
+        for name, why in key_settings.items():
+            click.echo(f"#   {name}: {why}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
         help_text = f.metadata.get("help", "") or (

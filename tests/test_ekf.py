@@ -16,6 +16,7 @@ from relpoint.estimators._association import (
     so3_exp,
     twist_step,
 )
+from relpoint.estimators.base import Estimator
 from relpoint.estimators.ekf import SPEC, EkfConfig, EkfSlam
 from relpoint.geometry import invert_pose, transform_points
 from relpoint.simulation import SimulationConfig, simulate
@@ -75,8 +76,10 @@ def test_config_from_mapping_rejects_unknown_keys_and_round_trips() -> None:
 
 
 def test_spec_builds_an_ekf() -> None:
-    ekf = SPEC.factory(EkfConfig(), np.random.default_rng(0))
+    ekf = SPEC.factory(EkfConfig(observation_sigma=0.3), np.random.default_rng(0))
     assert isinstance(ekf, EkfSlam)
+    estimated = SPEC.factory(EkfConfig(), np.random.default_rng(0))  # builds its EKF once it knows the noise
+    assert isinstance(estimated, Estimator) and estimated.name == "ekf"
     assert SPEC.name == "ekf" and SPEC.needs == frozenset({"points"}) and SPEC.uses == frozenset({"odometry", "fix"})
 
 

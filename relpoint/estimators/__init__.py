@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 
 #: Every estimator ``relpoint run --estimator NAME`` can build, by name.
@@ -14,7 +15,9 @@ def register(spec: EstimatorSpec) -> EstimatorSpec:
     return spec
 
 
-__all__ = ["DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "Estimator", "EstimatorSpec", "register"]
+__all__ = [
+    "DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "SIMULATOR_SIGMA", "Estimator", "EstimatorSpec", "register",
+]  # fmt: skip
 
 
 def _register_builtin() -> None:

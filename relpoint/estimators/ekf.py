@@ -25,6 +25,7 @@ Cost
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 from dataclasses import dataclass
@@ -46,6 +47,7 @@ from relpoint.estimators._association import (
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
+from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
@@ -64,6 +66,17 @@ class EkfConfig(Settings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "ekf"
+    #: What ``relpoint config`` says about the settings that matter.
+    key_settings: ClassVar[dict[str, str]] = {
+        "observation_sigma": "per-axis point noise (m); sets the measurement covariance and so both gates. "
+        "Unset, it is estimated from the first observations (0.3 m on the simulator, about 1 cm for a depth "
+        "camera at 2 m); set it when the estimate is off (relpoint run prints it in run.json).",
+        "gate_probability, new_landmark_probability": "chi-square gates, relative to the covariance: they "
+        "hold at any scale once observation_sigma is right.",
+        "motion, linear_acceleration_noise, angular_acceleration_noise": "how far the pose may move between "
+        "observations without odometry (m/s^2, rad/s^2): the defaults suit a vehicle; a hand-held camera "
+        "wants less linear and more angular acceleration.",
+    }
     limits: ClassVar[dict[str, tuple[float, float]]] = {
         "observation_sigma": (1e-6, 1e3), "gate_probability": (0.0, 1.0), "new_landmark_probability": (0.0, 1.0),
         "position_noise": (0.0, 1e3), "quaternion_noise": (0.0, 1.0),
@@ -79,8 +92,12 @@ class EkfConfig(Settings):
     motion: str = "constant_velocity"
     """Process model between observations when no odometry is held: ``constant_velocity`` (twist in
     the state, driven by white acceleration noise) or ``constant_position`` (MRPT's default)."""
-    observation_sigma: float = 0.3
-    """Standard deviation of a point measurement, per axis (m)."""
+    observation_sigma: float | None = None
+    """Standard deviation of a point measurement, per axis (m). Unset (the default): ``relpoint run``
+    estimates it from the first observations of the log (:mod:`relpoint.estimators._noise`), so the
+    same defaults hold for a depth camera at 2 m (about 0.01 m) and the simulator at 70 m (0.3 m); an
+    ``EkfSlam`` built directly, without ``SPEC.factory``, takes the simulator's 0.3 m. It sets the
+    measurement covariance and, through it, the size of both gates below: the setting that matters."""
     gate_probability: float = 0.99
     """Chi-square probability of the Mahalanobis validation gate (eq. 14-16)."""
     new_landmark_probability: float = 0.9999
@@ -146,7 +163,9 @@ class EkfConfig(Settings):
             )
         if self.motion not in MOTION_MODELS:
             raise UsageError(f"unknown motion model {self.motion!r}", f"choose one of {', '.join(MOTION_MODELS)}")
-        positive = {"observation_sigma": self.observation_sigma, "fix_min_spread": self.fix_min_spread}
+        positive = {"fix_min_spread": self.fix_min_spread}
+        if self.observation_sigma is not None:
+            positive["observation_sigma"] = self.observation_sigma
         non_negative = {
             "position_noise": self.position_noise, "quaternion_noise": self.quaternion_noise,
             "linear_acceleration_noise": self.linear_acceleration_noise,
@@ -197,7 +216,8 @@ class EkfSlam(Estimator):
         self._gaps = GapBridge()
         cv = self.config.motion == "constant_velocity"
         self._nv = 12 if cv else 6
-        self._R_obs = np.eye(3) * self.config.observation_sigma**2
+        sigma = self.config.observation_sigma if self.config.observation_sigma is not None else SIMULATOR_SIGMA
+        self._R_obs = np.eye(3) * sigma**2
         self._gate = chi2_gate(self.config.gate_probability, 3)
         self._new_gate = chi2_gate(self.config.new_landmark_probability, 3)
         self._position = np.zeros(3)
@@ -220,7 +240,7 @@ class EkfSlam(Estimator):
             self._frame = FixFrame(min_spread=self.config.fix_min_spread)
         self._frame_fit: FrameFit | None = None
         self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
-        radius = self.config.mover_radius_sigmas * self.config.observation_sigma
+        radius = self.config.mover_radius_sigmas * sigma
         self._movers = MoverTracks(radius) if radius > 0 else None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
         self._position_at_fix: FloatArray | None = None
@@ -679,9 +699,13 @@ class EkfSlam(Estimator):
                 self._known[int(ids[i])] = first_new + offset
 
 
-def _build(config: EkfConfig, rng: np.random.Generator) -> EkfSlam:
+def _build(config: EkfConfig, rng: np.random.Generator) -> Estimator:
     del rng  # the EKF draws no random numbers
-    return EkfSlam(config)
+    if config.observation_sigma is not None:
+        return EkfSlam(config)
+    return NoiseAdaptive(
+        lambda sigma: EkfSlam(dataclasses.replace(config, observation_sigma=sigma)), SIMULATOR_SIGMA, "ekf"
+    )
 
 
 SPEC = EstimatorSpec(

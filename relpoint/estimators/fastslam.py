@@ -32,6 +32,7 @@ Layout
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import Counter
@@ -46,6 +47,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 from relpoint.geometry import FloatArray
@@ -74,11 +76,25 @@ _PARTICLE_ARRAYS = (
 )
 
 
+#: The default search radius in units of the observation noise (5 m at the simulator's 0.3 m).
+SEARCH_RADIUS_SIGMAS = 5.0 / SIMULATOR_SIGMA
+
+
 @dataclass(frozen=True)
 class FastSlamConfig(Settings):
     """Settings of the FastSLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "fastslam"
+    #: What ``relpoint config`` says about the settings that matter.
+    key_settings: ClassVar[dict[str, str]] = {
+        "observation_sigma": "per-axis point noise (m); sets the landmark filters and the new-landmark "
+        "likelihood. Unset, it is estimated from the first observations.",
+        "search_radius": "landmarks considered for a point (m); unset, 16.7 x observation_sigma (5 m at 0.3 m). "
+        "Cost grows with the landmarks inside it.",
+        "particles": "accuracy against time: the cost is linear in the particles.",
+        "linear_acceleration_noise, angular_acceleration_noise": "the proposal's motion spread between "
+        "observations (m/s^2, rad/s^2).",
+    }
     limits: ClassVar[dict[str, tuple[float, float]]] = {
         "particles": (1, 10_000), "new_landmark_probability": (0.0, 1.0), "start_landmark_probability": (0.0, 1.0),
         "observation_sigma": (1e-6, 1e3), "linear_acceleration_noise": (0.0, 1e4),
@@ -92,8 +108,11 @@ class FastSlamConfig(Settings):
     """``2.0`` (proposal includes the points) or ``1.0`` (proposal is the motion model)."""
     particles: int = 50
     """Number of particles."""
-    observation_sigma: float = 0.3
-    """Standard deviation of a point measurement, per axis (m)."""
+    observation_sigma: float | None = None
+    """Standard deviation of a point measurement, per axis (m). Unset (the default): ``relpoint run``
+    estimates it from the first observations of the log (:mod:`relpoint.estimators._noise`); a
+    ``FastSlam`` built directly, without ``SPEC.factory``, takes the simulator's 0.3 m. It sets the
+    measurement covariance, the new-landmark likelihood and (unset) ``search_radius``."""
     new_landmark_probability: float = 0.9999
     """Sets the new-landmark likelihood: the density of a point at this chi-square quantile of a
     fresh landmark's innovation. A point starts a landmark in a particle when no landmark there
@@ -115,8 +134,10 @@ class FastSlamConfig(Settings):
     keeps the proposal full rank when odometry is perfect."""
     resample_threshold: float = 0.5
     """Resample when the effective sample size falls below this fraction of the particles."""
-    search_radius: float = 5.0
-    """Landmarks farther than this from a point (in every particle) are not considered for it (m)."""
+    search_radius: float | None = None
+    """Landmarks farther than this from a point (in every particle) are not considered for it (m).
+    Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
+    the simulator's 0.3 m and 0.25 m for a depth camera's 1.5 cm."""
     fix_alignment: str = "rigid"
     """How position fixes (``/fix``) enter: ``rigid`` runs in the local frame until at least three
     non-collinear fixes pin it, fits the rigid transform local -> fix frame to the mean local
@@ -147,10 +168,10 @@ class FastSlamConfig(Settings):
             raise UsageError(f"unknown FastSLAM variant {self.variant!r}", f"choose one of {', '.join(VARIANTS)}")
         if not (isinstance(self.particles, int) and self.particles >= 1):
             raise UsageError(f"particles must be a positive integer, got {self.particles!r}")
-        positive = {
-            "observation_sigma": self.observation_sigma, "search_radius": self.search_radius,
-            "fix_min_spread": self.fix_min_spread,
-        }  # fmt: skip
+        positive = {"fix_min_spread": self.fix_min_spread}
+        for name in ("observation_sigma", "search_radius"):
+            if getattr(self, name) is not None:
+                positive[name] = getattr(self, name)
         non_negative = {
             "linear_acceleration_noise": self.linear_acceleration_noise,
             "angular_acceleration_noise": self.angular_acceleration_noise,
@@ -214,7 +235,9 @@ class FastSlam(Estimator):
         self._rng = rng
         self._gaps = GapBridge()
         n = cfg.particles
-        self._Q = np.eye(3) * cfg.observation_sigma**2
+        sigma = cfg.observation_sigma if cfg.observation_sigma is not None else SIMULATOR_SIGMA
+        self._search_radius = cfg.search_radius if cfg.search_radius is not None else SEARCH_RADIUS_SIGMAS * sigma
+        self._Q = np.eye(3) * sigma**2
         # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.
         gate = chi2_gate(cfg.new_landmark_probability, 3)
         log_norm = 0.5 * (3 * _LOG_2PI + math.log(np.linalg.det(2.0 * self._Q)))
@@ -494,7 +517,7 @@ class FastSlam(Estimator):
         predicted = np.einsum("pji,pmj->pmi", self.rotations, self.means[:, :cap] - self.positions[:, None, :])
         valid = np.arange(cap)[None, :] < self.counts[:, None]
         near = np.zeros((len(points), cap), dtype=bool)
-        r2 = self.config.search_radius**2
+        r2 = self._search_radius**2
         for i, z in enumerate(points):
             close = np.sum((predicted - z) ** 2, axis=2) < r2
             near[i] = (close & valid).any(axis=0)
@@ -631,8 +654,12 @@ class FastSlam(Estimator):
         self._stats["resamples"] += 1
 
 
-def _build(config: FastSlamConfig, rng: np.random.Generator) -> FastSlam:
-    return FastSlam(config, rng)
+def _build(config: FastSlamConfig, rng: np.random.Generator) -> Estimator:
+    if config.observation_sigma is not None:
+        return FastSlam(config, rng)
+    return NoiseAdaptive(
+        lambda sigma: FastSlam(dataclasses.replace(config, observation_sigma=sigma), rng), SIMULATOR_SIGMA, "fastslam"
+    )
 
 
 SPEC = EstimatorSpec(

@@ -65,6 +65,7 @@ Choices the paper leaves open, and where this implementation adds to it:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -76,6 +77,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
+from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import adjust_network
@@ -113,20 +115,48 @@ logger = logging.getLogger(__name__)
 #: by its pose, against their points) this much farther from their points than the incremental map.
 ADJUSTMENT_TOLERANCE = 0.05
 
+#: Distance settings that scale with the observation noise: their defaults are for the simulator's
+#: 0.3 m and ``relpoint run`` multiplies them by ``observation_sigma / 0.3`` (see ``observation_sigma``).
+NOISE_SCALED = (
+    "match_bound", "global_match_bound", "merge_bound", "trim_floor", "consensus_bound", "spread_floor",
+    "adjustment_robust", "loop_search", "min_basis_spread", "collinear_tolerance",
+)  # fmt: skip
+
 
 @dataclass(frozen=True)
 class RelativePointConfig(Settings):
     """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
 
     settings_name: ClassVar[str] = "relpoint"
+    #: What ``relpoint config`` says about the settings that matter.
+    key_settings: ClassVar[dict[str, str]] = {
+        "observation_sigma": "per-axis point noise (m). Every distance bound (match_bound, global_match_bound, "
+        "merge_bound, trim_floor, consensus_bound, spread_floor, adjustment_robust, loop_search, "
+        "min_basis_spread, collinear_tolerance) is written for the simulator's 0.3 m and scaled by "
+        "observation_sigma / 0.3. Unset, it is estimated from the first observations; 0.3 keeps the bounds as "
+        "written.",
+        "match_bound": "local matching: must exceed the noise plus the error of the motion prediction.",
+        "min_basis_spread, collinear_tolerance": "how spread a group's basis must be: a fit's rotation error is "
+        "about the noise over this distance. Too large for the scene and no group forms.",
+        "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view.",
+    }
     limits: ClassVar[dict[str, tuple[float, float]]] = {
         "ring_size": (1, 65_536), "match_window": (1, 1_000), "dynamic_window": (1, 10_000),
         "dynamic_references": (1, 1_000), "max_groups_per_point": (1, 1_000), "relocate_points": (3, 10_000),
         "adjustment_members": (3, 10_000), "adjustment_iterations": (1, 1_000), "seed_points": (1, 10_000),
         "trim_rounds": (1, 100), "loop_support": (3, 10_000), "unverified_weight": (0.0, 1.0),
-        "dynamic_spread_verify": (0.0, 1.0),
+        "dynamic_spread_verify": (0.0, 1.0), "observation_sigma": (1e-6, 1e3),
     }  # fmt: skip
 
+    observation_sigma: float | None = None
+    """Per-axis noise of a point (m). The distances in ``NOISE_SCALED`` (``match_bound``,
+    ``global_match_bound``, ``merge_bound``, ``trim_floor``, ``consensus_bound``, ``spread_floor``,
+    ``adjustment_robust``, ``loop_search``, and the basis geometry ``min_basis_spread`` and
+    ``collinear_tolerance``, which bound a fit's rotation error at about the noise over them) are given for the simulator's 0.3 m and ``relpoint run``
+    scales them by ``observation_sigma / 0.3``, so one set of defaults holds from a depth camera at 2 m
+    to a sensor at 70 m. Unset (the default): estimated from the first observations of the log
+    (:mod:`relpoint.estimators._noise`); ``0.3`` keeps every bound as written. A
+    ``RelativePointEstimator`` built directly, without ``SPEC.factory``, takes the bounds as written."""
     ring_size: int = 128
     """Untransformed observations each point keeps (*RltPoint* circular array); bounds regrouping intervals."""
     match_window: int = 3
@@ -264,7 +294,17 @@ class RelativePointConfig(Settings):
     """In an iteration with fewer than three usable mapped points, move the pose by the motion of
     this iteration's locally matched raw points when they give one; False holds the pose."""
 
+    def at_noise(self, sigma: float) -> RelativePointConfig:
+        """These settings with ``observation_sigma = sigma`` (m) and the ``NOISE_SCALED`` bounds scaled to it."""
+        factor = sigma / SIMULATOR_SIGMA
+        scaled = {name: getattr(self, name) * factor for name in NOISE_SCALED}
+        return dataclasses.replace(self, observation_sigma=sigma, **scaled)
+
     def __post_init__(self) -> None:
+        if self.observation_sigma is not None and not (
+            isinstance(self.observation_sigma, int | float) and 0 < self.observation_sigma < math.inf
+        ):
+            raise UsageError(f"observation_sigma must be a positive number, got {self.observation_sigma!r}")
         positive_int = {
             "ring_size": self.ring_size, "match_window": self.match_window,
             "max_creations_per_iteration": self.max_creations_per_iteration, "seed_points": self.seed_points,
@@ -1372,9 +1412,11 @@ def _finite_median(values: FloatArray) -> float:
     return _median(finite) if len(finite) else float("nan")
 
 
-def _build(config: RelativePointConfig, rng: np.random.Generator) -> RelativePointEstimator:
+def _build(config: RelativePointConfig, rng: np.random.Generator) -> Estimator:
     del rng  # the algorithm is deterministic
-    return RelativePointEstimator(config)
+    if config.observation_sigma is not None:
+        return RelativePointEstimator(config.at_noise(config.observation_sigma))
+    return NoiseAdaptive(lambda sigma: RelativePointEstimator(config.at_noise(sigma)), SIMULATOR_SIGMA, "relpoint")
 
 
 SPEC = EstimatorSpec(
