@@ -60,3 +60,11 @@ def run_accuracy(errors: list[float], landmarks: object, truth_positions: object
         "landmarks": len(landmarks),
         "distinct": len(set(landmarks.gt_id.tolist())),
     }
+
+
+def default_interrupts() -> None:
+    """``preexec_fn`` of a child that a test interrupts: SIGINT at its default, whatever the test runner
+    inherited (a shell starts background jobs with SIGINT ignored, and children keep ignored signals)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -30,6 +30,7 @@ from relpoint.simulation import SimulationConfig, simulate
 from relpoint_cli import batch_jobs
 from relpoint_cli.batch_jobs import SchedulerAddress, parse_scheduler
 from relpoint_cli.main import cli
+from tests.conftest import default_interrupts
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -265,7 +266,8 @@ def test_interrupt_cancels_running_jobs_and_a_rerun_completes_them(long_logs: Pa
     )
     results = tmp_path / "results"
     command = [sys.executable, "-m", "relpoint_cli.main", "batch", str(plan), "--jobs", "2", "--results", str(results)]
-    process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=default_interrupts)  # fmt: skip
     try:
         deadline = time.monotonic() + 120
         while not any(results.rglob(".*.partial")) and process.poll() is None and time.monotonic() < deadline:
@@ -318,7 +320,7 @@ def test_interrupt_cancels_running_dask_jobs(long_logs: Path, tmp_path: Path) ->
     ) as cluster:
         command = [sys.executable, "-m", "relpoint_cli.main", "batch", str(plan), "--scheduler",
                    cluster.scheduler_address, "--results", str(results)]  # fmt: skip
-        process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
+        process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True, preexec_fn=default_interrupts)
         try:
             deadline = time.monotonic() + 120
             while not any(results.rglob(".*.partial")) and process.poll() is None and time.monotonic() < deadline:
@@ -505,9 +507,13 @@ def test_executor_stop_ignores_a_second_interrupt(monkeypatch: pytest.MonkeyPatc
         def close(self) -> None:
             seen.append("close")
 
-    with pytest.raises(KeyboardInterrupt), Recording():
-        raise KeyboardInterrupt
-    with Recording():
-        pass
-    assert seen == [signal.SIG_IGN, "close"]
-    assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # whatever the test runner inherited
+    try:
+        with pytest.raises(KeyboardInterrupt), Recording():
+            raise KeyboardInterrupt
+        with Recording():
+            pass
+        assert seen == [signal.SIG_IGN, "close"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after the clean-up
+    finally:
+        signal.signal(signal.SIGINT, before)

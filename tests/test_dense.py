@@ -346,7 +346,7 @@ def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> 
     from formats.rgbd_log import write_rgbd_simulation
 
     counts = write_rgbd_simulation(room, tmp_path / "room.mcap")
-    assert counts == {"camera_info": 1, "depth": 2, "color": 2, "ground_truth_pose": 2}
+    assert counts == {"camera_info": 1, "depth": 2, "color": 2, "ground_truth_pose": 2, "tf": 2}
     records = list(LogReader(tmp_path / "room.mcap").records(["camera_info", "depth", "color", "ground_truth_pose"]))
     depth = [r.value for r in records if r.role == "depth"]
     truth = [r.value for r in records if r.role == "ground_truth_pose"]

@@ -27,6 +27,7 @@ from relpoint.estimators import ESTIMATORS
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation
 from relpoint_cli.main import cli
+from tests.conftest import default_interrupts
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -168,7 +169,7 @@ def test_interrupted_run_leaves_nothing_and_exits_130(signum: int, tmp_path: Pat
     out = tmp_path / "out"
     process = subprocess.Popen(
         [sys.executable, "-m", "relpoint_cli.main", "run", str(log), "--estimator", "ekf", "-o", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_interrupts,
     )  # fmt: skip
     time.sleep(4.0)
     assert process.poll() is None, "the run ended before it could be interrupted"
