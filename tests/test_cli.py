@@ -151,7 +151,7 @@ def test_estimator_names_complete_in_the_shell(tmp_path: Path) -> None:
 def test_config_describes_each_setting(runner: CliRunner) -> None:
     code, out, _ = invoke(runner, "config", "--estimator", "ekf")
     assert code == 0
-    line = next(text for text in out.splitlines() if text.startswith("observation_sigma ="))
+    line = next(text for text in out.splitlines() if text.lstrip("# ").startswith("observation_sigma ="))
     assert "Standard deviation of a point measurement, per axis (m)." in line and "[1e-06 .. 1000]" in line
-    settings = [text for text in out.splitlines()[1:] if "=" in text]
+    settings = [text for text in out.splitlines()[1:] if " = " in text]
     assert sum("  # " in text for text in settings) == len(settings)
