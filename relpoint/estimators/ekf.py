@@ -38,6 +38,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from scipy import linalg
+from scipy.linalg import blas
 
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators._association import (
@@ -530,8 +531,9 @@ class EkfSlam(Estimator):
         P_pm = P[:6, nv:].reshape(6, n, 3).transpose(1, 0, 2)  # (n, 6, 3)
         cols = self._landmark_columns(np.arange(n)).reshape(n, 3)
         P_mm = P[cols[:, :, None], cols[:, None, :]]  # (n, 3, 3)
-        HPH = np.einsum("nai,ij,nbj->nab", H_pose, P_pp, H_pose)
-        cross = np.einsum("nai,nij,bj->nab", H_pose, P_pm, Rt)
+        H_t = np.swapaxes(H_pose, 1, 2)
+        HPH = (H_pose.reshape(3 * n, 6) @ P_pp).reshape(n, 3, 6) @ H_t
+        cross = (H_pose @ P_pm) @ Rt.T
         S = HPH + cross + np.swapaxes(cross, 1, 2) + Rt @ P_mm @ Rt.T + self._R_obs
         return 0.5 * (S + np.swapaxes(S, 1, 2))
 
@@ -613,46 +615,56 @@ class EkfSlam(Estimator):
         """EKF update with points (m, 3) paired to landmarks ``indices`` (m,), as one batched measurement.
 
         ``H`` is non-zero only in the pose-error columns (``H_pose``, 3m x 6) and in landmark j's own
-        block (``R^T``), so ``P H^T = P[:, :6] H_pose^T + P[:, m_j] R`` per landmark: O(N m).
+        block (``R^T``), so, ``P`` being symmetric, ``H P = H_pose P[:6] + R^T P[m_j]`` per landmark
+        from whole rows of ``P``: O(N m).
         """
         m = len(indices)
         N = self._size
         P = self._P
+        Rt = self._rotation.T
         z_hat, H_pose = self._predict_measurements(self._landmarks[indices])
         H_pose = H_pose.reshape(3 * m, 6)
-        cols = self._landmark_columns(indices)
-        PHt = P[:, :6] @ H_pose.T  # (N, 3m)
-        PHt += (P[:, cols].reshape(N * m, 3) @ self._rotation).reshape(N, 3 * m)
-        # S = H (P H^T): the pose rows, then R^T on each landmark's own three rows.
-        S = H_pose @ PHt[:6]
-        S += np.einsum("ba,mbq->maq", self._rotation, PHt[cols].reshape(m, 3, 3 * m)).reshape(3 * m, 3 * m)
+        rows = self._landmark_columns(indices)
+        HP = np.matmul(Rt, P[rows].reshape(m, 3, N)).reshape(3 * m, N)
+        HP += H_pose @ P[:6]
+        # S = (H P) H^T: the pose columns, then R (= (R^T)^T) on each landmark's own three columns.
+        S = HP[:, :6] @ H_pose.T
+        S += (HP[:, rows].reshape(3 * m * m, 3) @ Rt.T).reshape(3 * m, 3 * m)
         blocks = S.reshape(m, 3, m, 3)
         blocks[np.arange(m), :, np.arange(m), :] += self._R_obs
-        self._apply_update(PHt, S, (points - z_hat).ravel())
+        self._apply_update(HP, S, (points - z_hat).ravel())
 
     def _kalman_update(self, cols: np.ndarray, H: FloatArray, innovation: FloatArray, R_meas: FloatArray) -> None:
         """Update with a measurement whose Jacobian ``H`` (q, len(cols)) is non-zero only in columns ``cols``."""
-        PHt = self._P[:, cols] @ H.T  # (N, q)
-        self._apply_update(PHt, H @ PHt[cols] + R_meas, innovation)
+        HP = H @ self._P[cols]  # (q, N); P is symmetric
+        self._apply_update(HP, HP[:, cols] @ H.T + R_meas, innovation)
 
-    def _apply_update(self, PHt: FloatArray, S: FloatArray, innovation: FloatArray) -> None:
-        """Kalman update from ``P H^T`` (N, q), the innovation covariance ``S`` (q, q) and the innovation (q,).
+    def _apply_update(self, HP: FloatArray, S: FloatArray, innovation: FloatArray) -> None:
+        """Kalman update from ``H P`` (q, N), the innovation covariance ``S`` (q, q) and the innovation (q,).
 
-        With ``S = L L^T`` and ``W = L^-1 (P H^T)^T`` (q, N): ``dx = W^T L^-1 nu`` and
-        ``P' = P - W^T W``, a symmetric rank-q update (BLAS ``syrk``: half the products of the
-        general form, and ``P'`` stays exactly symmetric).
+        With ``S = L L^T`` and ``W = L^-1 H P`` (q, N): ``dx = W^T L^-1 nu`` and ``P' = P - W^T W``,
+        a symmetric rank-q update (BLAS ``syrk``: half the products of the general form, and ``P'``
+        stays exactly symmetric).
         """
         S = 0.5 * (S + S.T)
         try:
             L = linalg.cholesky(S, lower=True, check_finite=False)
         except linalg.LinAlgError as error:
             raise np.linalg.LinAlgError("EKF innovation covariance is not positive definite") from error
-        W = linalg.solve_triangular(L, PHt.T, lower=True, check_finite=False)  # (q, N)
-        dx = W.T @ linalg.solve_triangular(L, innovation, lower=True, check_finite=False)
-        W = np.ascontiguousarray(W)
-        P = self._P
-        P -= W.T @ W  # numpy hands a product of an array with its own transpose to syrk
+        # W^T = (H P)^T L^-T, solved from the right in place on the (N, q) Fortran view of H P.
+        Wt = blas.dtrsm(1.0, L, HP.T, side=1, lower=1, trans_a=1, overwrite_b=1)
+        dx = Wt @ linalg.solve_triangular(L, innovation, lower=True, check_finite=False)
+        self._reduce_covariance(Wt)
         self._inject(dx)
+
+    def _reduce_covariance(self, Wt: FloatArray) -> None:
+        """``P -= W^T W`` for ``W^T`` (N, q): the O(N^2 q) heart of the update, one BLAS ``syrk``.
+
+        numpy hands the product of an array with its own transpose to ``syrk`` and mirrors the
+        triangle, so the result is exactly symmetric.
+        """
+        P = self._P
+        P -= Wt @ Wt.T
 
     def _inject(self, dx: FloatArray) -> None:
         """Move the nominal state by the error estimate ``dx`` and reset the rotation error to zero."""
