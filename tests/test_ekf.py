@@ -11,13 +11,14 @@ from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators._association import (
     chi2_gate,
     jcbb,
+    jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
     so3_exp,
     twist_step,
 )
 from relpoint.estimators.base import Estimator
-from relpoint.estimators.ekf import SPEC, EkfConfig, EkfSlam
+from relpoint.estimators.ekf import INITIAL_CAPACITY, SPEC, EkfConfig, EkfSlam
 from relpoint.geometry import invert_pose, transform_points
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation, PositionFix
@@ -58,6 +59,7 @@ def _run(config: EkfConfig, iterations: int, **sim_options: object) -> dict[str,
         {"gate_probability": 0.999, "new_landmark_probability": 0.99},
         {"linear_acceleration_noise": -1.0},
         {"jcbb_max_nodes": 0},
+        {"jcbb_max_seconds": -1.0},
         {"fix_alignment": "umeyama"},
         {"fix_drift": -0.1},
     ],
@@ -156,6 +158,68 @@ def test_single_landmark_update_matches_hand_derivation() -> None:
     assert ekf.landmark_map().observations.tolist() == [2]
 
 
+def _dense_update(ekf: EkfSlam, points: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The textbook update on the full state: dense H, gain, Joseph form, then the rotation-error reset.
+
+    Returns the error-state estimate dx (N,) and the covariance (N, N) after the reset.
+    """
+    P = ekf.covariance
+    N, m = len(P), len(indices)
+    R, p = ekf.pose().as_matrix()[:3, :3], ekf.pose().as_matrix()[:3, 3]
+    nv = N - 3 * ekf.map_size
+    landmarks = ekf.landmark_map().positions[indices]
+    z_hat = (landmarks - p) @ R
+    H = np.zeros((3 * m, N))
+    for row, (j, z) in enumerate(zip(indices, z_hat, strict=True)):
+        H[3 * row : 3 * row + 3, :3] = -R.T
+        H[3 * row : 3 * row + 3, 3:6] = np.cross(np.eye(3), z)  # [z]x
+        H[3 * row : 3 * row + 3, nv + 3 * j : nv + 3 * j + 3] = R.T
+    R_meas = ekf.config.observation_sigma**2 * np.eye(3 * m)
+    S = H @ P @ H.T + R_meas
+    K = P @ H.T @ np.linalg.inv(S)
+    dx = K @ (points - z_hat).ravel()
+    I_KH = np.eye(N) - K @ H
+    P_new = I_KH @ P @ I_KH.T + K @ R_meas @ K.T
+    reset = np.eye(N)
+    reset[3:6, 3:6] = np.eye(3) - 0.5 * np.cross(np.eye(3), dx[3:6])
+    return dx, reset @ P_new @ reset.T
+
+
+def test_batched_update_matches_dense_update_after_the_covariance_block_grew() -> None:
+    rng = np.random.default_rng(7)
+    world = rng.uniform([8.0, -20.0, -5.0], [40.0, 20.0, 5.0], size=(120, 3))
+    ekf = EkfSlam(EkfConfig(motion="constant_position", observation_sigma=0.3))
+    ekf.step(PointObservation(0, world))
+    ekf.step(PointObservation(DT_NS, world + rng.normal(0.0, 0.3, world.shape)))  # correlates pose and map
+    assert ekf.covariance.shape[0] > INITIAL_CAPACITY  # 6 + 360 states: the block has grown
+    assert ekf.summary()["paired"] == 120
+    ekf._predict_to(2 * DT_NS)
+    indices = rng.permutation(120)[:90]
+    position, R = ekf.pose().as_matrix()[:3, 3], ekf.pose().as_matrix()[:3, :3]
+    before = ekf.landmark_map().positions
+    points = (before[indices] - position) @ R + rng.normal(0.0, 0.3, (90, 3))
+    dx, expected_P = _dense_update(ekf, points, indices)
+
+    ekf._update_landmarks(points, indices)
+    np.testing.assert_allclose(ekf.pose().position, position + dx[:3], atol=1e-10)
+    np.testing.assert_allclose(ekf.landmark_map().positions, before + dx[6:].reshape(-1, 3), atol=1e-10)
+    np.testing.assert_allclose(ekf.covariance, expected_P, atol=1e-10)
+    assert np.array_equal(ekf.covariance, ekf.covariance.T)  # the symmetric rank update keeps P exactly symmetric
+
+
+def test_removing_landmarks_keeps_the_covariance_of_the_rest() -> None:
+    rng = np.random.default_rng(8)
+    world = rng.uniform([8.0, -20.0, -5.0], [40.0, 20.0, 5.0], size=(100, 3))
+    ekf = EkfSlam(EkfConfig(motion="constant_position", observation_sigma=0.3))
+    ekf.step(PointObservation(0, world))
+    ekf.step(PointObservation(DT_NS, world + rng.normal(0.0, 0.3, world.shape)))
+    before = ekf.covariance
+    ekf._remove_landmarks(np.arange(0, 100, 2))
+    keep = np.concatenate([np.arange(6), (6 + 3 * np.arange(1, 100, 2)[:, None] + np.arange(3)).ravel()])
+    np.testing.assert_array_equal(ekf.covariance, before[np.ix_(keep, keep)])
+    assert ekf.summary()["state_size"] == 6 + 150
+
+
 # ---------------------------------------------------------------------------------------- gating
 
 
@@ -212,6 +276,31 @@ def test_jcbb_drops_a_pairing_that_breaks_joint_compatibility() -> None:
     d2 = mahalanobis_squared(innovations, S_inv)
     assignment = jcbb(d2, innovations, covariance, observation_cov)
     assert (assignment >= 0).sum() == 1
+
+
+def test_jcbb_says_when_its_time_budget_runs_out() -> None:
+    d2, innovations, covariance, observation_cov = _shifted_pair()
+    assignment, gave_up = jcbb_search(d2, innovations, covariance, observation_cov, max_seconds=60.0)
+    assert not gave_up
+    assert assignment.tolist() == [0, 1]
+    assignment, gave_up = jcbb_search(d2, innovations, covariance, observation_cov, max_seconds=1e-12)
+    assert gave_up
+    assert assignment.tolist() == [-1, -1]  # stopped before its first node: nothing paired
+    assignment, gave_up = jcbb_search(d2, innovations, covariance, observation_cov, max_nodes=1)
+    assert gave_up
+
+
+def test_ekf_counts_and_warns_when_jcbb_gives_up(caplog: pytest.LogCaptureFixture) -> None:
+    config = EkfConfig(association="jcbb", motion="constant_position", observation_sigma=0.1, jcbb_max_seconds=1e-12)
+    ekf = EkfSlam(config)
+    assert ekf.summary()["jcbb_gave_up"] == 0
+    ekf.step(_observe(0, (10.0, 0.0, 0.0), (10.0, 2.0, 0.0)))
+    with caplog.at_level("WARNING", logger="relpoint.estimators.ekf"):
+        for i in range(1, 4):
+            ekf.step(_observe(i * DT_NS, (10.0, 0.01 * i, 0.0), (10.0, 2.0, 0.0)))
+    assert ekf.summary()["jcbb_gave_up"] == 3
+    assert ekf.summary()["paired"] == 0
+    assert len([r for r in caplog.records if "JCBB ran out of its budget" in r.getMessage()]) == 1
 
 
 @pytest.mark.parametrize(("association", "expected_y"), [("jcbb", -1.1), ("nn", None)])

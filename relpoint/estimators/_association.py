@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import time
 
 import numpy as np
 import numpy.typing as npt
@@ -110,8 +111,13 @@ def chi2_gate(probability: float, dof: int) -> float:
 
 
 def mahalanobis_squared(innovations: FloatArray, S_inv: FloatArray) -> FloatArray:
-    """Normalised innovations ``nu^T S^-1 nu`` (eq. 15) of (k, n, 3) innovations with (n, 3, 3) ``S^-1``."""
-    return np.einsum("kna,nab,knb->kn", innovations, S_inv, innovations)
+    """Normalised innovations ``nu^T S^-1 nu`` (eq. 15) of (k, n, 3) innovations with (n, 3, 3) ``S^-1``.
+
+    ``nu^T S^-1`` is one batched matrix product per landmark (a quarter of the time of a
+    three-operand einsum at a thousand landmarks), then a row-wise dot product.
+    """
+    weighted = np.matmul(innovations.transpose(1, 0, 2), S_inv)  # (n, k, 3)
+    return np.einsum("nkb,knb->kn", weighted, innovations)
 
 
 def nearest_neighbour(d2: FloatArray, gate: float) -> tuple[IntArray, npt.NDArray[np.bool_]]:
@@ -153,6 +159,19 @@ def jcbb(
     probability: float = 0.99,
     max_nodes: int = 10_000,
 ) -> IntArray:
+    """Joint Compatibility Branch and Bound with a node budget only: :func:`jcbb_search`'s assignment."""
+    return jcbb_search(d2, innovations, covariance, observation_cov, probability, max_nodes)[0]
+
+
+def jcbb_search(
+    d2: FloatArray,
+    innovations: FloatArray,
+    covariance: FloatArray,
+    observation_cov: FloatArray,
+    probability: float = 0.99,
+    max_nodes: int = 10_000,
+    max_seconds: float = 0.0,
+) -> tuple[IntArray, bool]:
     """Joint Compatibility Branch and Bound (Neira and Tardós, 2001).
 
     Searches for the largest set of one-to-one pairings whose stacked innovation passes a
@@ -168,16 +187,19 @@ def jcbb(
     covariance: (3n, 3n) ``H P H^T`` over the n landmarks' predicted measurements (no noise).
     observation_cov: (3, 3) measurement noise added to each paired observation.
     probability: chi-square gate probability, individual and joint.
-    max_nodes: search budget; when exceeded, the best hypothesis found so far is returned.
+    max_nodes: search budget in nodes; when exceeded, the best hypothesis found so far is returned.
+    max_seconds: search budget in wall-clock seconds (0: none), checked at every node; the same.
 
     Returns
     -------
-    (k,) landmark index per observation, -1 when unpaired.
+    assignment: (k,) landmark index per observation, -1 when unpaired.
+    gave_up: True when a budget ran out before the search was complete.
     """
     k = d2.shape[0]
     assignment = np.full(k, -1, dtype=np.int64)
     if d2.size == 0:
-        return assignment
+        return assignment, False
+    deadline = time.perf_counter() + max_seconds if max_seconds > 0 else np.inf
     compatible = d2 < chi2_gate(probability, 3)
     order = [int(i) for i in np.argsort(d2.min(axis=1), kind="stable") if compatible[i].any()]
     candidates = [np.flatnonzero(compatible[i])[np.argsort(d2[i, compatible[i]], kind="stable")] for i in order]
@@ -186,6 +208,7 @@ def jcbb(
     current = assignment.copy()
     used = np.zeros(d2.shape[1], dtype=bool)
     nodes = 0
+    out_of_budget = False
 
     def cross_covariance(rows: list[int], col: int) -> FloatArray:
         r = (3 * np.asarray(rows, dtype=np.int64)[:, None] + np.arange(3)).ravel()
@@ -193,14 +216,15 @@ def jcbb(
 
     def search(level: int, L: FloatArray, w: FloatArray, joint: float, paired: list[int]) -> None:
         """Extend the hypothesis ``paired`` (Cholesky factor L of its S, ``w = L^-1 nu``) at ``level``."""
-        nonlocal nodes, best_count, best_d2, best_assignment
+        nonlocal nodes, best_count, best_d2, best_assignment, out_of_budget
         count = len(paired)
         if level == levels:
             if count > best_count or (count == best_count and joint < best_d2):
                 best_count, best_d2, best_assignment = count, joint, current.copy()
             return
         nodes += 1
-        if nodes > max_nodes:
+        if nodes > max_nodes or time.perf_counter() > deadline:
+            out_of_budget = True
             return
         remaining = levels - level
         i = order[level]
@@ -231,13 +255,13 @@ def jcbb(
                 search(level + 1, L_new, np.concatenate([w, w2]), extended, [*paired, j])
                 used[j] = False
                 current[i] = -1
-                if nodes > max_nodes:
+                if out_of_budget:
                     return
         # Leave observation i unpaired.
         if count + remaining - 1 > best_count or (count + remaining - 1 == best_count and joint < best_d2):
             search(level + 1, L, w, joint, paired)
 
     search(0, np.zeros((0, 0)), np.zeros(0), 0.0, [])
-    if nodes > max_nodes:
-        logger.debug("JCBB stopped after %d nodes; returning the best of %d pairings", max_nodes, best_count)
-    return best_assignment
+    if out_of_budget:
+        logger.debug("JCBB stopped after %d nodes; returning the best of %d pairings", nodes, best_count)
+    return best_assignment, out_of_budget
