@@ -12,7 +12,8 @@ import logging
 import math
 import time
 from array import array
-from collections.abc import Callable, Iterable
+from collections import Counter
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -110,13 +111,19 @@ def run(
     *,
     on_iteration: Callable[[int, Pose], None] | None = None,
     map_every: int = 0,
+    skipped_before: Mapping[str, int] | None = None,
 ) -> RunResult:
     """Run ``estimator`` over ``inputs`` (time-ordered) and collect its results.
 
     With ``map_every`` > 0 the landmark map is also recorded every that many iterations and after the
     last one (for landmark error over time, the paper's Fig. 8).
 
-    Raises :class:`EstimatorError` if the stream holds no observation at all.
+    ``skipped_before`` counts what was dropped before ``inputs`` (a reader's unusable messages, read
+    when the stream is exhausted): when nothing usable is left, the run is an :class:`InputError`
+    naming every count, not an estimator failure.
+
+    Raises :class:`InputError` if every observation was unusable, :class:`EstimatorError` if the
+    stream holds no observation at all.
     """
     # Compact per-iteration buffers (8 bytes a number): a 40-pass run keeps about 3 MB of trajectory.
     stamps = array("q")
@@ -186,10 +193,11 @@ def run(
         if failed:
             raise EstimatorError(f"{estimator.name} could not compute any of the log's {failed} iterations",
                                  "check the log's stamps and values, or try another estimator")  # fmt: skip
-        if screen.skipped:
-            counts = ", ".join(f"{n} {kind}" for kind, n in sorted(screen.skipped.items()))
-            raise InputError(f"the log holds no usable observation ({counts})",
-                             "check the sensor's messages against the log format's limits")  # fmt: skip
+        dropped = Counter(skipped_before or {}) + screen.skipped
+        if dropped:
+            counts = ", ".join(f"{n} {kind}" for kind, n in sorted(dropped.items()))
+            raise InputError(f"the log holds no usable message ({counts})",
+                             "check the topics' message types and the log format's limits")  # fmt: skip
         raise EstimatorError("the log holds no observation to run on")
     start = time.perf_counter()
     trajectory = estimator.finish(

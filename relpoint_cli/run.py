@@ -21,7 +21,7 @@ from formats.log import LogReader, Record
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
-from relpoint.errors import EstimatorError, InputError, UsageError
+from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
 from relpoint_cli.errors import handle_errors
@@ -155,20 +155,10 @@ def execute_run(
     roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
     estimator = spec.factory(config, np.random.default_rng(seed))
     with threadpool_limits(limits=1, user_api="blas"):
-        try:
-            result = pipeline.run(
-                estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-                estimator, on_iteration=on_iteration,
-                map_every=map_every,
-            )
-        except EstimatorError as error:
-            malformed = {kind: n for kind, n in reader.skipped.items() if "malformed" in kind or "oversized" in kind}
-            if malformed and "no observation" in str(error):
-                counts = ", ".join(f"{n} {kind}" for kind, n in malformed.items())
-                raise InputError(
-                    f"{reader.path}: no usable message ({counts})", "check the topic's message type"
-                ) from None
-            raise
+        result = pipeline.run(
+            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
+            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
+        )  # fmt: skip
     run_info = {
         "estimator": spec.name,
         "parameters": dataclasses.asdict(config),
