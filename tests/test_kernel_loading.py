@@ -128,3 +128,17 @@ def test_the_run_prepares_once_before_the_first_iteration_and_reports_it_apart()
     timing = result.timing_summary()
     assert timing["iterations"] == 5 == len(result.seconds)
     assert timing["seconds_prepare"] == result.seconds_prepare >= 0.0
+
+
+def test_the_default_relative_point_prepares_its_kernels_before_it_knows_the_noise(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from relpoint.estimators import ESTIMATORS
+    from relpoint.estimators.relative_point import _kernels as kernels
+
+    calls: list[str] = []
+    monkeypatch.setattr(kernels, "prepare", lambda: calls.append("prepare"))
+    spec = ESTIMATORS["relpoint"]
+    estimator = spec.factory(spec.config_class(), np.random.default_rng(0))  # observation noise: estimated
+    estimator.prepare()
+    assert calls == ["prepare"]

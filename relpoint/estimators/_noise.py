@@ -155,13 +155,21 @@ class NoiseAdaptive(Estimator):
 
     ``build(sigma)`` makes the real estimator ``name`` for noise ``sigma`` (m). ``fallback`` is used when no
     pair of the first observations can be registered (too few points). Odometry and fixes that
-    arrive while observations are held back are replayed in their order.
+    arrive while observations are held back are replayed in their order. ``prepare`` is the real
+    estimator's :meth:`~Estimator.prepare` work that needs no noise (compiling its code), run before
+    the first iteration as the pipeline asks.
     """
 
     def __init__(
-        self, build: Callable[[float], Estimator], fallback: float, name: str, frames: int = NOISE_FRAMES
+        self,
+        build: Callable[[float], Estimator],
+        fallback: float,
+        name: str,
+        frames: int = NOISE_FRAMES,
+        prepare: Callable[[], None] | None = None,
     ) -> None:
         self._build = build
+        self._prepare = prepare
         self._fallback = fallback
         self._frames = max(2, frames)
         self._held: list[tuple[str, Any]] = []
@@ -187,6 +195,10 @@ class NoiseAdaptive(Estimator):
             else:
                 self._inner.add_fix(item)
         self._held = []
+
+    def prepare(self) -> None:
+        if self._prepare is not None:
+            self._prepare()
 
     def step(self, observation: PointObservation) -> Pose:
         if self._inner is not None:

@@ -1416,7 +1416,8 @@ def _build(config: RelativePointConfig, rng: np.random.Generator) -> Estimator:
     del rng  # the algorithm is deterministic
     if config.observation_sigma is not None:
         return RelativePointEstimator(config.at_noise(config.observation_sigma))
-    return NoiseAdaptive(lambda sigma: RelativePointEstimator(config.at_noise(sigma)), SIMULATOR_SIGMA, "relpoint")
+    return NoiseAdaptive(lambda sigma: RelativePointEstimator(config.at_noise(sigma)), SIMULATOR_SIGMA, "relpoint",
+                         prepare=_kernels.prepare)  # fmt: skip
 
 
 SPEC = EstimatorSpec(
