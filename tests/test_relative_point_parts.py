@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.relative_point import _kernels
-from relpoint.estimators.relative_point.adjustment import adjust_network
+from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
@@ -217,6 +217,62 @@ def test_loop_vote_is_not_fooled_by_a_dense_map() -> None:
     returning = old[(old[:, 0] > 180) & (old[:, 0] < 220)][:60] - drift + rng.normal(0, 0.2, (60, 3))
     offset = vote_offset(returning, old, radius=15.0, tolerance=1.5, support=4)
     assert offset is not None and np.linalg.norm(offset - drift) < 0.3
+
+
+def test_loop_vote_rejects_an_offset_a_repeating_scene_explains_as_well() -> None:
+    # Cabinet doors along a wall: the same pattern of corners every 0.4 m. Young points seen on one
+    # door fit the old points of the doors on either side (offsets 0.13 m and -0.27 m) alike; no drift
+    # is singled out.
+    rng = np.random.default_rng(2)
+    door = rng.uniform(0, 0.3, (12, 3))
+    old = np.concatenate([door + np.array([0.4 * i, 0, 0]) for i in range(8)])
+    young = door + np.array([1.47, 0.0, 0.0]) + rng.normal(0, 0.003, door.shape)
+    assert vote_offset(young, old, radius=0.6, tolerance=0.05, support=4, ambiguity=1.0) is not None
+    assert vote_offset(young, old, radius=0.6, tolerance=0.05, support=4) is None
+    # A single returning neighbourhood (no repetition) is still found.
+    unique = rng.uniform(0, 3.2, (48, 3))
+    drift = np.array([0.3, -0.1, 0.05])
+    offset = vote_offset(unique[:10] - drift, unique, radius=0.6, tolerance=0.05, support=4)
+    assert offset is not None and np.linalg.norm(offset - drift) < 0.01
+
+
+def test_a_relocation_unlike_its_neighbours_is_inconsistent() -> None:
+    # The adjustment shifts the path smoothly (a drift growing to 0.2 m); iteration 30's fit moves
+    # it by 0.15 m more than its neighbours': that one, and only that one, is inconsistent.
+    k = 60
+    before = np.repeat(np.eye(4)[None], k, axis=0)
+    before[:, 0, 3] = np.linspace(0, 6, k)
+    after = before.copy()
+    after[:, 1, 3] += np.linspace(0, 0.2, k)
+    after[30, 2, 3] += 0.15
+    seen = np.tile([0.0, 0.0, 2.0], (k, 1))
+    fitted = np.ones(k, bool)
+    flagged = inconsistent_relocations(before, after, fitted, seen, floor=0.03)
+    assert flagged.tolist() == [i == 30 for i in range(k)]
+    # A turn of the sensor moves what it saw even when its position barely moves.
+    turned = after.copy()
+    turned[30, 2, 3] -= 0.15
+    turned[45, :3, :3] = Rotation.from_rotvec([0.05, 0, 0]).as_matrix()
+    assert np.flatnonzero(inconsistent_relocations(before, turned, fitted, seen, floor=0.03)).tolist() == [45]
+    # Unfitted iterations are not judged, and the floor keeps noise-sized differences.
+    fitted[30] = False
+    assert not inconsistent_relocations(before, after, fitted, seen, floor=0.03).any()
+    assert not inconsistent_relocations(before, after, np.ones(k, bool), seen, floor=0.2).any()
+
+
+def test_dynamic_threshold_never_falls_below_the_noise_floor() -> None:
+    # Static points whose noise differs threefold from point to point (near and far points of a depth
+    # camera): the lower quartile of the first round sets too low a threshold and the noisiest are
+    # flagged; a floor at what the largest noise explains keeps them all.
+    rng = np.random.default_rng(4)
+    sigma = np.repeat([0.005, 0.01, 0.015], 8)
+    tracks = rng.uniform(-1, 1, (24, 1, 3)) + rng.normal(0, 1, (24, 40, 3)) * sigma[:, None, None]
+    assert not detect_dynamic(tracks).static.all()
+    result = detect_dynamic(tracks, floor=3 * np.sqrt(2) * 0.015)
+    assert result.decided and result.static.all()
+    # The floor does not hide a point that moves well beyond it.
+    tracks[0] += np.linspace(0, 0.5, 40)[:, None] * [1, 0, 0]
+    assert detect_dynamic(tracks, floor=3 * np.sqrt(2) * 0.015).static.tolist() == [False] + [True] * 23
 
 
 def test_required_support_grows_with_chance_agreement() -> None:

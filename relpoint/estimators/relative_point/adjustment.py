@@ -240,3 +240,39 @@ def adjust_network(
             if damping > 1e4:
                 break
     return Adjustment(R, t, X, cost_before, cost, done)
+
+
+def inconsistent_relocations(
+    before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_], seen: FloatArray, *, floor: float,
+    window: int = 5, factor: float = 4.0,
+) -> npt.NDArray[np.bool_]:
+    """Iterations whose relocation disagrees with their neighbours' (K,) bool.
+
+    The adjustment moves the map smoothly along the path (it corrects drift, which builds up
+    slowly), so the correction an iteration's new fit applies is close to the corrections of the
+    iterations around it. A fit on few or badly placed points breaks that: it moves what the sensor
+    saw by much more than its neighbours' fits do. For each fitted iteration, what its correction
+    does to the sensor position and to the centroid of what it saw (``seen``, (K, 3) sensor frame,
+    m) is compared with the median of the same over the fitted iterations within ``window``; an
+    iteration beyond ``factor`` times the robust spread of these differences over the log (at
+    least ``floor``, m) is inconsistent.
+
+    ``before`` and ``after`` are the poses ``T_world_sensor`` (K, 4, 4) before and after the
+    adjustment; only iterations with ``fitted`` are judged.
+    """
+    judged = np.flatnonzero(fitted)
+    inconsistent = np.zeros(len(fitted), bool)
+    if len(judged) < 2 * window + 1:
+        return inconsistent
+    anchors = np.stack([np.zeros((len(judged), 3)), seen[judged]], axis=1)  # (J, 2, 3) sensor frame
+    shift_after = np.einsum("jxy,jay->jax", after[judged, :3, :3], anchors) + after[judged, None, :3, 3]
+    shift_before = np.einsum("jxy,jay->jax", before[judged, :3, :3], anchors) + before[judged, None, :3, 3]
+    shift = (shift_after - shift_before).reshape(len(judged), 6)  # (J, 6): the two anchors' displacement
+    neighbours = np.lib.stride_tricks.sliding_window_view(
+        np.pad(shift, ((window, window), (0, 0)), mode="edge"), 2 * window + 1, axis=0
+    )  # (J, 6, 2w + 1)
+    local = np.median(neighbours, axis=2)
+    difference = np.linalg.norm((shift - local).reshape(len(judged), 2, 3), axis=2).max(axis=1)
+    spread = 1.4826 * float(np.median(difference))
+    inconsistent[judged] = difference > max(factor * spread, floor)
+    return inconsistent

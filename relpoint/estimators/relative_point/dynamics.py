@@ -86,7 +86,8 @@ def gap_threshold(deviations: FloatArray, gap_ratio: float, noise_factor: float 
 
 
 def detect_dynamic(
-    observations: FloatArray, *, gap_ratio: float = 0.5, noise_factor: float = 1.6, min_static: int = 3
+    observations: FloatArray, *, gap_ratio: float = 0.5, noise_factor: float = 1.6, min_static: int = 3,
+    floor: float = 0.0,
 ) -> DynamicResult:
     """Find the points that do not move rigidly with the majority.
 
@@ -127,7 +128,7 @@ def detect_dynamic(
     deviation = distance_deviation(observations, first_a, first_b)
     comparisons += len(first_a)
     rounds += 1
-    threshold = gap_threshold(deviation, gap_ratio, noise_factor)
+    threshold = max(gap_threshold(deviation, gap_ratio, noise_factor), floor)
 
     def settle(pairs_a: list[int], pairs_b: list[int], deviation: FloatArray) -> set[int]:
         """Merge the pairs below the threshold, remember the rest; the bins merged into."""

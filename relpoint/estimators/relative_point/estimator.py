@@ -80,7 +80,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
 from relpoint.estimators.relative_point import _kernels
-from relpoint.estimators.relative_point.adjustment import adjust_network
+from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references, world_block_deviation
 from relpoint.estimators.relative_point.grouping import UngroupedList, select_members
@@ -146,6 +146,7 @@ class RelativePointConfig(Settings):
         "adjustment_members": (3, 10_000), "adjustment_iterations": (1, 1_000), "seed_points": (1, 10_000),
         "trim_rounds": (1, 100), "loop_support": (3, 10_000), "unverified_weight": (0.0, 1.0),
         "dynamic_spread_verify": (0.0, 1.0), "observation_sigma": (1e-6, 1e3),
+        "dynamic_noise_floor": (0.0, 100.0), "loop_ambiguity": (0.0, 1.0),
     }  # fmt: skip
 
     observation_sigma: float | None = None
@@ -181,6 +182,10 @@ class RelativePointConfig(Settings):
     global matching misses them (0 disables; see :mod:`.loops`)."""
     loop_support: int = 4
     """Distinct young points that must agree on a loop's offset (within half ``global_match_bound``)."""
+    loop_ambiguity: float = 0.5
+    """A loop's offset is rejected when another offset, more than two tolerances away, gathers more
+    than this fraction of its support: a scene that repeats (cabinet doors, tiles, shelves) fits
+    onto old points at several offsets, a drift at one (see :mod:`.loops`)."""
     loop_every: int = 5
     """Look for a loop every this many iterations."""
     loop_young: int = 20
@@ -250,18 +255,23 @@ class RelativePointConfig(Settings):
     """The sweep compares distances averaged over blocks of this many iterations (1: single
     observations), which lowers the noise so that points moving a few metres over the window stand
     out (see :func:`~relpoint.estimators.relative_point.dynamics.deviation_to_references`)."""
-    """Run the dynamic sweep every this many iterations."""
     dynamic_references: int = 6
     """Verified static points each point is compared with in the sweep."""
     dynamic_verify_factor: float = 1.5
     """A point whose deviation against the references is at most this times theirs is verified static."""
     dynamic_moving_factor: float = 2.0
     """A point whose deviation against the references exceeds this times theirs is dynamic."""
+    dynamic_noise_floor: float = 1.0
+    """The noise level the dynamic tests scale (the references' deviation in the sweep, the binning's
+    threshold) is at least this times what ``observation_sigma`` gives two static points (``sqrt(2)
+    sigma``, over the square root of the block length for block means): a deviation that the noise
+    alone explains never marks a point as moving. The verified references were chosen for their low
+    deviation and run below it on real keypoints (0.32 cm against 0.65 cm expected at 1 cm noise),
+    which flagged points of ordinary noise; on the simulator the floor and the references agree."""
     dynamic_world_factor: float = 2.5
     """A point whose block-mean positions in ``world`` (mapped by the poses of their iterations)
     scatter by more than this times the typical scatter of the points in view is dynamic; it sees
     motion in every direction, where distances only see it along each reference (0 disables)."""
-    """A point whose deviation against the references exceeds this times theirs is dynamic."""
     dynamic_spread_factor: float = 2.5
     """A point whose groups disagree about its global position by more than this times the typical
     disagreement of the points in view is dynamic."""
@@ -337,7 +347,8 @@ class RelativePointConfig(Settings):
             "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
             "loop_max_rotation": self.loop_max_rotation, "adjustment_prior": self.adjustment_prior,
             "adjustment_dynamic_factor": self.adjustment_dynamic_factor,
-            "adjustment_robust": self.adjustment_robust,
+            "adjustment_robust": self.adjustment_robust, "dynamic_noise_floor": self.dynamic_noise_floor,
+            "loop_ambiguity": self.loop_ambiguity,
         }  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -508,24 +519,36 @@ class RelativePointEstimator(Estimator):
             if older in row_of:
                 row_of.setdefault(newer, row_of[older])
         T_before = trajectory_matrices(trajectory)
+        T_fit = T_before.copy()
+        fitted = np.zeros(len(T_before), bool)
+        seen = np.zeros((len(T_before), 3))
+        for k, support in enumerate(self._support):
+            if support is None:
+                continue
+            uids, observed = support
+            rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
+            usable = rows >= 0
+            usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
+            fit = self._fit_pose(observed[usable].astype(np.float64), rows[usable])
+            if fit is not None:
+                T_fit[k], fitted[k] = fit, True
+                seen[k] = observed[usable].mean(axis=0)
+        # A fit on few or misplaced points moves its iteration unlike its neighbours: such an
+        # iteration takes its neighbours' correction instead.
+        outliers = inconsistent_relocations(
+            T_before, T_fit, fitted, seen, floor=3.0 * (self.config.observation_sigma or SIMULATOR_SIGMA)
+        )
+        fitted &= ~outliers
         T_after = T_before.copy()
         correction = np.eye(4)
-        relocated = 0
-        for k, support in enumerate(self._support):
-            fit = None
-            if support is not None:
-                uids, observed = support
-                rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
-                usable = rows >= 0
-                usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
-                fit = self._fit_pose(observed[usable].astype(np.float64), rows[usable])
-            if fit is not None:
-                T_after[k] = fit
-                correction = fit @ _rigid_inverse(T_before[k])
-                relocated += 1
+        for k in range(len(T_before)):
+            if fitted[k]:
+                T_after[k] = T_fit[k]
+                correction = T_fit[k] @ _rigid_inverse(T_before[k])
             else:
                 T_after[k] = correction @ T_before[k]
-        self.adjustment_report["relocated_iterations"] = relocated
+        self.adjustment_report["relocated_iterations"] = int(np.count_nonzero(fitted))
+        self.adjustment_report["relocations_rejected"] = int(np.count_nonzero(outliers))
         residual_after = self._support_residual(T_after)
         report = self.adjustment_report
         report["support_residual_before"] = round(residual_before, 4)
@@ -835,7 +858,8 @@ class RelativePointEstimator(Estimator):
         old, old_positions = old[near], old_positions[near]
         tolerance = 0.5 * config.global_match_bound
         offset = vote_offset(
-            young, old_positions, radius=config.loop_search, tolerance=tolerance, support=config.loop_support
+            young, old_positions, radius=config.loop_search, tolerance=tolerance, support=config.loop_support,
+            ambiguity=config.loop_ambiguity,
         )
         if offset is None or float(np.linalg.norm(offset)) <= tolerance:  # within reach of global matching
             return
@@ -1033,11 +1057,21 @@ class RelativePointEstimator(Estimator):
         none = np.zeros(0, np.int64)
         if not config.dynamic_detection or interval < config.dynamic_min_iterations:
             return none, none
-        result = detect_dynamic(observations, gap_ratio=config.dynamic_gap_ratio)
+        result = detect_dynamic(observations, gap_ratio=config.dynamic_gap_ratio, floor=self._pair_noise(1))
         self.counts["dynamic_comparisons"] += result.comparisons
         if not result.decided:
             return none, none
         return members[~result.static], members[result.static]
+
+    def _pair_noise(self, block: int) -> float:
+        """Smallest noise level (m) the dynamic tests assume for the distance between two static points.
+
+        A distance between two points with per-axis noise ``observation_sigma`` varies by about
+        ``sqrt(2) sigma`` from one observation to the next, ``sqrt(2) sigma / sqrt(block)`` between
+        means of ``block`` observations; ``dynamic_noise_floor`` times that is the floor.
+        """
+        sigma = self.config.observation_sigma or SIMULATOR_SIGMA
+        return self.config.dynamic_noise_floor * math.sqrt(2.0) * sigma / math.sqrt(block)
 
     def _dynamic_sweep(self, k: int) -> None:
         """Judge the points in view against the points already verified static (paper II-C).
@@ -1075,7 +1109,8 @@ class RelativePointEstimator(Estimator):
             tracks, _ = store.observations(full, np.arange(k - length + 1, k + 1))
             # A short window estimates each deviation from few iterations: a wider noise margin.
             margin = 1.6 if length == window else 1.6 * math.sqrt(window / length)
-            result = detect_dynamic(tracks, gap_ratio=config.dynamic_gap_ratio, noise_factor=margin)
+            result = detect_dynamic(tracks, gap_ratio=config.dynamic_gap_ratio, noise_factor=margin,
+                                    floor=self._pair_noise(1))
             self.counts["dynamic_comparisons"] += result.comparisons
             if result.decided:
                 # A short window shows fast movers, but it is too short to vouch for the rest.
@@ -1093,6 +1128,7 @@ class RelativePointEstimator(Estimator):
         noise = _finite_median(deviation[rows])
         if not np.isfinite(noise) or noise <= 0:
             return
+        noise = max(noise, self._pair_noise(config.dynamic_block))
         # Second witness: how much the point's groups disagree about its global position, against
         # the typical disagreement of the points in view (a moving point is placed differently by
         # every group that sees it).
