@@ -182,7 +182,7 @@ class RelativePointConfig(Settings):
     global matching misses them (0 disables; see :mod:`.loops`)."""
     loop_support: int = 4
     """Distinct young points that must agree on a loop's offset (within half ``global_match_bound``)."""
-    loop_ambiguity: float = 0.5
+    loop_ambiguity: float = 0.4
     """A loop's offset is rejected when another offset, more than two tolerances away, gathers more
     than this fraction of its support: a scene that repeats (cabinet doors, tiles, shelves) fits
     onto old points at several offsets, a drift at one (see :mod:`.loops`)."""

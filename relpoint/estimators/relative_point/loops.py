@@ -20,10 +20,11 @@ old neighbours and landmarks lie along the path, so that chance offsets crowd, i
 chance agreement does not close false loops. Chance is not the only rival: where the scene repeats
 (cabinet doors, tiles, shelves, the parallel edges of a counter), whole neighbourhoods fit onto old
 points at several offsets, each with about the same support. A drift is one offset far ahead of every
-other, so the winner must also gather at least twice the support of the best offset more than two
-tolerances away from it (``ambiguity``, the ratio test of feature matching applied to votes): on real
-keypoints in a kitchen the false winners led their rivals by 5-60 %, where the simulator's true loops
-lead by 2-4 times.
+other, so the best offset more than two tolerances away from the winner may gather at most
+``ambiguity`` (0.4) of its support (the ratio test of feature matching applied to votes): on real
+keypoints in a kitchen the false winners led their rivals by 5-100 %, where the simulator's true
+loops lead by 2-4 times. A false loop moves the whole map; a true one missed at one check is found
+at the next.
 
 :func:`drift_share` then spreads the correction over the loop: drift builds up along the path, so a
 group or pose from iteration ``t`` moves by the share ``(t - t0) / (k - t0)`` of the offset, where
@@ -48,7 +49,7 @@ from relpoint.geometry import FloatArray
 
 
 def vote_offset(
-    young: FloatArray, old: FloatArray, *, radius: float, tolerance: float, support: int, ambiguity: float = 0.5
+    young: FloatArray, old: FloatArray, *, radius: float, tolerance: float, support: int, ambiguity: float = 0.4
 ) -> FloatArray | None:
     """World offset (3,) taking the young points onto old ones, or ``None`` without enough agreement.
 
