@@ -10,7 +10,11 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.relative_point import _kernels
-from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations
+from relpoint.estimators.relative_point.adjustment import (
+    adjust_network,
+    inconsistent_relocations,
+    smooth_corrections,
+)
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
@@ -258,6 +262,35 @@ def test_a_relocation_unlike_its_neighbours_is_inconsistent() -> None:
     fitted[30] = False
     assert not inconsistent_relocations(before, after, fitted, seen, floor=0.03).any()
     assert not inconsistent_relocations(before, after, np.ones(k, bool), seen, floor=0.2).any()
+
+
+def test_corrections_are_smoothed_over_the_fitted_neighbours() -> None:
+    # A slow drift correction (0 to 0.2 m, 0 to 0.02 rad) with fit noise on every fitted iteration:
+    # the smoothed poses follow the drift, the noise averaged out; unfitted iterations in reach
+    # of fitted ones take their correction, those beyond keep their pose.
+    rng = np.random.default_rng(8)
+    k = 80
+    before = np.repeat(np.eye(4)[None], k, axis=0)
+    before[:, 0, 3] = np.linspace(0, 8, k)
+    drift = np.linspace(0, 0.2, k)
+    turn = Rotation.from_rotvec(np.outer(np.linspace(0, 0.02, k), [0, 0, 1]))
+    truth = before.copy()
+    truth[:, :3, :3] = turn.as_matrix()
+    truth[:, 1, 3] += drift
+    noisy = truth.copy()
+    noisy[:, :3, 3] += rng.normal(0, 0.01, (k, 3))
+    fitted = np.ones(k, bool)
+    fitted[40:44] = False
+    fitted[70:] = False
+    after = noisy.copy()
+    after[~fitted] = before[~fitted] + 5.0  # what the caller carried: must be replaced within reach
+    smoothed = smooth_corrections(before, after, fitted, window=10)
+    inside = np.arange(k) < 70 + 10
+    error = np.linalg.norm(smoothed[inside, :3, 3] - truth[inside, :3, 3], axis=1)
+    assert error[:60].max() < 0.02 and np.sqrt(np.mean(error[:60] ** 2)) < 0.6 * 0.01 * np.sqrt(3)
+    assert np.allclose(smoothed[~inside], after[~inside])
+    angle = Rotation.from_matrix(smoothed[:70, :3, :3] @ np.transpose(truth[:70, :3, :3], (0, 2, 1))).magnitude()
+    assert angle.max() < 0.002
 
 
 def test_dynamic_threshold_never_falls_below_the_noise_floor() -> None:

@@ -276,3 +276,35 @@ def inconsistent_relocations(
     spread = 1.4826 * float(np.median(difference))
     inconsistent[judged] = difference > max(factor * spread, floor)
     return inconsistent
+
+
+def smooth_corrections(
+    before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_], window: int
+) -> FloatArray:
+    """Poses (K, 4, 4) whose corrections are the median of the fitted iterations' within ``window``.
+
+    The correction of iteration ``k`` is a rotation ``R_after R_before^T`` about the sensor and a
+    displacement of the sensor ``p_after - p_before`` (world frame). Each iteration with a fitted
+    iteration within ``window`` on either side takes the component-wise median of their rotation
+    vectors and displacements, applied to its pose in ``before``; the others keep their pose in
+    ``after``. ``before`` and ``after`` are ``T_world_sensor``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    fitted_rows = np.flatnonzero(fitted)
+    smoothed = after.copy()
+    if len(fitted_rows) == 0:
+        return smoothed
+    rotation = Rotation.from_matrix(
+        after[fitted_rows, :3, :3] @ np.transpose(before[fitted_rows, :3, :3], (0, 2, 1))
+    ).as_rotvec()
+    displacement = after[fitted_rows, :3, 3] - before[fitted_rows, :3, 3]
+    k = np.arange(len(before))
+    low = np.searchsorted(fitted_rows, k - window)
+    high = np.searchsorted(fitted_rows, k + window, side="right")
+    for row in np.flatnonzero(high > low):
+        lo, hi = low[row], high[row]
+        turn = Rotation.from_rotvec(np.median(rotation[lo:hi], axis=0)).as_matrix()
+        smoothed[row, :3, :3] = turn @ before[row, :3, :3]
+        smoothed[row, :3, 3] = before[row, :3, 3] + np.median(displacement[lo:hi], axis=0)
+    return smoothed

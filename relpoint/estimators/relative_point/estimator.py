@@ -80,7 +80,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
 from relpoint.estimators.relative_point import _kernels
-from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations
+from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import detect_dynamic, deviation_to_references, world_block_deviation
 from relpoint.estimators.relative_point.grouping import UngroupedList, select_members
@@ -114,6 +114,9 @@ logger = logging.getLogger(__name__)
 #: The final adjustment is kept unless it places the log's observations (each iteration's kept ones,
 #: by its pose, against their points) this much farther from their points than the incremental map.
 ADJUSTMENT_TOLERANCE = 0.05
+
+#: Iterations on either side whose relocations set an iteration's correction after the final adjustment.
+RELOCATION_WINDOW = 10
 
 #: Distance settings that scale with the observation noise: their defaults are for the simulator's
 #: 0.3 m and ``relpoint run`` multiplies them by ``observation_sigma / 0.3`` (see ``observation_sigma``).
@@ -547,6 +550,11 @@ class RelativePointEstimator(Estimator):
                 correction = T_fit[k] @ _rigid_inverse(T_before[k])
             else:
                 T_after[k] = correction @ T_before[k]
+        # Drift builds up slowly, and so does its correction; a fit on the few observations an
+        # iteration kept is noisy. Every iteration takes the median correction of the fitted
+        # iterations around it, keeping the incremental path's local shape.
+        T_after = smooth_corrections(T_before, T_after, fitted, RELOCATION_WINDOW)
+        T_after[0] = T_before[0]  # the first iteration defines ``world``
         self.adjustment_report["relocated_iterations"] = int(np.count_nonzero(fitted))
         self.adjustment_report["relocations_rejected"] = int(np.count_nonzero(outliers))
         residual_after = self._support_residual(T_after)
