@@ -141,7 +141,10 @@ class RelativePointConfig(Settings):
         "match_bound": "local matching: must exceed the noise plus the error of the motion prediction.",
         "min_basis_spread, collinear_tolerance": "how spread a group's basis must be: a fit's rotation error is "
         "about the noise over this distance. Too large for the scene and no group forms.",
-        "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view.",
+        "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view, "
+        "never below what observation_sigma explains (dynamic_noise_floor).",
+        "loop_search, loop_ambiguity": "loop closure beyond global matching: the largest drift looked for, and how "
+        "clearly one offset must lead (a repeating scene offers several).",
     }
     limits: ClassVar[dict[str, tuple[float, float]]] = {
         "ring_size": (1, 65_536), "match_window": (1, 1_000), "dynamic_window": (1, 10_000),
