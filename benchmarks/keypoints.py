@@ -43,10 +43,14 @@ STARRY = DATA / "starry-night"
 
 def keypoint_log(frames: int, directory: Path) -> Path:
     """Import the kitchen frames as point observations (as ``relpoint import 7scenes --points``)."""
+    import hashlib
+
     from formats.keypoint_import import write_keypoint_log
     from formats.rgbd_import import seven_scenes_frames
+    from relpoint.frontend.tracking import KeypointSettings
 
-    path = directory / f"kitchen_points_{frames}.mcap"
+    settings = hashlib.sha256(repr(KeypointSettings()).encode()).hexdigest()[:8]  # a new front-end, a new log
+    path = directory / f"kitchen_points_{frames}_{settings}.mcap"
     if not path.exists():
         started = time.perf_counter()
         counts = write_keypoint_log(seven_scenes_frames(KITCHEN, count=frames), path, source={"layout": "7scenes"})

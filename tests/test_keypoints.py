@@ -284,3 +284,33 @@ def test_rigid_motion_check_finds_the_points_that_do_not_move_with_the_rest() ->
     outliers = rigid_outliers(previous, current, tolerance, 100, np.random.default_rng(0))
     assert np.flatnonzero(outliers).tolist() == [3, 17, 30]
     assert not rigid_outliers(previous[:5], current[:5], tolerance[:5], 100, np.random.default_rng(0)).any()
+
+
+def test_a_track_that_strays_slowly_is_ended_though_each_frame_passes() -> None:
+    # The camera moves; corner 5's point slides 1.2 cm a frame (0.6 % of its 2 m depth, under the
+    # 1 % + 5 mm each frame-to-frame check allows) and is ended once it has strayed over 2 % + 5 mm
+    # from its track's mean; every other track, with 2 mm noise, lives on under its id.
+    from scipy.spatial.transform import Rotation
+
+    from relpoint.frontend.keypoints import KeypointFrontEnd
+    from relpoint.frontend.tracking import KeypointSettings
+
+    rng = np.random.default_rng(3)
+    world = rng.uniform(-1, 1, (40, 3)) + np.array([0.0, 0.0, 2.0])
+    front = KeypointFrontEnd(KeypointSettings())
+    ids = np.arange(40)
+    alive = []
+    for frame in range(12):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0.0, 0.01 * frame, 0.0]).as_matrix()
+        T[:3, 3] = [0.02 * frame, 0.0, 0.0]
+        seen = world.copy()
+        seen[5] += [0.012 * frame, 0.0, 0.0]
+        points = ((seen - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.002, seen.shape))[ids]  # camera frame
+        keep = front._moves_with_the_rest(ids, points) if front._previous is not None else np.ones(len(ids), bool)
+        front._previous = (ids[keep], points[keep])
+        ids = ids[keep]
+        alive.append(set(ids.tolist()))
+    assert 5 not in alive[-1] and 5 in alive[2]
+    assert alive[-1] == set(range(40)) - {5}
+    assert front.strayed_tracks == 1 and front.ended_tracks == 0

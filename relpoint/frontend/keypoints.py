@@ -1,6 +1,6 @@
 """RGB-D frames to point observations: track corners, keep those with trustworthy depth, lift them to 3D,
 and end the tracks whose 3D point does not move with the rest (a RANSAC rigid fit between consecutive
-frames over the tracks they share)."""
+frames over the tracks they share) or strays from where the track's earlier points put it."""
 
 from __future__ import annotations
 
@@ -52,8 +52,12 @@ class KeypointFrontEnd:
         self.tracker = KeypointTracker(self.settings)
         self._rng = np.random.default_rng(self.settings.seed)
         self._previous: tuple[IntArray, FloatArray] | None = None
+        self._track_sum: dict[int, FloatArray] = {}  # per track: sum of its points, in the previous frame
+        self._track_count: dict[int, int] = {}
         self.ended_tracks = 0
         """Tracks ended by the rigid-motion check so far."""
+        self.strayed_tracks = 0
+        """Tracks ended because their point strayed from the mean of their earlier points."""
 
     def observe(
         self, stamp_ns: int, rgb: npt.NDArray[np.uint8], depth_m: npt.NDArray[np.floating], intrinsics: Intrinsics
@@ -83,6 +87,48 @@ class KeypointFrontEnd:
         tolerance = s.rigid_tolerance * points[here, 2] + s.rigid_floor
         outliers = rigid_outliers(previous_points[there], points[here], tolerance, s.rigid_samples, self._rng)
         ended = shared[outliers]
-        self.tracker.drop(ended)
         self.ended_tracks += len(ended)
+        if s.track_tolerance > 0:
+            strayed = self._strayed(ids, points, here[~outliers], there[~outliers])
+            self.strayed_tracks += len(strayed)
+            ended = np.concatenate([ended, strayed])
+        self.tracker.drop(ended)
+        for track in ended.tolist():
+            self._track_sum.pop(track, None)
+            self._track_count.pop(track, None)
         return ~np.isin(ids, ended)
+
+    def _strayed(self, ids: IntArray, points: FloatArray, here: IntArray, there: IntArray) -> IntArray:
+        """Tracks whose point strays from the mean of their earlier points (:attr:`KeypointSettings.track_tolerance`).
+
+        The frame-to-frame motion is fitted to the pairs that passed the rigid check (``here`` rows of
+        this frame, ``there`` of the previous one); each track's sum of earlier points is carried into
+        this frame with it and compared with its point here; this frame's points then join the sums.
+        """
+        assert self._previous is not None
+        s = self.settings
+        previous_points = self._previous[1]
+        carried_sum: dict[int, FloatArray] = {}
+        if len(here) >= 3:
+            fit = fit_rigid(previous_points[there], points[here])  # previous frame -> this frame
+            R, t = fit.rotation, fit.translation
+            for track, total in self._track_sum.items():
+                carried_sum[track] = R @ total + self._track_count[track] * t
+        counts = np.array([self._track_count.get(track, 0) for track in ids.tolist()])
+        known = np.flatnonzero(counts > 0)
+        strayed = np.zeros(len(ids), dtype=bool)
+        if len(known) and carried_sum:
+            mean = np.array([carried_sum[int(ids[i])] for i in known]) / counts[known, None]
+            distance = np.linalg.norm(points[known] - mean, axis=1)
+            strayed[known] = distance > s.track_tolerance * points[known, 2] + s.rigid_floor
+        elif not carried_sum:
+            self._track_sum.clear()  # no motion to carry the sums with: the tracks start over
+            self._track_count.clear()
+            counts[:] = 0
+        self._track_sum = {
+            int(track): (carried_sum.get(int(track), 0.0) if counts[i] else 0.0) + points[i]
+            for i, track in enumerate(ids.tolist())
+            if not strayed[i]
+        }
+        self._track_count = {int(track): int(counts[i]) + 1 for i, track in enumerate(ids.tolist()) if not strayed[i]}
+        return ids[strayed]

@@ -43,6 +43,7 @@ class KeypointSettings(Settings):
         "rigid_tolerance": (0.0, 1.0),
         "rigid_floor": (0.0, 10.0),
         "rigid_samples": (1, 100_000),
+        "track_tolerance": (0.0, 1.0),
     }
 
     #: Corners kept per frame (tracked plus new).
@@ -69,6 +70,11 @@ class KeypointSettings(Settings):
     #: (m), are ended: a corner sliding along an edge or across an occlusion. 0 disables the check.
     rigid_tolerance: float = 0.01
     rigid_floor: float = 0.005
+    #: Tracks whose 3D point strays from the mean of the track's earlier points (carried into this
+    #: frame by the chained frame-to-frame motions of that check) by more than ``track_tolerance``
+    #: times its depth plus ``rigid_floor`` (m) are ended: a corner that slides slowly, or whose depth
+    #: drifts with the viewpoint, passes every frame-to-frame check. 0 disables it (needs the check).
+    track_tolerance: float = 0.02
     #: RANSAC draws (three-point samples) of that check; they come from ``seed``.
     rigid_samples: int = 100
     seed: int = 0
