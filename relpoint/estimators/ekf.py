@@ -681,6 +681,8 @@ class EkfSlam(Estimator):
         P[3:6, :] = G @ P[3:6, :]
         P[:, 3:6] = P[:, 3:6] @ G.T
         P[3:6, :] = P[:, 3:6].T  # the same values up to rounding: keep P exactly symmetric
+        block = P[3:6, 3:6]
+        P[3:6, 3:6] = 0.5 * (block + block.T)  # G B G^T computed as (G B) G^T: symmetric up to rounding
 
     # ------------------------------------------------------------------------------------- landmarks
 
