@@ -9,7 +9,9 @@ for several seeds. Per cell and estimator it prints the mean over the seeds of:
 * ``lm``: RMSE of the mapped static landmarks from the true ones named by their ``gt_id`` (m), the
   landmarks flagged dynamic left out (:func:`relpoint.evaluation.landmark_metrics`); ``x opt``;
 * ``dyn P / R``: precision and recall of the map's dynamic flags (a landmark is truly dynamic when its
-  ``gt_id`` moves);
+  ``gt_id`` moves); ``R 3s``: the recall over the movers issue 17's floor speaks of, those seen to
+  move at least 3 sigma within Relative Point's detection window (``dynamic_window``, 40 iterations):
+  observed at two iterations at most 40 apart, that far apart (the floor on recall is measured on it);
 * ``dup %``: *duplicate landmarks*, map entries beyond the first for each true landmark (by ``gt_id``,
   flagged dynamic or not), in percent of the map: what moving points that start a new landmark each
   time they no longer match leave behind;
@@ -222,12 +224,39 @@ def run_one(cell: Cell, name: str, seed: int, iterations: int | None, fixes: boo
         "lm": metrics["lm_err_rmse"],
         "dyn_precision": metrics["dyn_precision"],
         "dyn_recall": metrics["dyn_recall"],
+        "dyn_recall_3s": detectable_recall(sim, result.landmarks),
         "duplicates": duplicate_landmarks(result.landmarks.gt_id),
         "dup_pct": 100.0 * duplicate_landmarks(result.landmarks.gt_id) / max(size, 1),
         "map": size,
         "ms_per_it": 1e3 * float(np.mean(result.seconds)),
         "summary": result.summary,
     }
+
+
+def detectable_recall(sim: Any, landmarks: Any, window: int = 40, sigmas: float = 3.0) -> float:
+    """Share flagged dynamic of the mapped landmarks whose true landmark, while in view, moves at least
+    ``sigmas`` times the noise within ``window`` iterations at some point of the run: seen at two
+    iterations at most ``window`` apart that far from each other (NaN when the map has none)."""
+    moving = np.flatnonzero(sim.landmarks.dynamic)
+    if len(moving) == 0 or landmarks.gt_id is None or landmarks.dynamic is None:
+        return float("nan")
+    column = np.full(len(sim.landmarks.ids), -1)
+    column[moving] = np.arange(len(moving))
+    steps = list(sim.steps())
+    seen = np.zeros((len(steps), len(moving)), dtype=bool)
+    for k, step in enumerate(steps):
+        ids = step.observation.ids
+        ids = ids[(ids >= 0) & (ids < len(column))]
+        seen[k, column[ids][column[ids] >= 0]] = True
+    track = np.stack([sim.landmark_positions(int(t))[moving] for t in sim.stamps_ns[: len(steps)]])  # (K, n, 3)
+    reach = np.zeros(len(moving))
+    for lag in range(1, min(window, len(steps) - 1) + 1):
+        both = seen[lag:] & seen[:-lag]
+        step = np.where(both, np.linalg.norm(track[lag:] - track[:-lag], axis=2), 0.0).max(axis=0)
+        reach = np.maximum(reach, step)
+    detectable = set(sim.landmarks.ids[moving[reach >= sigmas * sim.config.noise]].tolist())
+    rows = np.array([int(g) in detectable for g in landmarks.gt_id])
+    return float(np.mean(landmarks.dynamic[rows])) if rows.any() else float("nan")
 
 
 def optimum(cell: Cell, seed: int, iterations: int | None) -> dict[str, Any]:
@@ -325,7 +354,8 @@ def cell_rows(
         for name in estimators:
             runs = results[("run", cell.name, name)]
             row: dict[str, Any] = {"cell": cell.name, "estimator": name, "seeds": len(runs)}
-            for key in ("ate", "ate_aligned", "lm", "dyn_precision", "dyn_recall", "dup_pct", "ms_per_it"):
+            for key in ("ate", "ate_aligned", "lm", "dyn_precision", "dyn_recall", "dyn_recall_3s", "dup_pct",
+                        "ms_per_it"):
                 row[key] = float(np.nanmean([r[key] for r in runs])) if runs else float("nan")
             row["ate_x_opt"] = float(np.mean([r["ate"] / o["ate"] for r, o in zip(runs, opt, strict=True)]))
             row["lm_x_opt"] = float(np.mean([r["lm"] / o["lm"] for r, o in zip(runs, opt, strict=True)]))
@@ -345,6 +375,7 @@ def cell_rows(
             row["dup_pct_worst"] = float(max(r["dup_pct"] for r in runs))
             row["dyn_precision_worst"] = float(np.nanmin([r["dyn_precision"] for r in runs] + [np.inf]))
             row["dyn_recall_worst"] = float(np.nanmin([r["dyn_recall"] for r in runs] + [np.inf]))
+            row["dyn_recall_3s_worst"] = float(np.nanmin([r["dyn_recall_3s"] for r in runs] + [np.inf]))
             adjustment = [r["summary"].get("final_adjustment", {}).get("kept") for r in runs]
             if any(a is not None for a in adjustment):
                 row["adjustment_kept"] = "/".join(str(a) for a in adjustment)
@@ -360,10 +391,10 @@ def cell_rows(
 
 COLUMNS = (
     ("estimator", "{:<9}"), ("ate", "{:7.3f}"), ("ate_x_opt", "{:6.2f}"), ("ate_aligned", "{:7.3f}"), ("lm", "{:7.3f}"), ("lm_x_opt", "{:6.2f}"),
-    ("dyn_precision", "{:6.2f}"), ("dyn_recall", "{:6.2f}"), ("dup_pct", "{:6.1f}"), ("ms_per_it", "{:7.1f}"),
+    ("dyn_precision", "{:6.2f}"), ("dyn_recall", "{:6.2f}"), ("dyn_recall_3s", "{:6.2f}"), ("dup_pct", "{:6.1f}"), ("ms_per_it", "{:7.1f}"),
     ("x_nofix", "{:6.2f}"), ("x_nofix_raw", "{:6.2f}"), ("x_fixes", "{:6.2f}"), ("x_static", "{:6.2f}"),
 )  # fmt: skip
-HEADERS = ("estimator", "ate m", "x opt", "ate al", "lm m", "x opt", "dyn P", "dyn R", "dup %", "ms/it", "x nofix", "raw", "x fixes",
+HEADERS = ("estimator", "ate m", "x opt", "ate al", "lm m", "x opt", "dyn P", "dyn R", "R 3s", "dup %", "ms/it", "x nofix", "raw", "x fixes",
            "x static")  # fmt: skip
 
 
@@ -389,7 +420,7 @@ FLOORS = (
     ("relpoint", "ate_x_opt_worst", 1.5, "max", "all"),
     ("relpoint", "lm_x_opt_worst", 1.5, "max", "all"),
     ("relpoint", "dyn_precision_worst", 0.9, "min", "movers"),
-    ("relpoint", "dyn_recall_worst", 0.9, "min", "movers"),
+    ("relpoint", "dyn_recall_3s_worst", 0.9, "min", "movers"),
     ("ekf", "x_nofix", 1.1, "max", "fixes"),
     ("ekf", "x_fixes", 1.0, "max", "fixes"),
     ("ekf", "dup_pct_worst", 1.0, "max", "movers"),
