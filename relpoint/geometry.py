@@ -158,3 +158,37 @@ def integrate_twist(T_world_a: npt.ArrayLike, linear: npt.ArrayLike, angular: np
     T[:3, :3] = T_world_a[:3, :3] @ Rotation.from_rotvec(np.asarray(angular) * dt).as_matrix()
     T[:3, 3] = T_world_a[:3, 3] + T_world_a[:3, :3] @ np.asarray(linear) * dt
     return T
+
+
+def rigid_consensus(
+    source: npt.ArrayLike, target: npt.ArrayLike, tolerance: float | npt.ArrayLike, samples: int = 64, seed: int = 0
+) -> npt.NDArray[np.bool_]:
+    """Pairs ``source[i] <-> target[i]`` (N, 3) that one rigid motion explains within ``tolerance`` (m).
+
+    RANSAC over three-pair samples (``samples`` draws from ``seed``; all fitted at once with a batched
+    SVD) keeps the motion with the most pairs within ``tolerance`` (a scalar or (N,)); it is refitted to
+    them and the pairs within ``tolerance`` of the refitted motion are returned. With fewer than six
+    pairs every pair is kept: too few to outvote.
+    """
+    source = check_points(source, "source")
+    target = check_points(target, "target")
+    n = len(source)
+    if n < 6:
+        return np.ones(n, dtype=bool)
+    tolerance = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (n,))
+    rng = np.random.default_rng(seed)
+    picks = np.stack([rng.choice(n, 3, replace=False) for _ in range(samples)])  # (S, 3)
+    a, b = source[picks], target[picks]  # (S, 3, 3)
+    ca, cb = a.mean(axis=1, keepdims=True), b.mean(axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(np.einsum("sni,snj->sij", a - ca, b - cb))
+    flip = np.linalg.det(np.einsum("sji,skj->sik", Vt, U)) < 0  # det(V U^T)
+    Vt[flip, 2] *= -1.0
+    R = np.einsum("sji,skj->sik", Vt, U)  # V U^T: takes source onto target
+    t = cb[:, 0] - np.einsum("sij,sj->si", R, ca[:, 0])
+    residual = np.linalg.norm(np.einsum("sij,nj->sni", R, source) + t[:, None] - target[None], axis=2)
+    best = int(np.argmax((residual <= tolerance).sum(axis=1)))
+    inliers = residual[best] <= tolerance
+    if inliers.sum() < 3:
+        return np.ones(n, dtype=bool)
+    fit = fit_rigid(source[inliers], target[inliers])
+    return np.linalg.norm(source @ fit.rotation.T + fit.translation - target, axis=1) <= tolerance

@@ -402,3 +402,43 @@ def test_fix_before_first_observation_places_the_start_without_alignment() -> No
     pose = ekf.step(_observe(0, (10.0, 0.0, 0.0)))
     np.testing.assert_allclose(pose.position, [5.0, -2.0, 1.0])
     np.testing.assert_allclose(ekf.covariance[:3, :3], np.eye(3))
+
+
+def test_rigid_consensus_finds_the_pairs_one_motion_does_not_explain() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from relpoint.geometry import rigid_consensus
+
+    rng = np.random.default_rng(11)
+    source = rng.uniform(-2, 2, (60, 3))
+    R = Rotation.from_rotvec([0.4, -0.3, 1.2]).as_matrix()
+    target = source @ R.T + [3.0, -1.0, 0.5] + rng.normal(0, 0.005, source.shape)
+    target[[2, 17, 40, 41]] += [0.0, 0.06, 0.0]  # four points slid 6 cm
+    keep = rigid_consensus(source, target, 0.03)
+    assert np.flatnonzero(~keep).tolist() == [2, 17, 40, 41]
+    # Per-pair tolerances: a wide one keeps its pair; too few pairs to outvote keeps them all.
+    wide = np.full(60, 0.03)
+    wide[17] = 0.1
+    assert np.flatnonzero(~rigid_consensus(source, target, wide)).tolist() == [2, 40, 41]
+    assert rigid_consensus(source[:5], target[:5] + np.array([0.0, 1.0, 0.0]), 0.03).all()
+    # The same draws give the same answer.
+    assert np.array_equal(rigid_consensus(source, target, 0.03, seed=4), rigid_consensus(source, target, 0.03, seed=4))
+
+
+def test_rigid_consensus_keeps_a_slid_keypoint_out_of_the_update() -> None:
+    # Known association (every pair passes, however far): a keypoint that jumped 40 sigma would drag the
+    # pose; the consensus leaves it out and the pose stays where the other 29 put it.
+    rng = np.random.default_rng(5)
+    world = rng.uniform([1.0, -1.0, -1.0], [3.0, 1.0, 1.0], size=(30, 3))
+    ids = np.arange(30)
+    poses = {}
+    for consensus in (True, False):
+        ekf = EkfSlam(EkfConfig(association="known", observation_sigma=0.01, rigid_consensus=consensus))
+        ekf.step(PointObservation(0, world, ids))
+        moved = world + rng.normal(0.0, 0.01, world.shape)
+        moved[7] += [0.0, 0.4, 0.0]
+        ekf.step(PointObservation(DT_NS, moved, ids))
+        poses[consensus] = ekf.pose().position
+        if consensus:
+            assert ekf.summary()["consensus_rejected"] == 1
+    assert np.linalg.norm(poses[True]) < 0.01 < np.linalg.norm(poses[False])

@@ -57,7 +57,7 @@ from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, rigid_consensus
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -66,6 +66,10 @@ logger = logging.getLogger(__name__)
 MOTION_MODELS = ("constant_velocity", "constant_position")
 ASSOCIATIONS = ("nn", "jcbb", "known")
 FIX_ALIGNMENTS = ("rigid", "none")
+
+
+#: Pairs an iteration needs for the rigid consensus (``EkfConfig.rigid_consensus``) to judge them.
+CONSENSUS_MIN_PAIRS = 6
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,14 @@ class EkfConfig(Settings):
     """A point starts a landmark only if it lies outside every landmark's gate of this probability;
     points between the two gates are discarded (a true landmark's point falls outside the 0.99 gate
     one time in a hundred, and would otherwise start a duplicate)."""
+    rigid_consensus: bool = True
+    """After association, the pairs that the rigid motion shared by most of them does not explain
+    (RANSAC, :func:`relpoint.geometry.rigid_consensus`; the tolerance is the validation gate's radius
+    over the observation noise and the landmark's own uncertainty) are left out of the update: a real
+    keypoint that slid along an edge or whose depth drifted still passes its own gate, which widens
+    with the pose uncertainty that all pairs share, and pulls the pose and map. Needs
+    ``CONSENSUS_MIN_PAIRS`` pairs: with fewer, a pair that disagrees cannot be told from a
+    consensus that is wrong."""
     mover_radius_sigmas: float = 0.0
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a
@@ -174,6 +186,8 @@ class EkfConfig(Settings):
             )
         if self.motion not in MOTION_MODELS:
             raise UsageError(f"unknown motion model {self.motion!r}", f"choose one of {', '.join(MOTION_MODELS)}")
+        if not isinstance(self.rigid_consensus, bool):
+            raise UsageError(f"rigid_consensus must be true or false, got {self.rigid_consensus!r}")
         positive = {"fix_min_spread": self.fix_min_spread}
         if self.observation_sigma is not None:
             positive["observation_sigma"] = self.observation_sigma
@@ -251,6 +265,8 @@ class EkfSlam(Estimator):
         self._id_votes: list[Counter[int]] = []
         self._known: dict[int, int] = {}
         self._stats = Counter[str]()
+        if self.config.rigid_consensus:
+            self._stats["consensus_rejected"] = 0  # pairs the rigid consensus left out (run.json)
         if self.config.association == "jcbb":
             self._stats["jcbb_gave_up"] = 0  # iterations whose search ran out of budget (run.json)
         # Fix frame (``rigid``): None once the state is in the fixes' frame (or with ``none``).
@@ -274,6 +290,8 @@ class EkfSlam(Estimator):
         points = np.asarray(observation.points)
         if len(points):
             assignment, may_start = self._associate(observation)
+            if self.config.rigid_consensus:
+                assignment = self._keep_consensus(points, assignment)
             paired = np.flatnonzero(assignment >= 0)
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
@@ -581,6 +599,27 @@ class EkfSlam(Estimator):
                     self._jcbb_gave_up()
                 assignment = np.where(local >= 0, candidates[np.maximum(local, 0)], -1)
         return assignment, may_start & (assignment < 0)
+
+    def _keep_consensus(self, points: FloatArray, assignment: np.ndarray) -> np.ndarray:
+        """``assignment`` without the pairs the rigid motion most pairs share leaves unexplained.
+
+        Each pair's tolerance is the validation gate's radius (``gate_probability``, 3 degrees of
+        freedom) over the observation noise and the landmark's own uncertainty (RMS over its axes);
+        the shared pose error is what the rigid motion absorbs. Draws are seeded by the iteration.
+        """
+        paired = np.flatnonzero(assignment >= 0)
+        if len(paired) < CONSENSUS_MIN_PAIRS:
+            return assignment
+        landmarks = assignment[paired]
+        cols = self._landmark_columns(landmarks).reshape(-1, 3)
+        P = self._P
+        landmark_variance = (P[cols[:, 0], cols[:, 0]] + P[cols[:, 1], cols[:, 1]] + P[cols[:, 2], cols[:, 2]]) / 3.0
+        tolerance = np.sqrt(self._gate * (self._R_obs[0, 0] + landmark_variance))
+        keep = rigid_consensus(points[paired], self._landmarks[landmarks], tolerance, seed=self._stats["iterations"])
+        self._stats["consensus_rejected"] += int(np.count_nonzero(~keep))
+        out = assignment.copy()
+        out[paired[~keep]] = -1
+        return out
 
     def _jcbb_gave_up(self) -> None:
         """Count an iteration whose JCBB search ran out of budget; warn the first time."""
