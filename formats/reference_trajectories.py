@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from formats import ros2
 from formats.layouts import is_log
@@ -140,6 +139,7 @@ class _Edge:
 
     def arrays(self) -> tuple[np.ndarray, FloatArray]:
         """(stamps sorted, (n, 4, 4) matrices in that order)."""
+        from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
         stamps = np.asarray(self.stamps, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         T = np.tile(np.eye(4), (len(stamps), 1, 1))
@@ -200,6 +200,7 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
     InputError
         Unknown frames, frames in different trees, a chain of static transforms only, or no poses.
     """
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     parent, child = _frame(parent), _frame(child)
     topics = [tf_topic] + ([TF_STATIC_TOPIC] if TF_STATIC_TOPIC in reader.topic_infos else [])
     if tf_topic not in reader.topic_infos:

@@ -11,7 +11,6 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -26,6 +25,7 @@ def check_points(points: npt.ArrayLike, name: str = "points") -> FloatArray:
 
 def pose_matrix(position: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> FloatArray:
     """4x4 pose from a position (3,) and a quaternion (x, y, z, w); also batched: (N,3),(N,4) -> (N,4,4)."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     position = np.asarray(position, dtype=np.float64)
     quat = np.asarray(quat_xyzw, dtype=np.float64)
     batch_shape = position.shape[:-1]
@@ -38,6 +38,7 @@ def pose_matrix(position: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> FloatArray
 
 def matrix_to_position_quat(T: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Split a pose (4,4) or poses (N,4,4) into positions (…,3) and quaternions (…,4), ``w >= 0``."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     T = np.asarray(T, dtype=np.float64)
     batch_shape = T.shape[:-2]
     quat = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat(canonical=True)
@@ -142,6 +143,7 @@ def body_twist(T_world_a: npt.ArrayLike, T_world_b: npt.ArrayLike, dt: float) ->
     ``R_b = R_a exp([w] dt)``, with ``v`` (m/s) and ``w`` (rad/s) expressed in frame ``a``.
     Also batched: poses (N, 4, 4) give velocities (N, 3).
     """
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     T_world_a = np.asarray(T_world_a, dtype=np.float64)
     T_world_b = np.asarray(T_world_b, dtype=np.float64)
     R_a_T = np.swapaxes(T_world_a[..., :3, :3], -1, -2)
@@ -153,6 +155,7 @@ def body_twist(T_world_a: npt.ArrayLike, T_world_b: npt.ArrayLike, dt: float) ->
 
 def integrate_twist(T_world_a: npt.ArrayLike, linear: npt.ArrayLike, angular: npt.ArrayLike, dt: float) -> FloatArray:
     """Pose after applying body-frame velocities ``linear`` (m/s) and ``angular`` (rad/s) for ``dt`` s."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     T_world_a = np.asarray(T_world_a, dtype=np.float64)
     T = np.eye(4)
     T[:3, :3] = T_world_a[:3, :3] @ Rotation.from_rotvec(np.asarray(angular) * dt).as_matrix()

@@ -25,9 +25,10 @@ NEED_ROLES = {"points": ("points",), "depth": ("depth", "camera_info"), "odometr
 def capabilities(available: set[str]) -> dict[str, Any]:
     """Which estimators can run and which evaluations are possible with the roles ``available``."""
     estimators = {}
-    for name, spec in sorted(ESTIMATORS.items()):
-        missing = [role for need in spec.needs for role in NEED_ROLES.get(need, (need,)) if role not in available]
-        uses = [need for need in sorted(spec.uses) if all(r in available for r in NEED_ROLES.get(need, (need,)))]
+    for name in sorted(ESTIMATORS):
+        needs, also = ESTIMATORS.inputs(name)  # without importing the estimator
+        missing = [role for need in needs for role in NEED_ROLES.get(need, (need,)) if role not in available]
+        uses = [need for need in sorted(also) if all(r in available for r in NEED_ROLES.get(need, (need,)))]
         estimators[name] = {"can_run": not missing, "missing": missing, "also_uses": uses}
     return {
         "estimators": estimators,

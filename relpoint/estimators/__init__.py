@@ -1,31 +1,85 @@
-"""Estimators behind ``relpoint run``, one module each, registered in :data:`ESTIMATORS`."""
+"""Estimators behind ``relpoint run``, one module each, registered in :data:`ESTIMATORS`.
+
+A built-in estimator's module is imported the first time its spec is asked for: what each one reads
+(:meth:`EstimatorRegistry.inputs`) and its name are known without importing it, so that ``relpoint
+info`` and ``--help`` start without scipy and numba.
+"""
 
 from __future__ import annotations
+
+import importlib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
 
+
+@dataclass(frozen=True)
+class BuiltinEstimator:
+    """Where a built-in estimator's spec lives (``module.SPEC``) and the input roles it declares there."""
+
+    module: str
+    needs: frozenset[str]
+    uses: frozenset[str] = frozenset()
+
+
+#: The built-in estimators; ``tests/test_estimators_registry.py`` checks these against each ``SPEC``.
+BUILTIN = {
+    "relpoint": BuiltinEstimator("relpoint.estimators.relative_point.estimator", frozenset({POINTS})),
+    "ekf": BuiltinEstimator("relpoint.estimators.ekf", frozenset({POINTS}), frozenset({ODOMETRY, FIX})),
+    "fastslam": BuiltinEstimator("relpoint.estimators.fastslam", frozenset({POINTS}), frozenset({ODOMETRY, FIX})),
+    "dense": BuiltinEstimator("relpoint.estimators.dense.estimator", frozenset({DEPTH}), frozenset({"color"})),
+}
+
+
+class EstimatorRegistry(Mapping[str, EstimatorSpec]):
+    """Estimator specs by name; a built-in one is imported when first asked for."""
+
+    def __init__(self) -> None:
+        self._specs: dict[str, EstimatorSpec] = {}
+
+    def __getitem__(self, name: str) -> EstimatorSpec:
+        if name not in self._specs:
+            if name not in BUILTIN:
+                raise KeyError(name)
+            self._specs[name] = importlib.import_module(BUILTIN[name].module).SPEC
+        return self._specs[name]
+
+    def __iter__(self) -> Iterator[str]:
+        yield from BUILTIN
+        yield from (name for name in self._specs if name not in BUILTIN)
+
+    def __len__(self) -> int:
+        return len(BUILTIN) + sum(1 for name in self._specs if name not in BUILTIN)
+
+    def __contains__(self, name: object) -> bool:
+        return name in BUILTIN or name in self._specs
+
+    def register(self, spec: EstimatorSpec) -> EstimatorSpec:
+        """Add (or replace) an estimator under ``spec.name``."""
+        self._specs[spec.name] = spec
+        return spec
+
+    def inputs(self, name: str) -> tuple[frozenset[str], frozenset[str]]:
+        """(input roles ``name`` needs, roles it also uses), without importing a built-in estimator."""
+        if name in self._specs:
+            return self._specs[name].needs, self._specs[name].uses
+        if name not in BUILTIN:
+            raise KeyError(name)
+        return BUILTIN[name].needs, BUILTIN[name].uses
+
+
 #: Every estimator ``relpoint run --estimator NAME`` can build, by name.
-ESTIMATORS: dict[str, EstimatorSpec] = {}
+ESTIMATORS = EstimatorRegistry()
 
 
 def register(spec: EstimatorSpec) -> EstimatorSpec:
-    """Add ``spec`` to :data:`ESTIMATORS` (called once per estimator module below)."""
-    ESTIMATORS[spec.name] = spec
-    return spec
+    """Add ``spec`` to :data:`ESTIMATORS`."""
+    return ESTIMATORS.register(spec)
 
 
 __all__ = [
-    "DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "SIMULATOR_SIGMA", "Estimator", "EstimatorSpec", "register",
+    "BUILTIN", "DEPTH", "ESTIMATORS", "FIX", "ODOMETRY", "POINTS", "SIMULATOR_SIGMA", "Estimator",
+    "EstimatorRegistry", "EstimatorSpec", "register",
 ]  # fmt: skip
-
-
-def _register_builtin() -> None:
-    from relpoint.estimators import dense, ekf, fastslam
-    from relpoint.estimators.relative_point import estimator as relative_point
-
-    for spec in (relative_point.SPEC, ekf.SPEC, fastslam.SPEC, dense.SPEC):
-        register(spec)
-
-
-_register_builtin()

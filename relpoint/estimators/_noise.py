@@ -30,7 +30,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray
@@ -69,6 +68,8 @@ def register(
     ``initial`` ``(R, t)`` (default: identity). Returns ``(R, t, residuals)`` with the trimmed pairs'
     residual lengths (m), or None when fewer than three pairs hold.
     """
+    from scipy.spatial import cKDTree  # here, not at import: scipy costs start-up time
+
     if len(first) < 3 or len(second) < 3:
         return None
     tree_first = cKDTree(first)

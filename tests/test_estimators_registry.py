@@ -1,0 +1,49 @@
+"""The estimator registry: built-in specs load on demand, their declared inputs match, and the
+commands that only look at a log start without the estimators' heavy dependencies."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from relpoint.estimators import BUILTIN, ESTIMATORS, EstimatorRegistry, EstimatorSpec
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_builtin_declarations_match_each_spec(name: str) -> None:
+    spec = ESTIMATORS[name]
+    assert isinstance(spec, EstimatorSpec) and spec.name == name
+    assert ESTIMATORS.inputs(name) == (spec.needs, spec.uses)
+
+
+def test_registry_lists_builtins_and_registered_specs_and_refuses_unknown_names() -> None:
+    registry = EstimatorRegistry()
+    assert list(registry) == list(BUILTIN) and len(registry) == len(BUILTIN)
+    extra = EstimatorSpec("extra", "a test estimator", dict, lambda config, rng: None, frozenset({"points"}))
+    registry.register(extra)
+    assert "extra" in registry and registry["extra"] is extra and list(registry)[-1] == "extra"
+    assert registry.inputs("extra") == (frozenset({"points"}), frozenset())
+    with pytest.raises(KeyError):
+        registry["nope"]
+    with pytest.raises(KeyError):
+        registry.inputs("nope")
+    assert "nope" not in registry
+
+
+def test_info_imports_no_estimator_scipy_or_numba() -> None:
+    # What `relpoint info` imports to describe a log: the registry answers from its declarations.
+    code = (
+        "import sys; sys.argv = ['relpoint', 'info', 'sample_logs/figure8.mcap', '--json']\n"
+        "from relpoint_cli.main import main\n"
+        "try:\n    main()\nexcept SystemExit as stop:\n    assert not stop.code, stop.code\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba', 'open3d', 'cv2')"
+        " or m.startswith('relpoint.estimators.') and m.split('.')[2] not in ('base', '_noise'))\n"
+        "assert not heavy, heavy\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
