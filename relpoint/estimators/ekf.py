@@ -291,7 +291,10 @@ class EkfSlam(Estimator):
         if len(points):
             assignment, may_start = self._associate(observation)
             if self.config.rigid_consensus:
-                assignment = self._keep_consensus(points, assignment)
+                kept = self._keep_consensus(points, assignment)
+                if self._movers is not None:  # a pair the consensus leaves out may be a landmark that moved
+                    may_start |= (assignment >= 0) & (kept < 0)
+                assignment = kept
             paired = np.flatnonzero(assignment >= 0)
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
