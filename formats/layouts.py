@@ -33,15 +33,11 @@ from typing import Any
 
 import yaml
 from mcap.reader import make_reader
-from rosbags.convert.converter import migrate_message
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Nodetype
 from rosbags.rosbag1 import Reader as Ros1Reader
-from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag1.reader import decompressors as ros1_decompressors
 from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Rosbag2Writer
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from formats import ros2
@@ -381,6 +377,8 @@ class MessageMigrator:
             return message
         if self.reads_alike(typename, typename):
             return message
+        from rosbags.convert.converter import migrate_message  # here: only ROS 1 logs need it
+
         return migrate_message(self._source, self._target, typename, typename, self._cache, message)
 
     def reads_alike(self, source_type: str, target_type: str) -> bool:
@@ -474,6 +472,8 @@ def _write_mcap(messages: list[RawMessage], target: Path) -> None:
 
 
 def _write_ros1(messages: list[RawMessage], target: Path, compression: str) -> None:
+    from rosbags.rosbag1 import Writer as Ros1Writer  # writers: imported when writing, not to read
+
     noetic = get_typestore(Stores.ROS1_NOETIC)
     migrate = MessageMigrator(ros2.typestore(), noetic)
     writer = Ros1Writer(target)
@@ -493,6 +493,9 @@ def _write_ros1(messages: list[RawMessage], target: Path, compression: str) -> N
 
 
 def _write_rosbag2(messages: list[RawMessage], target: Path, spec: LayoutSpec) -> None:
+    from rosbags.rosbag2 import Writer as Rosbag2Writer  # writers: imported when writing, not to read
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
     plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[spec.storage]
     parts = max(1, min(spec.files, len(messages)))
     bounds = [round(k * len(messages) / parts) for k in range(parts + 1)]

@@ -2,13 +2,25 @@
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("relpoint")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-    __version__ = "0.0.0+unknown"
+from functools import cache
 
 from relpoint.errors import EstimatorError, InputError, RelpointError, UsageError
+
+
+@cache
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version  # 30-40 ms: only when asked
+
+    try:
+        return version("relpoint")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+        return "0.0.0+unknown"
+
+
+def __getattr__(name: str) -> str:
+    """``relpoint.__version__``, read from the installed metadata the first time it is asked for."""
+    if name == "__version__":
+        return _installed_version()
+    raise AttributeError(f"module 'relpoint' has no attribute {name!r}")
 
 __all__ = ["EstimatorError", "InputError", "RelpointError", "UsageError", "__version__"]

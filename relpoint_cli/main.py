@@ -11,7 +11,6 @@ from typing import Any
 
 import click
 
-import relpoint
 from relpoint_cli.errors import EXIT_INTERRUPTED, EXIT_USAGE, quiet_broken_pipe
 
 EPILOG = """\b
@@ -124,7 +123,7 @@ class _Formatter(logging.Formatter):
 @click.group(
     cls=RelpointGroup, epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100}
 )
-@click.version_option(relpoint.__version__, prog_name="relpoint")
+@click.version_option(package_name="relpoint", prog_name="relpoint")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars or warnings.")
 @click.option("-v", "--verbose", is_flag=True, help="Debug logging (and tracebacks of internal errors).")
 @click.pass_context
