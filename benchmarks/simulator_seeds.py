@@ -7,7 +7,7 @@ moving ones left out. Shows how a change moves the figures seed by seed, where o
 Usage::
 
     python benchmarks/simulator_seeds.py [--estimator relpoint] [--dynamic 0.3] [--seeds 1 2 3]
-        [--iterations 900] [--param KEY=VALUE ...]
+        [--iterations N] [--param KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--estimator", default="relpoint", choices=sorted(ESTIMATORS))
     parser.add_argument("--dynamic", type=float, default=0.0, help="share of moving landmarks")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    parser.add_argument("--iterations", type=int, default=900)
+    parser.add_argument("--iterations", type=int, default=None, help="default: the whole path (996 on the figure eight)")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
     spec = ESTIMATORS[args.estimator]
