@@ -496,8 +496,11 @@ class RelativePointEstimator(Estimator):
         repeated without them (:meth:`_flag_disagreeing`). Then each iteration's pose is fitted
         again, as :meth:`_locate` fitted it, from
         the observations it kept (``relocate_points``) to the adjusted global positions. An iteration
-        that cannot be fitted again (too few of its points still mapped) keeps the correction of the
-        nearest iteration before it. ``trajectory`` holds the poses :meth:`step` returned.
+        that cannot be fitted again (too few of its points still mapped), or whose fit moves it unlike
+        its neighbours (:func:`.adjustment.inconsistent_relocations`), keeps the correction of the
+        nearest iteration before it; then every iteration takes the median correction of the fitted
+        iterations within ``RELOCATION_WINDOW`` (:func:`.adjustment.smooth_corrections`).
+        ``trajectory`` holds the poses :meth:`step` returned.
 
         The result is checked against the incremental solution on the log's own observations
         (:meth:`_support_residual`): if the adjusted map and poses place them more than
