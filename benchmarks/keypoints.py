@@ -13,7 +13,8 @@ their depth; read from there, never copied into the repository). Printed:
   settings and with the settings passed as ``--best-*`` (the best found by hand, see docs/keypoints.md),
   beside a **reference**: a plain frame-to-map rigid fit that is given the true track ids (RANSAC over
   three-point samples, then Kabsch on the inliers, against the mean world position of each id so far);
-- the share of the static kitchen that Relative Point flags dynamic.
+- the share of the static kitchen that Relative Point flags dynamic, and how many points each of its
+  tests flagged.
 
 Starry Night (``../shared/data/starry-night``, with its odometry as ``relpoint run`` uses it): ATE of
 the three point estimators with the default settings; ``--scale-free off`` runs them with the noise fixed at the simulator's 0.3 m (the settings
@@ -224,6 +225,9 @@ def report_runs(
         noise = summary.get("observation_sigma") or params.get("observation_sigma") or float("nan")
         print(f"{name:10} {kind:10} {ate(truth, result.trajectory):8.4f} {1000 * np.median(result.seconds):9.2f} "
               f"{noise:8.4f} {flagged:8.1%}  {params or ''}", flush=True)  # fmt: skip
+        witnesses = {key[len("dynamic_by_"):]: value for key, value in summary.items() if key.startswith("dynamic_by_")}
+        if witnesses:
+            print(f"{'':21} points flagged by test: {witnesses}", flush=True)
         if scatter and len(landmarks) and landmarks.dynamic is not None and landmarks.gt_id is not None:
             spread = np.array([scatter.get(int(i), np.nan) for i in landmarks.gt_id])
             good, bad = spread <= 0.02, spread > 0.05

@@ -153,7 +153,9 @@ def test_fastslam_short_run_with_fixes_ends_closer_to_truth(variant: str, bound:
     # Measured over seeds 1-3 (10 particles with fixes, 5 without, pinned at iteration 121): 2.0 ends
     # 1.5-1.8 m from the truth with fixes, 27-28 m without; 1.0 ends 7.0-15.1 m off (median 11.9; 45-58 m
     # without): its motion-model proposal turns the map in a way the fixes correct only slowly. One seed
-    # alone is a coin toss for 1.0 (7-15 m over seeds 1-5), so the bound is on the median.
+    # alone is a coin toss for 1.0 (7-15 m over seeds 1-5; the ratio to the run without fixes 0.15-0.56
+    # over seeds 1-3 as the linear algebra rounds on one machine or another), so both bounds are on the
+    # median over the seeds.
     steps = _gaps(140)
     finals, ratios = [], []
     for seed in (1, 2, 3):
@@ -164,7 +166,7 @@ def test_fastslam_short_run_with_fixes_ends_closer_to_truth(variant: str, bound:
         finals.append(with_fixes[-1])
         ratios.append(with_fixes[-1] / without[-1])
     assert np.median(finals) < bound, finals
-    assert max(ratios) < ratio, ratios
+    assert np.median(ratios) < ratio, ratios
 
 
 def test_fastslam_ignores_fixes_when_told() -> None:

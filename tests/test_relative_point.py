@@ -126,7 +126,11 @@ def test_dynamic_points_are_flagged_and_kept_out_of_the_static_map() -> None:
     assert np.count_nonzero(flagged & truly) / np.count_nonzero(flagged) >= 0.8  # precision
     assert np.count_nonzero(flagged & truly) / np.count_nonzero(truly) >= 0.7  # recall
     assert np.sqrt(np.mean(static_landmark_errors(simulation, estimator) ** 2)) < NOISE
-    assert estimator.summary()["landmarks_dynamic"] == np.count_nonzero(flagged)
+    summary = estimator.summary()
+    assert summary["landmarks_dynamic"] == np.count_nonzero(flagged)
+    # Every flag is counted under the test that raised it.
+    witnesses = [key for key in summary if key.startswith("dynamic_by_")]
+    assert len(witnesses) == 6 and sum(summary[key] for key in witnesses) == summary["dynamic_flagged"] > 0
 
 
 def test_duplicated_point_is_merged_back() -> None:
@@ -158,7 +162,7 @@ def test_false_alarm_is_reabsorbed_when_the_point_returns() -> None:
             live = store.live_ids()
             keep = live[store.pos_weight[live] > 0]
             (row,) = keep[estimator.landmark_map().gt_id == 5]
-            estimator._flag_dynamic(np.array([row]))
+            estimator._flag_dynamic(np.array([row]), "references")
             assert estimator.landmark_map().dynamic[estimator.landmark_map().gt_id == 5].tolist() == [True]
     landmarks = estimator.landmark_map()
     assert estimator.summary()["reabsorbed"] == 1

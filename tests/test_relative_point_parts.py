@@ -21,6 +21,7 @@ from relpoint.estimators.relative_point.dynamics import (
     deviation_to_references,
     gap_threshold,
     row_nanmedian,
+    tail_bound,
     world_block_deviation,
 )
 from relpoint.estimators.relative_point.estimator import quaternion_xyzw
@@ -306,6 +307,23 @@ def test_dynamic_threshold_never_falls_below_the_noise_floor() -> None:
     # The floor does not hide a point that moves well beyond it.
     tracks[0] += np.linspace(0, 0.5, 40)[:, None] * [1, 0, 0]
     assert detect_dynamic(tracks, floor=3 * np.sqrt(2) * 0.015).static.tolist() == [False] + [True] * 23
+
+
+def test_tail_bound_widens_with_heavy_tails_and_holds_against_a_minority_of_movers() -> None:
+    rng = np.random.default_rng(7)
+    # Deviations of static points under white noise: chi-like, narrow on a log scale.
+    white = np.sqrt(rng.chisquare(7, 400) / 7)
+    # The same with a heavy tail (Student t with 2 degrees of freedom, as tracker slips give).
+    heavy = np.abs(rng.standard_t(2, 400)) + 0.2
+    assert 1.5 < tail_bound(white, 3.0) / np.median(white) < 2.5
+    assert tail_bound(heavy, 3.0) / np.median(heavy) > 1.5 * tail_bound(white, 3.0) / np.median(white)
+    # A tenth of movers far above the bulk widens it a little, and stays far above it.
+    movers = np.concatenate([white, np.full(40, 20.0)])
+    assert tail_bound(movers, 3.0) < 1.25 * tail_bound(white, 3.0) < 20.0 / 4
+    # Too few values, no finite ones, or no sigmas: no bound.
+    assert tail_bound(white[:5], 3.0) == 0.0
+    assert tail_bound(np.full(20, np.nan), 3.0) == 0.0
+    assert tail_bound(white, 0.0) == 0.0
 
 
 def test_required_support_grows_with_chance_agreement() -> None:
