@@ -234,6 +234,15 @@ def report_runs(
             print(f"{'':21} flagged dynamic: {np.mean(landmarks.dynamic[good]):.1%} of {good.sum()} landmarks of "
                   f"well-tracked corners (scatter <= 2 cm), {np.mean(landmarks.dynamic[bad]):.1%} of {bad.sum()} "
                   f"of badly tracked ones (> 5 cm)", flush=True)  # fmt: skip
+            static_ids = set(landmarks.gt_id[~landmarks.dynamic].tolist())
+            dynamic_ids = set(landmarks.gt_id[landmarks.dynamic].tolist()) - static_ids
+            for label, tracks in (("well-tracked", [t for t, v in scatter.items() if v <= 0.02]),
+                                  ("badly tracked", [t for t, v in scatter.items() if v > 0.05])):  # fmt: skip
+                mapped_static = np.mean([t in static_ids for t in tracks])
+                mapped_dynamic = np.mean([t in dynamic_ids for t in tracks])
+                print(f"{'':21} of the {len(tracks)} {label} corners seen 5 times or more: {mapped_static:.1%} mapped "
+                      f"static, {mapped_dynamic:.1%} dynamic, {1 - mapped_static - mapped_dynamic:.1%} not in the map",
+                      flush=True)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

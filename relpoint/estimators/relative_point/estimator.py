@@ -43,6 +43,10 @@ Choices the paper leaves open, and where this implementation adds to it:
   about its square root, slow movers kept), and has a third witness: the scatter of the point's
   block-mean positions in ``world`` through the poses of their iterations, which sees motion in
   every direction (``dynamic_world_factor``).
+* A flagged point leaves the static map and every fit, but it is reported as a dynamic landmark only
+  where the value that flagged it stands out of the bulk of the values judged with it
+  (``dynamic_tail_sigmas``); the others are left out of the map as unreliable: a real sensor's
+  heavy-tailed error makes static points cross the factors now and then.
 * Group fits and the current position re-seed from the best three-point fit among the heaviest
   pairs (a deterministic RANSAC) when several pairs lie beyond ``consensus_bound``.
 * Least-squares fits weight each anchor by the iterations averaged into its global position over
@@ -85,6 +89,7 @@ from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
+    distance_deviation,
     tail_bound,
     world_block_deviation,
 )
@@ -148,9 +153,9 @@ class RelativePointConfig(Settings):
         "about the noise over this distance. Too large for the scene and no group forms.",
         "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view, "
         "never below what observation_sigma explains (dynamic_noise_floor).",
-        "dynamic_tail_sigmas": "0 by default. On a real sensor whose error is heavy-tailed, 3 flags far fewer static "
-        "points (each test also waits until a value stands out of the bulk of those judged with it) at some cost "
-        "in accuracy: the points it spares are the ones that fit worst.",
+        "dynamic_tail_sigmas": "which flagged points are reported dynamic: those that stand out of the bulk of the "
+        "points judged with them; the others are left out of the map as unreliable (a real sensor's heavy-tailed "
+        "error crosses the factors now and then). 0 reports every flagged point.",
         "loop_search, loop_ambiguity": "loop closure beyond global matching: the largest drift looked for, and how "
         "clearly one offset must lead (a repeating scene offers several).",
     }
@@ -275,16 +280,16 @@ class RelativePointConfig(Settings):
     """A point whose deviation against the references is at most this times theirs is verified static."""
     dynamic_moving_factor: float = 2.0
     """A point whose deviation against the references exceeds this times theirs is dynamic."""
-    dynamic_tail_sigmas: float = 0.0
-    """With a value above 0, the sweep's three witnesses and the final adjustment's disagreement test
-    flag a point only where its value also stands out of the bulk of the values judged with it: this
-    many robust standard deviations above their median on a log scale (see
-    :func:`~relpoint.estimators.relative_point.dynamics.tail_bound`). On white noise the factors bind;
-    on a real sensor's heavy-tailed error the bulk of the static points does. On 7-Scenes keypoints
-    3 halves the share of well-tracked corners flagged, but the points it keeps are those whose
-    tracks fit worst and the ATE grows by about an eighth (docs/keypoints.md), and on the simulator's
-    crowded scenes the movers widen the bulk and recall drops (0.69 to 0.63 over eight cells), so it
-    is off by default."""
+    dynamic_tail_sigmas: float = 3.0
+    """Which flagged points are reported as *dynamic* landmarks. Every point a dynamic test flags
+    leaves the static map, the global index and every fit; it is reported dynamic only where the
+    value that flagged it also stands out of the bulk of the values judged with it, by this many
+    robust standard deviations above their median on a log scale (see
+    :func:`~relpoint.estimators.relative_point.dynamics.tail_bound`). The other flagged points are
+    left out of the map as *unreliable* (``landmarks_unreliable`` in the summary): on a real
+    sensor's heavy-tailed error a static point crosses the factors now and then, and on 7-Scenes
+    keypoints 42 % of the well-tracked corners' landmarks were reported moving with the factors
+    alone, 8 % with this bound, at the same ATE. 0 reports every flagged point as dynamic."""
     dynamic_noise_floor: float = 1.0
     """The noise level the dynamic tests scale (the references' deviation in the sweep, the binning's
     threshold) is at least this times what ``observation_sigma`` gives two static points (``sqrt(2)
@@ -641,9 +646,11 @@ class RelativePointEstimator(Estimator):
         if factor <= 0 or len(judged) == 0:
             return np.zeros(0, np.int64)
         spread = store.spread(judged)
-        bound = max(factor * _median(spread), tail_bound(spread, self.config.dynamic_tail_sigmas))
-        flagged = judged[spread > bound]
-        self._flag_dynamic(flagged, "adjustment")
+        bound = factor * _median(spread)
+        outside = spread > bound
+        flagged = judged[outside]
+        moving = spread[outside] > max(bound, tail_bound(spread, self.config.dynamic_tail_sigmas))
+        self._flag_dynamic(flagged, "adjustment", moving)
         return flagged
 
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
@@ -718,7 +725,7 @@ class RelativePointEstimator(Estimator):
         """Mapped points (static: least-squares global position) and dynamic points (mean position)."""
         store = self.store
         live = store.live_ids()
-        keep = live[(store.pos_weight[live] > 0) | store.dynamic[live]]
+        keep = live[self._reported(live)]
         if len(keep) == 0:
             return LandmarkMap.empty()
         positions = store.positions(keep)
@@ -729,18 +736,23 @@ class RelativePointEstimator(Estimator):
         known = bool(np.any(gt_id >= 0))
         return LandmarkMap(positions, n_obs, dynamic, gt_id, np.clip(purity, 0.0, 1.0) if known else None)
 
+    def _reported(self, ids: IntArray) -> npt.NDArray[np.bool_]:
+        """Which points the map reports: static mapped points and points flagged as moving."""
+        store = self.store
+        return np.where(store.dynamic[ids], store.moving[ids], store.pos_weight[ids] > 0)
+
     def landmark_purity(self) -> FloatArray:
         """Share of each landmark's observations carrying its ``gt_id`` (M,), in :meth:`landmark_map` order."""
         store = self.store
         live = store.live_ids()
-        keep = live[(store.pos_weight[live] > 0) | store.dynamic[live]]
+        keep = live[self._reported(live)]
         return self.tally.majority(store.uid[keep])[1]
 
     @property
     def map_size(self) -> int:
         store = self.store
         n = store.high_water
-        return int(np.count_nonzero(store.alive[:n] & ((store.pos_weight[:n] > 0) | store.dynamic[:n])))
+        return int(np.count_nonzero(store.alive[:n] & self._reported(np.arange(n))))
 
     def summary(self) -> dict[str, Any]:
         store = self.store
@@ -751,7 +763,8 @@ class RelativePointEstimator(Estimator):
             **self.counts,
             "points": int(np.count_nonzero(alive)),
             "landmarks_static": int(np.count_nonzero(alive & (store.pos_weight[:n] > 0) & ~store.dynamic[:n])),
-            "landmarks_dynamic": int(np.count_nonzero(alive & store.dynamic[:n])),
+            "landmarks_dynamic": int(np.count_nonzero(alive & store.dynamic[:n] & store.moving[:n])),
+            "landmarks_unreliable": int(np.count_nonzero(alive & store.dynamic[:n] & ~store.moving[:n])),
             "groups": len(self.groups),
             "groups_created": self.groups.created,
             "groups_removed": self.groups.removed,
@@ -1039,7 +1052,7 @@ class RelativePointEstimator(Estimator):
         members = candidates[rows]
         iterations = first + np.flatnonzero(interval)
         observations, _ = store.observations(members, iterations)
-        moving, verified = self._detect_dynamic(k, members, observations, len(iterations))
+        moving, beyond, verified = self._detect_dynamic(k, members, observations, len(iterations))
         if len(moving):
             keep = ~np.isin(members, moving)
             members, observations = members[keep], observations[keep]
@@ -1070,7 +1083,7 @@ class RelativePointEstimator(Estimator):
         newly_mapped = members[~store.mapped(members)]
         if not self.groups.add(group):
             return False
-        self._flag_dynamic(moving, "grouping")
+        self._flag_dynamic(moving, "grouping", beyond)
         store.verified[verified] = k
         self._newly_mapped.append(newly_mapped)
         if group.kind == FIRST:
@@ -1082,22 +1095,43 @@ class RelativePointEstimator(Estimator):
 
     def _detect_dynamic(
         self, k: int, members: IntArray, observations: FloatArray, interval: int
-    ) -> tuple[IntArray, IntArray]:
-        """Dynamic detection before a group is final (paper II-C): (moving ids, ids verified static).
+    ) -> tuple[IntArray, npt.NDArray[np.bool_], IntArray]:
+        """Dynamic detection before a group is final (paper II-C).
 
-        Runs over the group's interval when it is at least ``dynamic_min_iterations`` long (first
-        groupings are shorter; their points are judged by :meth:`_dynamic_sweep` before they serve
-        as basis or anchors).
+        Returns the ids found moving, whether each stands out of the bulk (:meth:`_beyond_bulk`)
+        and the ids verified static. Runs over the group's interval when it is at least
+        ``dynamic_min_iterations`` long (first groupings are shorter; their points are judged by
+        :meth:`_dynamic_sweep` before they serve as basis or anchors).
         """
         config = self.config
         none = np.zeros(0, np.int64)
         if not config.dynamic_detection or interval < config.dynamic_min_iterations:
-            return none, none
+            return none, np.zeros(0, bool), none
         result = detect_dynamic(observations, gap_ratio=config.dynamic_gap_ratio, floor=self._pair_noise(1))
         self.counts["dynamic_comparisons"] += result.comparisons
         if not result.decided:
-            return none, none
-        return members[~result.static], members[result.static]
+            return none, np.zeros(0, bool), none
+        beyond = self._beyond_bulk(observations, result.static, result.threshold)
+        return members[~result.static], beyond, members[result.static]
+
+    def _beyond_bulk(self, observations: FloatArray, static: npt.NDArray[np.bool_], threshold: float) -> npt.NDArray[np.bool_]:
+        """Which points outside the binning's static majority stand out of the bulk (one per such point).
+
+        Every point's distance deviation (m) against up to ``dynamic_references`` members of the
+        majority (median) is compared with :func:`.tail_bound` of all of them: a point beyond both
+        it and the binning's ``threshold`` is reported moving; the rest of those the binning put
+        outside are only left out (see ``dynamic_tail_sigmas``). ``observations`` is (M, L, 3).
+        """
+        outside = np.flatnonzero(~static)
+        if len(outside) == 0 or self.config.dynamic_tail_sigmas <= 0:
+            return np.ones(len(outside), bool)
+        references = np.flatnonzero(static)[: self.config.dynamic_references]
+        everyone = np.arange(len(observations))
+        deviation = np.median(
+            [distance_deviation(observations, np.full(len(everyone), r), everyone) for r in references], axis=0
+        )
+        self.counts["dynamic_comparisons"] += len(everyone) * len(references)
+        return deviation[outside] > max(threshold, tail_bound(deviation, self.config.dynamic_tail_sigmas))
 
     def _pair_noise(self, block: int) -> float:
         """Smallest noise level (m) the dynamic tests assume for the distance between two static points.
@@ -1152,7 +1186,9 @@ class RelativePointEstimator(Estimator):
                 # A short window shows fast movers, but it is too short to vouch for the rest.
                 if length == window:
                     store.verified[full[result.static]] = k
-                self._flag_dynamic(full[~result.static], "binning")
+                self._flag_dynamic(
+                    full[~result.static], "binning", self._beyond_bulk(tracks, result.static, result.threshold)
+                )
             return
         references = verified[np.argsort(store.run_start[verified], kind="stable")[: config.dynamic_references]]
         tracks, valid = store.observations(tested, np.arange(start, k + 1))
@@ -1181,10 +1217,12 @@ class RelativePointEstimator(Estimator):
         spread_ratio = spread / typical if np.isfinite(typical) and typical > 0 else np.full(len(tested), np.nan)
         judged = np.isfinite(deviation)
         tail = config.dynamic_tail_sigmas
-        moving_bound = max(config.dynamic_moving_factor * noise, tail_bound(deviation, tail))
-        spread_bound = max(config.dynamic_spread_factor, tail_bound(spread_ratio, tail))
-        by_references = judged & (deviation > moving_bound)
-        by_spread = np.isfinite(spread_ratio) & (spread_ratio > spread_bound)
+        by_references = judged & (deviation > config.dynamic_moving_factor * noise)
+        by_spread = np.isfinite(spread_ratio) & (spread_ratio > config.dynamic_spread_factor)
+        # Reported moving (not only left out) where a witness's value also stands out of the bulk.
+        beyond = (judged & (deviation > tail_bound(deviation, tail))) | (
+            np.isfinite(spread_ratio) & (spread_ratio > tail_bound(spread_ratio, tail))
+        )
         by_world = np.zeros(len(tested), bool)
         if config.dynamic_world_factor > 0:
             # Third witness: scatter of the point's block-mean world positions within its current
@@ -1196,8 +1234,8 @@ class RelativePointEstimator(Estimator):
             typical_scatter = _finite_median(scatter)
             if np.isfinite(typical_scatter) and typical_scatter > 0:
                 world_ratio = scatter / typical_scatter
-                world_bound = max(config.dynamic_world_factor, tail_bound(world_ratio, tail))
-                by_world = np.isfinite(world_ratio) & (world_ratio > world_bound)
+                by_world = np.isfinite(world_ratio) & (world_ratio > config.dynamic_world_factor)
+                beyond |= np.isfinite(world_ratio) & (world_ratio > tail_bound(world_ratio, tail))
                 static_ok = ~(world_ratio > config.dynamic_verify_factor)  # NaN: no objection
             else:
                 static_ok = np.ones(len(tested), bool)
@@ -1211,9 +1249,9 @@ class RelativePointEstimator(Estimator):
         # Verification is current: a point that no longer passes loses it until it passes again.
         store.verified[tested[judged & ~static]] = -1
         store.verified[tested[static]] = k
-        self._flag_dynamic(tested[by_references], "references")
-        self._flag_dynamic(tested[by_spread], "spread")
-        self._flag_dynamic(tested[by_world], "world")
+        self._flag_dynamic(tested[by_references], "references", beyond[by_references])
+        self._flag_dynamic(tested[by_spread], "spread", beyond[by_spread])
+        self._flag_dynamic(tested[by_world], "world", beyond[by_world])
 
     def _choose_basis(self, members: IntArray, points: FloatArray) -> tuple[int, int, int] | None:
         """Basis rows of ``members``: among points verified static when they allow one, else among all."""
@@ -1228,13 +1266,17 @@ class RelativePointEstimator(Estimator):
     def _no_anchor_in_view(self, candidates: IntArray) -> bool:
         return int(np.count_nonzero(self.store.mapped(candidates) & ~self.store.dynamic[candidates])) < 3
 
-    def _flag_dynamic(self, ids: IntArray, witness: str) -> None:
-        """Mark points as moving: they leave the static map, the global index and future fits.
+    def _flag_dynamic(self, ids: IntArray, witness: str, moving: npt.NDArray[np.bool_] | None = None) -> None:
+        """Flag points: they leave the static map, the global index and future fits.
 
-        ``witness`` names the test that flagged them (counted as ``dynamic_by_<witness>``).
+        ``witness`` names the test that flagged them (counted as ``dynamic_by_<witness>``);
+        ``moving`` (one per id, default all) says which are reported as dynamic landmarks, the
+        others being left out of the map as unreliable (see ``dynamic_tail_sigmas``).
         """
-        fresh = ids[~self.store.dynamic[ids]]
+        fresh_mask = ~self.store.dynamic[ids]
+        fresh = ids[fresh_mask]
         self.store.dynamic[fresh] = True
+        self.store.moving[fresh] = True if moving is None else np.asarray(moving, bool)[fresh_mask]
         self.index.remove(fresh)
         self.counts["dynamic_flagged"] += len(fresh)
         self.counts[f"dynamic_by_{witness}"] += len(fresh)
@@ -1307,6 +1349,7 @@ class RelativePointEstimator(Estimator):
                 taken.add(older)
                 self._merge(older, newer, k)
                 store.dynamic[older] = False
+                store.moving[older] = False
                 ids[ids == newer] = older
                 self.counts["reabsorbed"] += 1
                 break

@@ -53,7 +53,11 @@ class PointStore:
         the current unbroken run of observations.
     n_obs: (C,) int64, observations fused (survives the ring).
     alive: (C,) bool, the row holds a point.
-    dynamic: (C,) bool, judged to move (paper II-C dynamic detection).
+    dynamic: (C,) bool, flagged by dynamic detection (paper II-C): left out of the static map, the
+        global index and every fit.
+    moving: (C,) bool, flagged with evidence beyond the bulk of the points judged with it: reported
+        as a dynamic landmark (a point ``dynamic`` but not ``moving`` is left out of the map as
+        unreliable).
     pos_sum, pos_weight: (C, 3), (C,), weighted sum of the global positions the point's groups give it
         and the sum of weights: the least-squares combination of several groups is ``pos_sum / pos_weight``.
     pos_sq: (C,), weighted sum of the squared norms of those positions, for their spread.
@@ -81,6 +85,7 @@ class PointStore:
         self.n_obs = np.zeros(0, np.int64)
         self.alive = np.zeros(0, bool)
         self.dynamic = np.zeros(0, bool)
+        self.moving = np.zeros(0, bool)
         self.pos_sum = np.zeros((0, 3))
         self.pos_weight = np.zeros(0)
         self.pos_sq = np.zeros(0)
@@ -111,6 +116,7 @@ class PointStore:
         self.n_obs = pad(self.n_obs, 0)
         self.alive = pad(self.alive, False)
         self.dynamic = pad(self.dynamic, False)
+        self.moving = pad(self.moving, False)
         self.pos_sum = pad(self.pos_sum, 0.0)
         self.pos_weight = pad(self.pos_weight, 0.0)
         self.pos_sq = pad(self.pos_sq, 0.0)
@@ -147,6 +153,7 @@ class PointStore:
         for name in ("n_obs", "n_groups", "n_later_groups", "pos_weight", "pos_sq"):
             getattr(self, name)[ids] = 0
         self.dynamic[ids] = False
+        self.moving[ids] = False
         self.pos_sum[ids] = 0.0
         self.world_sum[ids] = 0.0
         self._free.extend(int(i) for i in ids)
@@ -230,4 +237,5 @@ class PointStore:
         self.n_obs[older] += self.n_obs[newer]
         self.world_sum[older] += self.world_sum[newer]
         self.dynamic[older] |= self.dynamic[newer]
+        self.moving[older] |= self.moving[newer]
         self.verified[older] = max(self.verified[older], self.verified[newer])
