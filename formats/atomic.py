@@ -104,6 +104,25 @@ def atomic_directory(path: str | os.PathLike[str], command: str = "run") -> Iter
             shutil.rmtree(old, ignore_errors=True)
 
 
+def remove_temporaries(path: str | os.PathLike[str]) -> int:
+    """Remove what :func:`atomic_path` and :func:`atomic_directory` leave beside ``path`` when their
+    process is killed before it can unwind: ``.NAME.*.tmp`` files and ``.NAME.*.partial`` directories.
+
+    For a caller whose workers were killed (a cancelled batch). The ``.NAME.*.old`` directory, which
+    holds a previous output while it is being replaced, is kept. Returns how many were removed.
+    """
+    target = resolve_output(path)
+    removed = 0
+    for pattern in (f".{target.name}.*.tmp", f".{target.name}.*.partial"):
+        for leftover in target.parent.glob(pattern):
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover, ignore_errors=True)
+            else:
+                leftover.unlink(missing_ok=True)
+            removed += 1
+    return removed
+
+
 def _is_write_error(error: OSError, tmp: Path) -> bool:
     """Whether an error met while a body wrote into ``tmp`` is the output's (not an input's)."""
     if error.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG):

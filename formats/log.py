@@ -201,6 +201,8 @@ class LogReader:
         self.layout = detect_layout(self.path)
         check_storage(self.path, self.layout)
         self._scratch: tempfile.TemporaryDirectory[str] | None = None
+        # Opening parses every message definition; the channel pass hands its reader to the next pass.
+        self._spare: AnyReader | None = None
         compressed = self.layout is Layout.ROSBAG2 and self.storage().compression_mode == "file"
         self._read_path = self._decompressed() if compressed else self.path
         self._channels = self._read_channels()
@@ -220,6 +222,10 @@ class LogReader:
     # -- summary ---------------------------------------------------------------------------------
 
     def _open(self) -> AnyReader:
+        """An open reader of the log; the next pass takes the one the channel pass left open."""
+        if self._spare is not None:
+            reader, self._spare = self._spare, None
+            return reader
         reader = open_reader(self._read_path)
         try:
             reader.open()
@@ -257,9 +263,12 @@ class LogReader:
                     counts[connection.topic], first.get(connection.topic), last.get(connection.topic),
                 )  # fmt: skip
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, self.layout, error) from None
-        finally:
             reader.close()
+            raise _corrupt(self.path, self.layout, error) from None
+        except BaseException:
+            reader.close()
+            raise
+        self._spare = reader
         return topics
 
     def _check_counts(self, reader: AnyReader, counts: Counter[str]) -> None:

@@ -204,3 +204,17 @@ def test_import_never_writes_over_the_dataset_or_a_foreign_log(tmp_path: Path) -
     assert invoke("import", "7scenes", str(folder), "-o", str(ours))[0] == 0
     assert invoke("import", "7scenes", str(folder), "-o", str(ours))[0] == 0  # relpoint's own: replaced
     assert tree(folder) == dataset
+
+
+def test_temporaries_of_a_killed_writer_are_removed_and_nothing_else(tmp_path: Path) -> None:
+    from formats.atomic import remove_temporaries
+
+    (tmp_path / ".job.k3x.partial").mkdir()
+    (tmp_path / ".job.k3x.partial" / "trajectory.tum").write_text("0 0 0 0 0 0 0 1\n")
+    (tmp_path / ".job.q7.tmp").write_text("half")
+    (tmp_path / ".job.z1.old").mkdir()  # a previous output being replaced: kept
+    (tmp_path / ".other.k3x.partial").mkdir()  # another target's
+    (tmp_path / "job").mkdir()
+    assert remove_temporaries(tmp_path / "job") == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".job.z1.old", ".other.k3x.partial", "job"]
+    assert remove_temporaries(tmp_path / "job") == 0
