@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import cache
+from typing import Any
 
 from relpoint.errors import EstimatorError, InputError, RelpointError, UsageError
 
@@ -17,10 +18,16 @@ def _installed_version() -> str:
         return "0.0.0+unknown"
 
 
-def __getattr__(name: str) -> str:
-    """``relpoint.__version__``, read from the installed metadata the first time it is asked for."""
+def __getattr__(name: str) -> Any:
+    """``relpoint.__version__``, read from the installed metadata the first time it is asked for;
+    ``relpoint.run`` and ``relpoint.evaluate``, the Python API, from the application layer
+    (:mod:`relpoint_app`, which reads and writes files; this package itself never does)."""
     if name == "__version__":
         return _installed_version()
+    if name in ("run", "evaluate"):
+        import relpoint_app
+
+        return getattr(relpoint_app, name)
     raise AttributeError(f"module 'relpoint' has no attribute {name!r}")
 
-__all__ = ["EstimatorError", "InputError", "RelpointError", "UsageError", "__version__"]
+__all__ = ["EstimatorError", "InputError", "RelpointError", "UsageError", "__version__", "evaluate", "run"]

@@ -46,8 +46,8 @@ from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
 from relpoint.simulation import simulate
+from relpoint_app.runner import execute_run
 from relpoint_cli.evaluate import write_json
-from relpoint_cli.run import execute_run
 
 log = logging.getLogger(__name__)
 

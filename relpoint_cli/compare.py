@@ -31,8 +31,9 @@ from formats.plots import PLOT_FORMATS, comparison_plot
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation, table_keys, unique_labels
+from relpoint_app.evaluator import evaluate_files
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.evaluate import evaluate_files, run_estimator
+from relpoint_cli.evaluate import run_estimator
 from relpoint_cli.options import overwrite_option, read_paths
 
 log = logging.getLogger(__name__)

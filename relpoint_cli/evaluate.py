@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,15 +23,7 @@ from formats.evo_results import ape_result, rpe_result, write_evo_result
 from formats.outputs import check_output_file, register_csv_header
 from formats.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from formats.ply import read_ply
-from formats.reference_trajectories import (
-    check_index_pairing,
-    is_index_stamped,
-    load_ground_truth_landmarks,
-    load_landmark_map,
-    load_trajectory,
-)
-from formats.tables import read_map_history_csv
-from relpoint.errors import GateExceeded, InputError, UsageError
+from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
     STATISTICS,
     AlignMode,
@@ -40,12 +31,9 @@ from relpoint.evaluation import (
     EvaluationResult,
     EvaluationSettings,
     PoseRelation,
-    evaluate_trajectory,
-    landmark_metrics,
 )
 from relpoint.evaluation.dense import dense_metrics
-from relpoint.evaluation.evaluate import frame_mismatch
-from relpoint.types import GroundTruthLandmarks, LandmarkMap, TimeWindow, Trajectory
+from relpoint_app.evaluator import evaluate_files
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
@@ -205,76 +193,6 @@ def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[i
                   landmark_rmse.get(int(stamp), math.nan))  # fmt: skip
         body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
     write_text(path, header + "\n".join(body) + ("\n" if body else ""))
-
-
-@dataclass(frozen=True)
-class FileEvaluation:
-    """What ``relpoint evaluate`` computes from its input files (before writing anything).
-
-    Attributes
-    ----------
-    reference: the reference trajectory as read (its own frame).
-    result: the trajectory evaluation.
-    summary: the result's summary plus the landmark figures (``lm_*``, ``dyn_*``) when both sides have them.
-    landmarks, truth: the run's map (estimate frame) and the log's true landmarks, when present.
-    landmark_error_over_time: stamp (ns) -> landmark RMSE (m) of each ``map_history.csv`` snapshot.
-    """
-
-    reference: Trajectory
-    result: EvaluationResult
-    summary: dict[str, float]
-    landmarks: LandmarkMap | None = None
-    truth: GroundTruthLandmarks | None = None
-    landmark_error_over_time: dict[int, float] = field(default_factory=dict)
-
-
-def evaluate_files(
-    estimate: Path,
-    reference: Path,
-    settings: EvaluationSettings,
-    *,
-    reference_topic: str | None = None,
-    estimate_topic: str | None = None,
-    parent: str | None = None,
-    child: str | None = None,
-    reference_times: Path | None = None,
-    times: Path | None = None,
-    window: TimeWindow | None = None,
-) -> FileEvaluation:
-    """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
-    landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks)."""
-    ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
-    est = load_trajectory(estimate, topic=estimate_topic, times=times)
-    check_index_pairing(
-        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
-    )
-    if window is not None and not window.is_open:  # both cropped to the same stretch of the reference's time
-        first_ns = int(ref.stamps_ns[0])
-        ref, est = ref.cropped(window), est.cropped(window, first_ns)
-        if len(ref) == 0 or len(est) == 0:
-            raise InputError(
-                f"--t-start/--t-end leave {len(ref)} reference and {len(est)} estimated poses",
-                "the window counts seconds from the reference's first pose",
-            )
-    result = evaluate_trajectory(ref, est, settings)
-    if (mismatch := frame_mismatch(result)) is not None:
-        log.warning("%s", mismatch)
-    summary = dict(result.summary)
-    landmarks = load_landmark_map(estimate)
-    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
-    over_time: dict[int, float] = {}
-    if landmarks is not None and truth is not None:
-        alignment = result.alignment if settings.align is not AlignMode.NONE else None
-        summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
-        history = estimate / "map_history.csv"
-        if history.is_file():  # written by `relpoint run --map-every N`
-            key = "lm_err_aligned_rmse" if alignment is not None else "lm_err_rmse"
-            for _, stamp_ns, snapshot in read_map_history_csv(history):
-                if len(snapshot):
-                    over_time[stamp_ns] = landmark_metrics(snapshot, truth, alignment=alignment).summary.get(
-                        key, math.nan
-                    )
-    return FileEvaluation(ref, result, summary, landmarks, truth, over_time)
 
 
 def run_estimator(path: Path) -> str:

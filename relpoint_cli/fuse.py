@@ -31,10 +31,10 @@ from relpoint.estimators import ESTIMATORS, SIMULATOR_SIGMA
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import run_segmented
 from relpoint.pipeline import RunResult
+from relpoint_app.roles import NEED_ROLES
+from relpoint_app.runner import estimator_inputs
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.info import NEED_ROLES
 from relpoint_cli.options import overwrite_option
-from relpoint_cli.run import estimator_inputs
 from relpoint_cli.topics import topic_options, topics_from
 
 EXAMPLES = """\b

@@ -15,11 +15,9 @@ from formats.layouts import Storage
 from formats.log import ROLE_TYPES, LogReader, TopicInfo
 from formats.reference_trajectories import POSE_TYPES
 from relpoint.estimators import ESTIMATORS
+from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.topics import topic_options, topics_from
-
-#: Log roles behind each input an estimator may need.
-NEED_ROLES = {"points": ("points",), "depth": ("depth", "camera_info"), "odometry": ("odometry",), "fix": ("fix",)}
 
 
 def capabilities(available: set[str]) -> dict[str, Any]:

@@ -5,27 +5,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections import Counter
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
-from threadpoolctl import threadpool_limits
 
-import relpoint
-from formats.config_files import load_settings
-from formats.layouts import log_sha256
-from formats.log import LogReader, Record
+from formats.log import LogReader
 from formats.outputs import check_output_directory
-from formats.run_output import write_run_directory
-from relpoint import pipeline
 from relpoint.errors import UsageError
-from relpoint.estimators import ESTIMATORS, EstimatorSpec
-from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
+from relpoint.estimators import ESTIMATORS
+from relpoint_app.runner import build_config, execute_run
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.info import NEED_ROLES
 from relpoint_cli.options import overwrite_option, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
@@ -51,140 +41,6 @@ Examples:
   relpoint run run.mcap --estimator ekf --config params.toml -o out/ekf   # [ekf] table or flat keys
   relpoint config --estimator ekf                                          # list parameters
 """
-
-
-def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[str, ...]) -> Any:
-    """The estimator's config dataclass from defaults, a settings file and ``--param KEY=VALUE``."""
-    values: dict[str, Any] = {}
-    if config_file is not None:
-        values.update(load_settings(config_file, section=spec.name))
-    return spec.build_config(values, params)
-
-
-def estimator_inputs(records: Iterator[Record], skipped: Counter[str] | None = None) -> Iterator[Any]:
-    """Core-type inputs for the pipeline from decoded log records.
-
-    Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
-    colour image of the same stamp (colour is written before depth at a stamp); depth images that
-    arrive before any camera_info, or that do not match its size, are skipped, counted in ``skipped``
-    and reported once.
-    """
-    skipped = Counter() if skipped is None else skipped
-    intrinsics: Intrinsics | None = None
-    color: tuple[int, np.ndarray] | None = None
-    for record in records:
-        if record.role in ("points", "odometry", "fix"):
-            yield record.value
-        elif record.role == "camera_info":
-            intrinsics = record.value
-        elif record.role == "color":
-            color = (record.stamp_ns, record.value)
-        elif record.role == "depth":
-            if intrinsics is None or record.value.shape != (intrinsics.height, intrinsics.width):
-                kind = "depth: images without a matching camera_info"
-                if kind not in skipped:
-                    log.warning("skipping a depth image at %d ns: no matching camera_info before it; further "
-                                "ones are counted in run.json", record.stamp_ns)  # fmt: skip
-                skipped[kind] += 1
-                continue
-            rgb = color[1] if color is not None and color[0] == record.stamp_ns else None
-            if rgb is not None and rgb.shape[:2] != record.value.shape:
-                rgb = None
-            yield DepthFrame(record.stamp_ns, record.value, intrinsics, rgb)
-
-
-def input_roles(
-    reader: LogReader, spec: EstimatorSpec, *, use_odometry: bool = True, use_fixes: bool = True
-) -> list[str]:
-    """The log roles an estimator reads: the ones it needs (checked present) and the optional ones the log has."""
-    needed = [role for need in sorted(spec.needs) for role in NEED_ROLES.get(need, (need,))]
-    reader.require(*needed)
-    wanted = [
-        need for need in sorted(spec.uses) if (need != "odometry" or use_odometry) and (need != "fix" or use_fixes)
-    ]
-    return needed + [role for need in wanted for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
-
-
-#: Roles a time window crops; the others (camera_info) describe the sensor and are always read.
-CROPPED_ROLES = frozenset({"points", "odometry", "fix", "depth", "color", "ground_truth_pose"})
-
-#: How far (ns) past the window's end a stamp may lie before the rest of the log is left unread:
-#: topics are interleaved by log time, and header stamps may trail it.
-CROP_READ_AHEAD_NS = 10_000_000_000
-
-
-def cropped_records(records: Iterator[Record], window: TimeWindow) -> Iterator[Record]:
-    """The records inside ``window``, counted from the first record's stamp (camera_info always)."""
-    if window.is_open:
-        yield from records
-        return
-    bounds: tuple[int, int] | None = None
-    for record in records:
-        if record.role not in CROPPED_ROLES:
-            yield record
-            continue
-        if bounds is None:
-            bounds = window.bounds_ns(record.stamp_ns)
-        if record.stamp_ns > bounds[1] + CROP_READ_AHEAD_NS:
-            return
-        if bounds[0] <= record.stamp_ns <= bounds[1]:
-            yield record
-
-
-def execute_run(
-    reader: LogReader,
-    spec: EstimatorSpec,
-    config: Any,
-    output: Path,
-    *,
-    seed: int = 0,
-    use_odometry: bool = True,
-    use_fixes: bool = True,
-    extra_info: dict[str, Any] | None = None,
-    on_iteration: Callable[[int, Any], None] | None = None,
-    map_every: int = 0,
-    window: TimeWindow | None = None,
-) -> pipeline.RunResult:
-    """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
-
-    ``window`` crops the log's observations, odometry and fixes (seconds from the first one read).
-
-    BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
-    spinning worker threads made the EKF about 20 times slower.
-    """
-    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
-    estimator = spec.factory(config, np.random.default_rng(seed))
-    with threadpool_limits(limits=1, user_api="blas"):
-        result = pipeline.run(
-            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
-        )  # fmt: skip
-    run_info = {
-        "estimator": spec.name,
-        "parameters": dataclasses.asdict(config),
-        "seed": seed,
-        "relpoint_version": relpoint.__version__,
-        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path), "roles": sorted(roles),
-                  "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
-        "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
-        "warnings": list(result.warnings),
-        **({"time_window": dataclasses.asdict(window)} if window is not None and not window.is_open else {}),
-        **(extra_info or {}),
-    }  # fmt: skip
-    observations = (
-        (record.value for record in cropped_records(reader.records(["points"]), window or TimeWindow()))
-        if "points" in roles else ()
-    )  # fmt: skip
-    write_run_directory(output, result, run_info, observations=observations, reference=reference_path(reader))
-    return result
-
-
-def reference_path(reader: LogReader) -> Trajectory | None:
-    """The log's ground-truth path, if it has one (for result.mcap)."""
-    if reader.topics.ground_truth_pose not in reader.topic_infos:
-        return None
-    poses = [record.value for record in reader.records(["ground_truth_pose"])]
-    return Trajectory.from_poses(poses) if poses else None
 
 
 @click.command(epilog=EXAMPLES)

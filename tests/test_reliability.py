@@ -215,7 +215,7 @@ def tiny_rgbd_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def consume_depth(path: Path) -> None:
     """The depth readers and the dense estimator over a log; only RelpointErrors may escape."""
-    from relpoint_cli.run import estimator_inputs
+    from relpoint_app.runner import estimator_inputs
 
     reader = LogReader(path)
     spec = ESTIMATORS["dense"]

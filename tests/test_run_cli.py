@@ -128,7 +128,7 @@ def test_stamps_going_backwards_stop_the_run_without_output(tmp_path: Path, smal
 def test_config_output_is_valid_toml_that_rebuilds_the_defaults(name: str, tmp_path: Path) -> None:
     import tomllib
 
-    from relpoint_cli.run import build_config
+    from relpoint_app.runner import build_config
 
     result = CliRunner().invoke(cli, ["config", "--estimator", name])
     assert result.exit_code == 0

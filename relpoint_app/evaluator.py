@@ -1,0 +1,161 @@
+"""Evaluating an estimate against a reference: the trajectory and, where both sides have them, the landmarks.
+
+``relpoint evaluate`` and ``relpoint compare`` call :func:`evaluate_files`; scripts call
+:func:`evaluate` (also ``relpoint.evaluate``) on a :class:`relpoint.pipeline.RunResult` or a path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from formats.reference_trajectories import (
+    check_index_pairing,
+    is_index_stamped,
+    load_ground_truth_landmarks,
+    load_landmark_map,
+    load_trajectory,
+)
+from formats.tables import read_map_history_csv
+from relpoint.errors import InputError, UsageError
+from relpoint.evaluation import AlignMode, EvaluationResult, EvaluationSettings, evaluate_trajectory, landmark_metrics
+from relpoint.evaluation.evaluate import frame_mismatch
+from relpoint.pipeline import RunResult
+from relpoint.types import GroundTruthLandmarks, LandmarkMap, TimeWindow, Trajectory
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FileEvaluation:
+    """What ``relpoint evaluate`` computes from its input files (before writing anything).
+
+    Attributes
+    ----------
+    reference: the reference trajectory as read (its own frame).
+    result: the trajectory evaluation.
+    summary: the result's summary plus the landmark figures (``lm_*``, ``dyn_*``) when both sides have them.
+    landmarks, truth: the run's map (estimate frame) and the log's true landmarks, when present.
+    landmark_error_over_time: stamp (ns) -> landmark RMSE (m) of each ``map_history.csv`` snapshot.
+    """
+
+    reference: Trajectory
+    result: EvaluationResult
+    summary: dict[str, float]
+    landmarks: LandmarkMap | None = None
+    truth: GroundTruthLandmarks | None = None
+    landmark_error_over_time: dict[int, float] = field(default_factory=dict)
+
+
+def evaluate_files(
+    estimate: Path,
+    reference: Path,
+    settings: EvaluationSettings,
+    *,
+    reference_topic: str | None = None,
+    estimate_topic: str | None = None,
+    parent: str | None = None,
+    child: str | None = None,
+    reference_times: Path | None = None,
+    times: Path | None = None,
+    window: TimeWindow | None = None,
+) -> FileEvaluation:
+    """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
+    landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks)."""
+    ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
+    est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    check_index_pairing(
+        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
+    )
+    if window is not None and not window.is_open:  # both cropped to the same stretch of the reference's time
+        first_ns = int(ref.stamps_ns[0])
+        ref, est = ref.cropped(window), est.cropped(window, first_ns)
+        if len(ref) == 0 or len(est) == 0:
+            raise InputError(
+                f"--t-start/--t-end leave {len(ref)} reference and {len(est)} estimated poses",
+                "the window counts seconds from the reference's first pose",
+            )
+    landmarks = load_landmark_map(estimate)
+    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
+    history = estimate / "map_history.csv"
+    snapshots = read_map_history_csv(history) if landmarks is not None and history.is_file() else []
+    return measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)
+
+
+def measure(
+    reference: Trajectory,
+    estimate: Trajectory,
+    settings: EvaluationSettings,
+    *,
+    landmarks: LandmarkMap | None = None,
+    truth: GroundTruthLandmarks | None = None,
+    snapshots: Iterable[tuple[int, int, LandmarkMap]] = (),
+) -> FileEvaluation:
+    """Evaluate ``estimate`` against ``reference`` and, when both are given, ``landmarks`` against ``truth``.
+
+    ``snapshots`` are ``(iteration, stamp_ns, map)`` of the map over the run (``map_history.csv``): each
+    one's landmark RMSE goes into ``landmark_error_over_time``. A warning is logged when the two
+    trajectories start in different frames (:func:`relpoint.evaluation.evaluate.frame_mismatch`).
+    """
+    result = evaluate_trajectory(reference, estimate, settings)
+    if (mismatch := frame_mismatch(result)) is not None:
+        log.warning("%s", mismatch)
+    summary = dict(result.summary)
+    over_time: dict[int, float] = {}
+    if landmarks is not None and truth is not None:
+        alignment = result.alignment if settings.align is not AlignMode.NONE else None
+        summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
+        key = "lm_err_aligned_rmse" if alignment is not None else "lm_err_rmse"
+        for _, stamp_ns, snapshot in snapshots:
+            if len(snapshot):
+                over_time[stamp_ns] = landmark_metrics(snapshot, truth, alignment=alignment).summary.get(key, math.nan)
+    return FileEvaluation(reference, result, summary, landmarks, truth, over_time)
+
+
+def evaluate(
+    estimate: RunResult | str | os.PathLike[str],
+    reference: str | os.PathLike[str],
+    *,
+    align: str = "se3",
+    reference_topic: str | None = None,
+    **settings: Any,
+) -> FileEvaluation:
+    """Evaluate a run against a reference as ``relpoint evaluate`` does; the Python API.
+
+    Parameters
+    ----------
+    estimate:
+        A :class:`relpoint.pipeline.RunResult` (``relpoint.run``'s), or what ``relpoint evaluate``
+        reads: a run directory, a TUM or KITTI file, or a log with a pose topic.
+    reference:
+        A log with ground truth (its true landmarks are used too), a TUM, EuRoC or KITTI file.
+    align:
+        none | se3 | sim3 | scale | origin.
+    reference_topic:
+        The reference's pose topic in a log (default: its ground truth).
+    settings:
+        Further :class:`relpoint.evaluation.EvaluationSettings` fields (``t_max_diff``, ``delta``, ...).
+
+    Returns
+    -------
+    FileEvaluation
+        ``summary`` holds ``ate_*``, ``ape_*``, ``rpe_*`` and, with landmarks on both sides,
+        ``lm_*`` and ``dyn_*``; ``result`` the per-pose errors.
+    """
+    unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(EvaluationSettings)})
+    if unknown:
+        raise UsageError(
+            f"unknown evaluation setting(s): {', '.join(unknown)}", "see relpoint.evaluation.EvaluationSettings"
+        )
+    evaluation_settings = EvaluationSettings(align=align, **settings)
+    if not isinstance(estimate, RunResult):
+        return evaluate_files(Path(estimate), Path(reference), evaluation_settings, reference_topic=reference_topic)
+    ref = load_trajectory(reference, topic=reference_topic)
+    truth = load_ground_truth_landmarks(reference) if len(estimate.landmarks) else None
+    return measure(ref, estimate.trajectory, evaluation_settings, landmarks=estimate.landmarks, truth=truth)
