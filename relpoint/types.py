@@ -344,8 +344,3 @@ class DepthFrame:
                 raise ValueError(f"colour image shape {color.shape} does not match depth {depth.shape}")
             color.flags.writeable = False
             object.__setattr__(self, "color", color)
-
-
-def stack_positions(poses: Sequence[Pose]) -> FloatArray:
-    """Positions of ``poses`` as an (N, 3) array."""
-    return np.array([p.position for p in poses], dtype=np.float64).reshape(-1, 3)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -324,6 +325,37 @@ def test_run_segmented_starts_a_fresh_local_map_at_every_break() -> None:
     np.testing.assert_array_equal(run.landmarks.gt_id, [*range(10), *range(100, 110)])
     np.testing.assert_array_equal(run.landmark_labels, [0] * 10 + [1] * 10)
     assert len(run.fixes) == 5 and run.matched[0] == 0 and run.matched[1] == 10
+
+
+class _FinishingMapper(_IdMapper):
+    """A stub whose ``finish`` moves every pose 0.5 m up and records how many poses it was given."""
+
+    finished: ClassVar[list[int]] = []
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        assert len(trajectory) == self.steps  # every iteration it stepped, the breaking one included
+        _FinishingMapper.finished.append(len(trajectory))
+        return Trajectory(trajectory.stamps_ns, np.add(trajectory.positions, (0.0, 0.0, 0.5)), trajectory.quats_xyzw)
+
+
+def test_run_segmented_finishes_every_local_map_it_keeps() -> None:
+    # As in the test above: maps of 6 and 8 iterations are kept, the 2-iteration gap and the one-off are not.
+    def ids(k: int) -> np.ndarray:
+        if k < 6:
+            return np.arange(10)
+        if k < 8:
+            return np.zeros(0, np.int64)
+        return np.arange(100, 110) if k < 16 else np.arange(200, 210)
+
+    _FinishingMapper.finished = []
+    inputs = [PointObservation(k * 100_000_000, np.zeros((len(ids(k)), 3)), ids(k)) for k in range(17)]
+    run = run_segmented(inputs, _FinishingMapper, min_matches=5, min_length=4)
+    np.testing.assert_array_equal(run.labels, [0] * 6 + [-1] * 2 + [1] * 8 + [-1])
+    assert _FinishingMapper.finished == [7, 9]  # each map's poses and the pose of the step that broke it
+    kept = run.labels >= 0
+    np.testing.assert_allclose(run.trajectory.positions[kept, 2], 0.5)
+    np.testing.assert_allclose(run.trajectory.positions[~kept, 2], 0.0)
+    np.testing.assert_allclose(run.trajectory.positions[15], [7.0, 0.0, 0.5])
 
 
 class _GroupingMapper(_IdMapper):

@@ -18,7 +18,11 @@ once) would read as a break and restart the local SLAM every few iterations.
 
 The observation that breaks a local map has already been stepped through it; the landmarks it
 started there are cut off (estimators append new landmarks at the end of their map), the updates it
-made to existing ones (fewer than ``min_matches`` pairs) stay. The fixes in the input are collected
+made to existing ones (fewer than ``min_matches`` pairs) stay. When a local map of at least
+``min_length`` iterations ends, its estimator's :meth:`~relpoint.estimators.base.Estimator.finish`
+runs over its poses, as at the end of ``relpoint run`` (the Relative Point estimator's final
+adjustment), and the poses it returns replace them; its wall time is counted in the map's last
+iteration. The fixes in the input are collected
 for :func:`.fuse.fuse`, not given to the estimators (the local SLAM is the camera's alone, as in the
 chapter). Odometry goes to the current estimator, and the last
 one held is handed to each new estimator. No file I/O; the CLI (``relpoint fuse --restart``) and the
@@ -114,16 +118,30 @@ def run_segmented(
     estimator: Estimator | None = None
     odometry: OdometryMeasurement | None = None
     segment = -1  # provisional label of the current local map
+    first = 0  # index in ``poses`` of the current local map's first iteration
     length = 0
     travelled = 0.0
 
-    def close(rows: int | None = None) -> None:
-        """End the current local map; ``rows``: keep only its first rows (those before the breaking step)."""
+    def close(rows: int | None = None, breaking: Pose | None = None) -> None:
+        """End the current local map: finish its estimator over its poses (and ``breaking``, the pose it
+        gave the observation that broke it, which the next map takes); ``rows``: keep only its first
+        rows (those before the breaking step)."""
         if estimator is None:
             return
         if length < min_length:
             maps.append(LandmarkMap.empty())
             return
+        start = time.perf_counter()
+        own = poses[first:] + ([breaking] if breaking is not None else [])
+        finished = estimator.finish(Trajectory.from_poses(own))
+        poses[first:] = [
+            Pose(int(stamp), tuple(position), tuple(quat))  # type: ignore[arg-type]
+            for stamp, position, quat in zip(
+                finished.stamps_ns[:length].tolist(), finished.positions[:length].tolist(),
+                finished.quats_xyzw[:length].tolist(), strict=True,
+            )
+        ]  # fmt: skip
+        seconds[-1] += time.perf_counter() - start
         final = estimator.landmark_map()
         keep = np.arange(len(final) if rows is None else min(rows, len(final)))
         maps.append(
@@ -157,13 +175,15 @@ def run_segmented(
             error = local_sigma + drift_fraction * travelled
             restart = pairs < min_matches or error > max_position_error
         if restart:
-            close(size_before)  # the breaking observation's new landmarks belong to the next map
+            # the breaking observation's new landmarks belong to the next map
+            close(size_before, pose if estimator is not None else None)
             estimator = make_estimator()
             if odometry is not None:
                 estimator.add_odometry(odometry)
             pose = estimator.step(item)
             pairs = 0
             segment += 1
+            first = len(poses)
             length = 0
             travelled = 0.0
         assert estimator is not None
