@@ -97,7 +97,7 @@ class MapSnapshot:
 
 
 def _snapshot(estimator: Estimator, stamp_ns: int) -> MapSnapshot:
-    dense = estimator.dense_map() if hasattr(estimator, "dense_map") else None
+    dense = estimator.dense_map()
     if dense is not None:
         positions = dense[0][:: max(1, -(-len(dense[0]) // MAX_SNAPSHOT_POINTS))]
         return MapSnapshot(stamp_ns, positions.astype(np.float32), np.zeros(len(positions), dtype=bool))
@@ -214,7 +214,7 @@ def run(
         if snapshots and snapshots[-1][0] == len(stamps) - 1:
             snapshots.pop()
         snapshots.append((len(stamps) - 1, stamps[-1], landmarks))
-    dense_map = estimator.dense_map() if hasattr(estimator, "dense_map") else None
+    dense_map = estimator.dense_map()
     warnings = _result_warnings(estimator.name, len(stamps), failed, len(landmarks), dense_map, observed)
     for warning in warnings:
         log.warning("%s", warning)

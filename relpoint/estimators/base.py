@@ -15,8 +15,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+import numpy.typing as npt
 
 from relpoint.errors import UsageError
+from relpoint.geometry import FloatArray
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
@@ -59,6 +61,11 @@ class Estimator(abc.ABC):
         adjustment) corrects the trajectory here too; the default returns it unchanged.
         """
         return trajectory
+
+    def dense_map(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.uint8], FloatArray] | None:
+        """A dense estimator's surface map: points (N, 3) in ``world`` (m), normals (N, 3), colours
+        (N, 3) uint8 RGB and weights (N,); None (the default) for landmark estimators."""
+        return None
 
     @property
     def map_size(self) -> int:
