@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from relpoint import pipeline
+from relpoint.estimators.base import Estimator
 from relpoint.estimators.relative_point import _kernels
-from relpoint.types import LandmarkMap, PointObservation, Pose
+from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
 
 def _jit_kernels(monkeypatch: pytest.MonkeyPatch, cache: Path) -> ModuleType:
@@ -91,7 +92,7 @@ def test_prebuilt_kernels_refuse_arrays_they_would_misread() -> None:
             _kernels.gather_positions(*bad)
 
 
-class _Recording:
+class _Recording(Estimator):
     """Records the order of prepare and step calls."""
 
     name = "recording"
@@ -109,7 +110,7 @@ class _Recording:
     def landmark_map(self) -> LandmarkMap:
         return LandmarkMap(np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64))
 
-    def finish(self, trajectory: object) -> object:
+    def finish(self, trajectory: Trajectory) -> Trajectory:
         return trajectory
 
     @property
