@@ -195,3 +195,78 @@ def rigid_consensus(
         return np.ones(n, dtype=bool)
     fit = fit_rigid(source[inliers], target[inliers])
     return np.linalg.norm(source @ fit.rotation.T + fit.translation - target, axis=1) <= tolerance
+
+
+# -- SO(3) of the filters' motion models (right-perturbation error state: ``R_true = R Exp(dtheta)``,
+# ``dtheta`` in the sensor frame) -----------------------------------------------------------------
+
+def skew(vectors: npt.ArrayLike) -> FloatArray:
+    """Cross-product matrices ``[v]x`` of vectors (..., 3) -> (..., 3, 3), so ``[v]x @ u = v x u``."""
+    v = np.asarray(vectors, dtype=np.float64)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def so3_exp(rotvecs: npt.ArrayLike) -> FloatArray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) in radians."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
+    v = np.asarray(rotvecs, dtype=np.float64)
+    return Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix().reshape(*v.shape[:-1], 3, 3)
+
+
+def so3_right_jacobian(rotvecs: npt.ArrayLike) -> FloatArray:
+    """Right Jacobians (..., 3, 3) of SO(3): ``Exp(phi + d) ~= Exp(phi) Exp(Jr(phi) d)`` for small ``d``."""
+    phi = np.asarray(rotvecs, dtype=np.float64)
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def twist_step(
+    positions: FloatArray, rotations: FloatArray, linear: FloatArray, angular: FloatArray, dt: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Hold a body-frame twist for ``dt`` seconds (the process model, *3D SLAM* eq. 5-7), batched.
+
+    ``p' = p + R v dt`` and ``R' = R Exp(w dt)``, as :func:`relpoint.geometry.integrate_twist`.
+
+    Parameters
+    ----------
+    positions: (..., 3) sensor positions in ``world``, metres.
+    rotations: (..., 3, 3) ``R_world_sensor``.
+    linear, angular: (..., 3) body-frame velocities, m/s and rad/s.
+    dt: seconds.
+
+    Returns
+    -------
+    positions', rotations':
+        The propagated pose.
+    F_pose: (..., 6, 6)
+        Jacobian of the new pose error ``(dp, dtheta)`` with respect to the old one.
+    G_twist: (..., 6, 6)
+        Jacobian of the new pose error with respect to an error in the twist ``(dv, dw)``.
+    """
+    step_v = linear * dt
+    step_w = angular * dt
+    new_positions = positions + np.einsum("...ij,...j->...i", rotations, step_v)
+    increment = so3_exp(step_w)
+    new_rotations = rotations @ increment
+    batch = positions.shape[:-1]
+    F_pose = np.zeros((*batch, 6, 6))
+    F_pose[..., :3, :3] = np.eye(3)
+    F_pose[..., :3, 3:] = -rotations @ skew(step_v)
+    F_pose[..., 3:, 3:] = np.swapaxes(increment, -1, -2)
+    G_twist = np.zeros((*batch, 6, 6))
+    G_twist[..., :3, :3] = rotations * dt
+    G_twist[..., 3:, 3:] = so3_right_jacobian(step_w) * dt
+    return new_positions, new_rotations, F_pose, G_twist

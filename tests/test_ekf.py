@@ -14,12 +14,10 @@ from relpoint.estimators._association import (
     jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
-    so3_exp,
-    twist_step,
 )
 from relpoint.estimators.base import Estimator
 from relpoint.estimators.ekf import INITIAL_CAPACITY, SPEC, EkfConfig, EkfSlam
-from relpoint.geometry import invert_pose, transform_points
+from relpoint.geometry import invert_pose, so3_exp, transform_points, twist_step
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation, PositionFix
 from tests.conftest import run_accuracy

@@ -40,9 +40,8 @@ import numpy.typing as npt
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from relpoint.estimators._association import skew
 from relpoint.fusion.lagrange import interpolate_fixes
-from relpoint.geometry import FloatArray, fit_rigid
+from relpoint.geometry import FloatArray, fit_rigid, skew
 from relpoint.types import PositionFix
 
 logger = logging.getLogger(__name__)

@@ -47,9 +47,6 @@ from relpoint.estimators._association import (
     jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
-    skew,
-    so3_exp,
-    twist_step,
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
@@ -57,7 +54,7 @@ from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
-from relpoint.geometry import FloatArray, rigid_consensus
+from relpoint.geometry import FloatArray, rigid_consensus, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 

@@ -44,13 +44,13 @@ import numpy.typing as npt
 from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
-from relpoint.estimators._association import chi2_gate, skew, so3_exp, twist_step
+from relpoint.estimators._association import chi2_gate
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 

@@ -44,7 +44,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, skew
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -69,15 +69,6 @@ class Adjustment:
     cost_before: float
     cost_after: float
     iterations: int
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    """Cross-product matrices (N, 3, 3) of vectors (N, 3): ``_skew(v) @ u == cross(v, u)``."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
 
 
 def _objective(residual: FloatArray, weight: FloatArray, robust: float, prior: float, shift: FloatArray) -> float:
@@ -184,7 +175,7 @@ def adjust_network(
         # Cauchy loss by reweighting: rho'(e) / e = 1 / (1 + e^2 / c^2).
         omega = weight / (1.0 + np.einsum("ni,ni->n", residual, residual) / robust**2) if robust > 0 else weight
         # Jacobian of a residual: d/d(dtheta, dt) = [-[q]x, I] with q = R p; d/dX = -I.
-        J_pose = np.concatenate([-_skew(rotated), np.broadcast_to(np.eye(3), (len(group), 3, 3))], axis=2)
+        J_pose = np.concatenate([-skew(rotated), np.broadcast_to(np.eye(3), (len(group), 3, 3))], axis=2)
         A_blocks = np.einsum("n,nki,nkj->nij", omega, J_pose, J_pose)
         B = -omega[:, None, None] * np.transpose(J_pose, (0, 2, 1))  # (N, 6, 3): pose-point coupling
         g_pose = np.zeros((n_groups, 6))
