@@ -47,7 +47,7 @@ from relpoint import pipeline  # noqa: E402
 from relpoint.estimators.ekf import EkfConfig, EkfSlam  # noqa: E402
 from relpoint.estimators.fastslam import FastSlam, FastSlamConfig  # noqa: E402
 from relpoint.evaluation import EvaluationSettings, evaluate_trajectory  # noqa: E402
-from relpoint.fusion.lagrange import interpolate_fixes  # noqa: E402
+from relpoint.lagrange import interpolate_fixes  # noqa: E402
 from relpoint.simulation import Simulation, SimulationConfig, simulate  # noqa: E402
 from relpoint.types import LandmarkMap, Trajectory  # noqa: E402
 

@@ -3,7 +3,7 @@
 Implements the in-loop part of Zhang, Milios and Gu, *General Concept of 3D SLAM*, sections 5-6 for
 the estimators that carry a pose covariance (EKF-SLAM, FastSLAM): the fixes (``/fix``: buoys, GNSS)
 are synchronised to the observation times by three-point Lagrange interpolation (section 5.1,
-eq. 26-30, :func:`relpoint.fusion.lagrange.interpolate_fixes`); once at least three fixes that are
+eq. 26-30, :func:`relpoint.lagrange.interpolate_fixes`); once at least three fixes that are
 not collinear are in, the rigid transform ``T_world_local`` is fitted by least squares to the pairs
 of local positions and interpolated fixes (section 6.3, :func:`relpoint.geometry.fit_rigid`); the
 filter then moves its state into ``world`` and fuses every later fix as a position measurement
@@ -40,8 +40,8 @@ import numpy.typing as npt
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from relpoint.fusion.lagrange import interpolate_fixes
 from relpoint.geometry import FloatArray, fit_rigid, skew
+from relpoint.lagrange import interpolate_fixes
 from relpoint.types import PositionFix
 
 logger = logging.getLogger(__name__)

@@ -1,7 +1,7 @@
 """Fusing local SLAM with low-rate absolute fixes into a globally consistent map and path.
 
 Zhang, Milios and Gu, *General Concept of 3D SLAM*, sections 5-6 and Algorithm 3, as a post-step over
-any estimator's output: Lagrange synchronisation of the fixes (:mod:`.lagrange`), covariance-weighted
+any estimator's output: Lagrange synchronisation of the fixes (:mod:`relpoint.lagrange`, shared with the filters), covariance-weighted
 fusion (:mod:`.covariance_fusion`), segmentation into local maps (:mod:`.segmentation`), B-spline path
 parameterisation (:mod:`.bspline`) and the rigid local-to-global fit with map integration
 (:mod:`.global_map`; piecewise where a local map is not rigid, :mod:`.piecewise`), driven by :func:`fuse`; :func:`run_segmented` runs a local SLAM that restarts
@@ -14,7 +14,6 @@ from relpoint.fusion.bspline import PathSpline
 from relpoint.fusion.covariance_fusion import fuse_estimates
 from relpoint.fusion.fuse import FusionConfig, FusionResult, SegmentResult, fuse
 from relpoint.fusion.global_map import SegmentTransform, fit_segment
-from relpoint.fusion.lagrange import interpolate_fixes, lagrange_weights
 from relpoint.fusion.piecewise import Piece, split_segment
 from relpoint.fusion.segmentation import (
     NO_SEGMENT,
@@ -24,6 +23,7 @@ from relpoint.fusion.segmentation import (
     segment_slices,
 )
 from relpoint.fusion.segmented import SegmentedRun, run_segmented
+from relpoint.lagrange import interpolate_fixes, lagrange_weights
 
 __all__ = [
     "NO_SEGMENT",

@@ -14,7 +14,7 @@ log's position fixes:
    rigid is left out (:mod:`.piecewise`, an extension of section 6.3);
 4. the segment's landmarks and path mapped into ``world`` (eq. 38) and integrated;
 5. at every iteration of a placed segment, the mapped local position fused with the fix interpolated
-   to that time (eq. 26-32, :mod:`.lagrange`, :mod:`.covariance_fusion`); elsewhere (gaps, left-out
+   to that time (eq. 26-32, :mod:`relpoint.lagrange`, :mod:`.covariance_fusion`); elsewhere (gaps, left-out
    segments) the interpolated fix alone gives the position.
 
 A post-step has no estimator covariance, so two models stand in for it. For the segmentation
@@ -44,10 +44,10 @@ from relpoint.errors import EstimatorError, UsageError
 from relpoint.fusion.bspline import PathSpline
 from relpoint.fusion.covariance_fusion import fuse_estimates
 from relpoint.fusion.global_map import SegmentTransform, fit_segment
-from relpoint.fusion.lagrange import interpolate_fixes
 from relpoint.fusion.piecewise import Piece, split_segment
 from relpoint.fusion.segmentation import NO_SEGMENT, segment_run, segment_slices
 from relpoint.geometry import FloatArray
+from relpoint.lagrange import interpolate_fixes
 from relpoint.settings import Settings
 from relpoint.types import IntArray, LandmarkMap, PositionFix, Trajectory
 
