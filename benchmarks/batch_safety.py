@@ -4,7 +4,7 @@ Each case runs ``relpoint batch`` in a fresh process and prints one table row: c
 stderr line | peak memory (the process's maximum resident set, from ``wait4``) | wall time.
 
 - ``grid-1e6``: one estimator with a 10^6-point grid (6 axes of 10 values): time to refuse.
-- ``glob-20k``: a plan whose glob matches 20,000 (empty) logs, loaded by ``formats.batch_plan.load_plan``
+- ``glob-20k``: a plan whose glob matches 20,000 (empty) logs, loaded by ``relpoint_app.batch_plan.load_plan``
   in a fresh process (``--max-jobs 20000`` where the option exists): time to load.
 - ``SIGINT`` (to the process group, as Ctrl-C in a terminal) and ``SIGTERM`` (to relpoint): a 6-job
   plan on 2 workers, signalled once the first job is done and the next are under way; time from the signal
@@ -56,7 +56,7 @@ observation_sigma = [0.3, 0.4, 0.5]
 
 LOAD_SCRIPT = """\
 import inspect, sys, time
-from formats.batch_plan import load_plan
+from relpoint_app.batch_plan import load_plan
 start = time.perf_counter()
 options = {"max_jobs": 20000} if "max_jobs" in inspect.signature(load_plan).parameters else {}
 plan = load_plan(sys.argv[1], **options)

@@ -1,6 +1,6 @@
 """``relpoint batch``: run a plan of simulate/run/evaluate jobs on a process pool or a Dask cluster.
 
-The plan is parsed by :mod:`formats.batch_plan`; the jobs and executors are in
+The plan is parsed by :mod:`relpoint_app.batch_plan`; the jobs and executors are in
 :mod:`relpoint_cli.batch_jobs`. This command picks the executor, shows a progress bar over jobs, writes
 ``results.csv`` and ``results.json`` and prints a summary table (``docs/batch.md``).
 """
@@ -16,8 +16,8 @@ from typing import Any
 import click
 
 from formats.atomic import remove_temporaries
-from formats.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
 from relpoint.errors import Interrupted, UsageError
+from relpoint_app.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
 from relpoint_cli.batch_jobs import (
     BatchOutcome,
     DaskExecutor,

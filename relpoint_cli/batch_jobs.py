@@ -36,7 +36,6 @@ from pathlib import Path
 from typing import Any
 
 from formats.atomic import atomic_directory, write_text
-from formats.batch_plan import BatchPlan, Job, SimulationStep
 from formats.log import LogReader, Topics, metadata_json
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.run_output import RUN_FILES
@@ -46,6 +45,7 @@ from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
 from relpoint.simulation import simulate
+from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
 from relpoint_app.runner import execute_run
 from relpoint_cli.evaluate import write_json
 

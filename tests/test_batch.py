@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner, Result
 from distributed import LocalCluster
 
-from formats.batch_plan import RESULT_COLUMNS, TIMING_COLUMNS, load_plan, read_results
 from relpoint.errors import UsageError
+from relpoint_app.batch_plan import RESULT_COLUMNS, TIMING_COLUMNS, load_plan, read_results
 from relpoint_cli.batch_jobs import JOB_FILES, completed_row
 from relpoint_cli.main import cli
 

@@ -20,13 +20,13 @@ from typing import ClassVar
 import pytest
 from click.testing import CliRunner, Result
 
-from formats import batch_plan
 from formats.atomic import atomic_directory
-from formats.batch_plan import MAX_JOBS, load_plan, read_results
 from formats.outputs import MARKER
 from formats.simulation_log import write_simulation
 from relpoint.errors import UsageError
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint_app import batch_plan
+from relpoint_app.batch_plan import MAX_JOBS, load_plan, read_results
 from relpoint_cli import batch_jobs
 from relpoint_cli.batch_jobs import SchedulerAddress, parse_scheduler
 from relpoint_cli.main import cli
