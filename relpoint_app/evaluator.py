@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import os
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import relpoint
 from formats.reference_trajectories import (
     check_index_pairing,
     is_index_stamped,
@@ -159,3 +161,21 @@ def evaluate(
     ref = load_trajectory(reference, topic=reference_topic)
     truth = load_ground_truth_landmarks(reference) if len(estimate.landmarks) else None
     return measure(ref, estimate.trajectory, evaluation_settings, landmarks=estimate.landmarks, truth=truth)
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_value(v) for v in value]
+    return value
+
+
+def evaluation_json(summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> str:
+    """The text of ``evaluation.json`` (``relpoint evaluate --json``): the summary (NaN and inf as
+    null), the settings, the inputs and the relpoint version."""
+    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
+                "relpoint_version": relpoint.__version__}  # fmt: skip
+    return json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"

@@ -1,7 +1,7 @@
 """``relpoint batch``: run a plan of simulate/run/evaluate jobs on a process pool or a Dask cluster.
 
 The plan is parsed by :mod:`relpoint_app.batch_plan`; the jobs and executors are in
-:mod:`relpoint_cli.batch_jobs`. This command picks the executor, shows a progress bar over jobs, writes
+:mod:`relpoint_app.batch_jobs`. This command picks the executor, shows a progress bar over jobs, writes
 ``results.csv`` and ``results.json`` and prints a summary table (``docs/batch.md``).
 """
 
@@ -17,8 +17,7 @@ import click
 
 from formats.atomic import remove_temporaries
 from relpoint.errors import Interrupted, UsageError
-from relpoint_app.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
-from relpoint_cli.batch_jobs import (
+from relpoint_app.batch_jobs import (
     BatchOutcome,
     DaskExecutor,
     Executor,
@@ -29,6 +28,7 @@ from relpoint_cli.batch_jobs import (
     run_plan,
     scheduler_security,
 )
+from relpoint_app.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.progress import progress_bar
 

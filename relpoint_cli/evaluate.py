@@ -17,7 +17,6 @@ from typing import Any
 import click
 import numpy as np
 
-import relpoint
 from formats.atomic import write_text
 from formats.evo_results import ape_result, rpe_result, write_evo_result
 from formats.outputs import check_output_file, register_csv_header
@@ -33,7 +32,7 @@ from relpoint.evaluation import (
     PoseRelation,
 )
 from relpoint.evaluation.dense import dense_metrics
-from relpoint_app.evaluator import evaluate_files
+from relpoint_app.evaluator import evaluate_files, evaluation_json
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
@@ -128,21 +127,9 @@ def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelatio
     return "\n".join(lines)
 
 
-def _json_value(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_value(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_value(v) for v in value]
-    return value
-
-
 def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
-    """The summary (NaN/inf written as null), settings and inputs as JSON, atomically (``-``: stdout)."""
-    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
-                "relpoint_version": relpoint.__version__}
-    text = json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"
+    """:func:`relpoint_app.evaluator.evaluation_json`, atomically to ``path`` (``-``: stdout)."""
+    text = evaluation_json(summary, settings, inputs)
     if str(path) == "-":
         click.echo(text, nl=False)
     else:

@@ -12,8 +12,8 @@ from click.testing import CliRunner, Result
 from distributed import LocalCluster
 
 from relpoint.errors import UsageError
+from relpoint_app.batch_jobs import JOB_FILES, completed_row
 from relpoint_app.batch_plan import RESULT_COLUMNS, TIMING_COLUMNS, load_plan, read_results
-from relpoint_cli.batch_jobs import JOB_FILES, completed_row
 from relpoint_cli.main import cli
 
 #: 2 simulated logs x (ekf, fastslam) x a 2-value grid = 8 jobs of 60 iterations.

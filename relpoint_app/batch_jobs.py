@@ -46,15 +46,15 @@ from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
 from relpoint.simulation import simulate
 from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
+from relpoint_app.evaluator import evaluation_json
 from relpoint_app.runner import execute_run
-from relpoint_cli.evaluate import write_json
 
 log = logging.getLogger(__name__)
 
 #: Files whose presence (with a matching ``job.json``) marks a job as complete.
 JOB_FILES = (*RUN_FILES, "evaluation.json", "job.log", "job.json")
 #: Loggers whose records go into ``job.log``.
-_CAPTURED = ("relpoint", "formats", "relpoint_cli")
+_CAPTURED = ("relpoint", "relpoint_app", "formats", "relpoint_cli")
 
 
 class JobFailed(RelpointError):
@@ -256,7 +256,7 @@ def _evaluate(job: Job, out_dir: Path, has_ground_truth: bool) -> dict[str, floa
         log.info("ATE rmse %.6f m, landmark rmse %.6f m", summary["ate_rmse"], summary.get("lm_err_rmse", float("nan")))
     else:
         log.warning("%s has no %s: no trajectory evaluation", job.log, topics.ground_truth_pose)
-    write_json(out_dir / "evaluation.json", summary, job.evaluation, inputs)
+    write_text(out_dir / "evaluation.json", evaluation_json(summary, job.evaluation, inputs))
     return summary
 
 
