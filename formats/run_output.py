@@ -22,8 +22,7 @@ from formats.ply import landmark_vertices, write_ply
 from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
-from relpoint.pipeline import RunResult
-from relpoint.types import PointObservation, Pose, Trajectory
+from relpoint.types import PointObservation, Pose, RunResult, Trajectory
 
 RUN_FILES = ("trajectory.tum", "trajectory.csv", "map.ply", "map.csv", "timing.csv", "run.json", "result.mcap")
 

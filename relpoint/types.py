@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -344,3 +345,62 @@ class DepthFrame:
                 raise ValueError(f"colour image shape {color.shape} does not match depth {depth.shape}")
             color.flags.writeable = False
             object.__setattr__(self, "color", color)
+
+
+@dataclass(frozen=True, eq=False)
+class MapSnapshot:
+    """The map after one iteration: ``positions`` (M, 3) float32 metres in ``world``, ``dynamic`` (M,) bool."""
+
+    stamp_ns: int
+    positions: np.ndarray
+    dynamic: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """Everything ``relpoint run`` writes, in memory.
+
+    Attributes
+    ----------
+    trajectory: estimated ``T_world_sensor`` per iteration.
+    landmarks: the final map.
+    observed: (N,) points observed per iteration.
+    map_size: (N,) landmarks mapped after each iteration.
+    seconds: (N,) wall time of each ``step`` call.
+    summary: estimator summary figures (JSON-serialisable).
+    seconds_finish: wall time of the estimator's work once the log ended (a final adjustment).
+    seconds_prepare: wall time of compiling or loading compiled code before the first iteration.
+    """
+
+    trajectory: Trajectory
+    landmarks: LandmarkMap
+    observed: np.ndarray
+    map_size: np.ndarray
+    seconds: np.ndarray
+    summary: dict[str, Any] = field(default_factory=dict)
+    map_history: tuple[tuple[int, int, LandmarkMap], ...] = ()
+    """Snapshots ``(iteration, stamp_ns, map)`` taken every ``map_every`` iterations and at the end."""
+    dense_map: tuple[np.ndarray, ...] | None = None
+    """For dense estimators: (positions (M,3) m, normals (M,3), colours (M,3) uint8, weights (M,)) in ``world``."""
+    seconds_finish: float = 0.0
+    seconds_prepare: float = 0.0
+    skipped: dict[str, int] = field(default_factory=dict)
+    """Inputs dropped before the estimator saw them, and iterations it could not compute, by kind."""
+    warnings: tuple[str, ...] = ()
+    """What a user should know about the result (no landmarks, mostly failed iterations)."""
+    map_timeline: tuple[MapSnapshot, ...] = ()
+    """The map as it grew: at most ``relpoint.pipeline.MAX_TIMELINE`` snapshots at evenly spaced iterations."""
+
+    def timing_summary(self) -> dict[str, float]:
+        """Mean, median and total wall time per iteration, and the times before the first and after the last, in s."""
+        if len(self.seconds) == 0:
+            return {"iterations": 0, "seconds_total": 0.0, "seconds_mean": 0.0, "seconds_median": 0.0,
+                    "seconds_finish": self.seconds_finish, "seconds_prepare": self.seconds_prepare}  # fmt: skip
+        return {
+            "iterations": len(self.seconds),
+            "seconds_total": float(self.seconds.sum()),
+            "seconds_mean": float(self.seconds.mean()),
+            "seconds_median": float(np.median(self.seconds)),
+            "seconds_finish": self.seconds_finish,
+            "seconds_prepare": self.seconds_prepare,
+        }
