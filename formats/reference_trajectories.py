@@ -48,7 +48,7 @@ from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
 log = logging.getLogger(__name__)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-POSE_TYPES = (ros2.POSE_STAMPED, ros2.POSE_WITH_COVARIANCE_STAMPED, ros2.ODOMETRY)
+POSE_TYPES = ros2.POSE_TYPES
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
 #: Topics tried, in order, when an MCAP input is given without a topic.

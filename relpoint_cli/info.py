@@ -13,7 +13,6 @@ import numpy as np
 from formats import ros2
 from formats.layouts import Storage
 from formats.log import ROLE_TYPES, LogReader, TopicInfo
-from formats.reference_trajectories import POSE_TYPES
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -116,7 +115,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
             "skipped": dict(sorted(reader.skipped.items())),
         }  # fmt: skip
     reference_topics = [
-        topic for topic, item in reader.topic_infos.items() if item.typename in POSE_TYPES and item.count
+        topic for topic, item in reader.topic_infos.items() if item.typename in ros2.POSE_TYPES and item.count
     ]
     tf_topics = [topic for topic, item in reader.topic_infos.items() if item.typename == ros2.TF_MESSAGE and item.count]
     document = {
