@@ -11,6 +11,8 @@ Paper name -> Python name
     *RltGroup*, *RltGroupRef*   :mod:`.groups` (:class:`RelativeGroup`, :class:`GroupMap`)
     *RltUngroupedList*  :mod:`.grouping` (:class:`UngroupedList`; member heuristic :func:`select_members`)
     dynamic detection   :mod:`.dynamics` (:func:`detect_dynamic`)
+    final adjustment    :mod:`.adjustment` (:func:`adjust_network`)
+    settings            :mod:`.config` (:class:`RelativePointConfig`)
 
 One iteration (:meth:`RelativePointEstimator.step`) reads like section II:
 
@@ -69,23 +71,21 @@ Choices the paper leaves open, and where this implementation adds to it:
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from relpoint.errors import UsageError
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
 from relpoint.estimators.relative_point.charting import PointCharting
+from relpoint.estimators.relative_point.config import RelativePointConfig
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
@@ -115,7 +115,6 @@ from relpoint.estimators.relative_point.registration import (
 )
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.geometry import FloatArray
-from relpoint.settings import Settings
 from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -127,288 +126,6 @@ ADJUSTMENT_TOLERANCE = 0.05
 
 #: Iterations on either side whose relocations set an iteration's correction after the final adjustment.
 RELOCATION_WINDOW = 10
-
-#: Distance settings that scale with the observation noise: their defaults are for the simulator's
-#: 0.3 m and ``relpoint run`` multiplies them by ``observation_sigma / 0.3`` (see ``observation_sigma``).
-NOISE_SCALED = (
-    "match_bound", "global_match_bound", "merge_bound", "trim_floor", "consensus_bound", "spread_floor",
-    "adjustment_robust", "loop_search", "min_basis_spread", "collinear_tolerance",
-)  # fmt: skip
-
-
-@dataclass(frozen=True)
-class RelativePointConfig(Settings):
-    """Settings of the Relative Point estimator. Distances in metres, durations in iterations."""
-
-    settings_name: ClassVar[str] = "relpoint"
-    #: What ``relpoint config`` says about the settings that matter.
-    key_settings: ClassVar[dict[str, str]] = {
-        "observation_sigma": "per-axis point noise (m). Every distance bound (match_bound, global_match_bound, "
-        "merge_bound, trim_floor, consensus_bound, spread_floor, adjustment_robust, loop_search, "
-        "min_basis_spread, collinear_tolerance) is written for the simulator's 0.3 m and scaled by "
-        "observation_sigma / 0.3. Unset, it is estimated from the first observations; 0.3 keeps the bounds as "
-        "written.",
-        "match_bound": "local matching: must exceed the noise plus the error of the motion prediction.",
-        "min_basis_spread, collinear_tolerance": "how spread a group's basis must be: a fit's rotation error is "
-        "about the noise over this distance. Too large for the scene and no group forms.",
-        "dynamic_detection": "flags moving points; its thresholds are ratios to the scatter of the points in view, "
-        "never below what observation_sigma explains (dynamic_noise_floor).",
-        "dynamic_tail_sigmas": "which flagged points are reported dynamic: those that stand out of the bulk of the "
-        "points judged with them; the others are left out of the map as unreliable (a real sensor's heavy-tailed "
-        "error crosses the factors now and then). 0 reports every flagged point.",
-        "loop_search, loop_ambiguity": "loop closure beyond global matching: the largest drift looked for, and how "
-        "clearly one offset must lead (a repeating scene offers several).",
-    }
-    limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "ring_size": (1, 65_536), "match_window": (1, 1_000), "dynamic_window": (1, 10_000),
-        "dynamic_references": (1, 1_000), "max_groups_per_point": (1, 1_000), "relocate_points": (3, 10_000),
-        "adjustment_members": (3, 10_000), "adjustment_iterations": (1, 1_000), "seed_points": (1, 10_000),
-        "trim_rounds": (1, 100), "loop_support": (3, 10_000), "unverified_weight": (0.0, 1.0),
-        "dynamic_spread_verify": (0.0, 1.0), "observation_sigma": (1e-6, 1e3),
-        "dynamic_noise_floor": (0.0, 100.0), "dynamic_tail_sigmas": (0.0, 100.0), "loop_ambiguity": (0.0, 1.0),
-    }  # fmt: skip
-
-    observation_sigma: float | None = None
-    """Per-axis noise of a point (m). The distances in ``NOISE_SCALED`` (``match_bound``,
-    ``global_match_bound``, ``merge_bound``, ``trim_floor``, ``consensus_bound``, ``spread_floor``,
-    ``adjustment_robust``, ``loop_search``, and the basis geometry ``min_basis_spread`` and
-    ``collinear_tolerance``, which bound a fit's rotation error at about the noise over them) are given for the simulator's 0.3 m and ``relpoint run``
-    scales them by ``observation_sigma / 0.3``, so one set of defaults holds from a depth camera at 2 m
-    to a sensor at 70 m. Unset (the default): estimated from the first observations of the log
-    (:mod:`relpoint.estimators._noise`); ``0.3`` keeps every bound as written. A
-    ``RelativePointEstimator`` built directly, without ``SPEC.factory``, takes the bounds as written."""
-    ring_size: int = 128
-    """Untransformed observations each point keeps (*RltPoint* circular array); bounds regrouping intervals."""
-    match_window: int = 3
-    """Points seen in the last this many iterations are candidates for local matching."""
-    match_bound: float = 2.0
-    """Point matching bound between an untransformed point and a recent observation (m)."""
-    predict_motion: bool = True
-    """Predict recent observations into the current frame with the last inter-iteration motion
-    (from raw matched points, not current position); False matches raw observations as in the paper
-    (then use a bound above the motion per iteration)."""
-    match_angle: float = 0.03
-    """Points the first round of local matching leaves over get a second round in which a recent
-    point's bound grows by this angle (rad) times its predicted range: a prediction is off by the
-    motion estimate's rotation error times the range, and at low density that error keeps far points
-    entering view from ever matching (0 disables; needs ``predict_motion``)."""
-    global_matching: bool = True
-    """Match points that fail local matching against global positions through the current position."""
-    global_match_bound: float = 3.0
-    """Matching bound of global matching (m)."""
-    loop_search: float = 15.0
-    """Largest drift (m) that loop closure looks for when the sensor returns to mapped points and
-    global matching misses them (0 disables; see :mod:`.loops`)."""
-    loop_support: int = 4
-    """Distinct young points that must agree on a loop's offset (within half ``global_match_bound``)."""
-    loop_ambiguity: float = 0.4
-    """A loop's offset is rejected when another offset, more than two tolerances away, gathers more
-    than this fraction of its support: a scene that repeats (cabinet doors, tiles, shelves) fits
-    onto old points at several offsets, a drift at one (see :mod:`.loops`)."""
-    loop_every: int = 5
-    """Look for a loop every this many iterations."""
-    loop_young: int = 20
-    """Points first seen within this many iterations are young: possibly old points mapped again."""
-    loop_gap: int = 50
-    """Mapped points unseen for this many iterations are old: what a loop returns to."""
-    loop_max_rotation: float = 0.2
-    """A loop's drift is explained by heading drift growing steadily along the path up to this total
-    angle (rad); beyond it, or for the part a rotation cannot explain, it is spread linearly in time."""
-    final_adjustment: bool = True
-    """When the log ends, solve every group pose and point position jointly by least squares
-    (:mod:`.adjustment`) and fit every iteration's pose again to the adjusted map; False keeps the
-    paper's incremental solution."""
-    adjustment_prior: float = 0.005
-    """Weight (in iterations averaged) of each point's pull towards its incremental position in the
-    final adjustment: it settles the directions the relative maps leave almost free."""
-    adjustment_robust: float = 0.5
-    """Cauchy scale of the final adjustment (m; 0: plain least squares)."""
-    adjustment_iterations: int = 10
-    """Largest number of Levenberg-Marquardt iterations of the final adjustment."""
-    adjustment_dynamic_factor: float = 2.0
-    """After the final adjustment, a point in three or more groups that disagree about its position
-    by more than this times the median disagreement is flagged dynamic, and the adjustment runs again
-    without it: the moving points the detection missed stand out once the groups sit where the whole
-    network puts them (0 disables)."""
-    adjustment_members: int = 32
-    """Members per group the final adjustment solves the group poses with, those in the most groups
-    first (every member still takes its position from the adjusted poses): in a dense map a point is
-    in dozens of groups and the joint solution would grow with the square of that."""
-    relocate_points: int = 32
-    """Observations of mapped points each iteration keeps (sensor frame, with the point) so that the
-    final adjustment can locate the iteration again on the adjusted map (bounds memory: about 20 bytes
-    each)."""
-    creation_delay: int = 4
-    """A new point becomes a creation point after this many further iterations of observation."""
-    max_creations_per_iteration: int = 2
-    """First-grouping attempts per iteration."""
-    creation_every: int = 2
-    """Attempt first groupings every this many iterations (due points wait for the next attempt)."""
-    seed_points: int = 3
-    """Previously grouped points that seed a new group with its creation point (paper: three)."""
-    regroup_min_iterations: int = 20
-    """A point is regrouped when it leaves view after being observed for at least this many iterations."""
-    regroup_after: int = 96
-    """A point still in view after this many iterations is regrouped before its ring forgets the start."""
-    max_regroups_per_iteration: int = 1
-    """Regroupings per iteration."""
-    min_basis_spread: float = 1.0
-    """Smallest distance between basis points and of the third from the line of the first two (m)."""
-    collinear_tolerance: float = 2.0
-    """Anchor sets whose RMS distance from their best line is below this give no reliable rotation (m):
-    a fit's rotation about that line is uncertain by about the noise over this distance, and the
-    group carries that error into every point it places (0.3 m noise over 2 m is about 5 degrees
-    per fit, before the averaging over pairs and iterations)."""
-    dynamic_detection: bool = True
-    """Run dynamic point detection before a group is final."""
-    dynamic_min_iterations: int = 15
-    """Groups with a shorter calculation interval skip dynamic detection (motion not separable from noise)."""
-    dynamic_gap_ratio: float = 0.5
-    """Gap rule: relative jump in the sorted first-round deviations that sets the threshold."""
-    dynamic_window: int = 40
-    """Iterations of history the dynamic sweep compares (first groupings are too short to tell
-    motion from noise, so points are judged against the persisting majority bin)."""
-    dynamic_every: int = 5
-    """Run the dynamic sweep every this many iterations."""
-    dynamic_block: int = 5
-    """The sweep compares distances averaged over blocks of this many iterations (1: single
-    observations), which lowers the noise so that points moving a few metres over the window stand
-    out (see :func:`~relpoint.estimators.relative_point.dynamics.deviation_to_references`)."""
-    dynamic_references: int = 6
-    """Verified static points each point is compared with in the sweep."""
-    dynamic_verify_factor: float = 1.5
-    """A point whose deviation against the references is at most this times theirs is verified static."""
-    dynamic_moving_factor: float = 2.0
-    """A point whose deviation against the references exceeds this times theirs is dynamic."""
-    dynamic_tail_sigmas: float = 3.0
-    """Which flagged points are reported as *dynamic* landmarks. Every point a dynamic test flags
-    leaves the static map, the global index and every fit; it is reported dynamic only where the
-    value that flagged it also stands out of the bulk of the values judged with it, by this many
-    robust standard deviations above their median on a log scale (see
-    :func:`~relpoint.estimators.relative_point.dynamics.tail_bound`). The other flagged points are
-    left out of the map as *unreliable* (``landmarks_unreliable`` in the summary): on a real
-    sensor's heavy-tailed error a static point crosses the factors now and then, and on 7-Scenes
-    keypoints 42 % of the well-tracked corners' landmarks were reported moving with the factors
-    alone, 8 % with this bound, at the same ATE. 0 reports every flagged point as dynamic."""
-    dynamic_noise_floor: float = 1.0
-    """The noise level the dynamic tests scale (the references' deviation in the sweep, the binning's
-    threshold) is at least this times what ``observation_sigma`` gives two static points (``sqrt(2)
-    sigma``, over the square root of the block length for block means): a deviation that the noise
-    alone explains never marks a point as moving. The verified references were chosen for their low
-    deviation and run below it on real keypoints (0.32 cm against 0.65 cm expected at 1 cm noise),
-    which flagged points of ordinary noise; on the simulator the floor and the references agree."""
-    dynamic_world_factor: float = 2.5
-    """A point whose block-mean positions in ``world`` (mapped by the poses of their iterations)
-    scatter by more than this times the typical scatter of the points in view is dynamic; it sees
-    motion in every direction, where distances only see it along each reference (0 disables)."""
-    dynamic_spread_factor: float = 2.5
-    """A point whose groups disagree about its global position by more than this times the typical
-    disagreement of the points in view is dynamic."""
-    dynamic_spread_verify: float = 0.6
-    """... and is verified static only below this fraction of that."""
-    merge_bound: float = 1.5
-    """New points within this distance of an older, never co-observed point are merged into it (m)."""
-    trim: float = 3.0
-    """Least-squares fits drop pairs with residual above this times the median residual, then refit."""
-    trim_floor: float = 0.5
-    """Smallest residual trimming may reject (m)."""
-    trim_rounds: int = 1
-    """Trimming rounds of the group fits and the current position (each refits without the outliers)."""
-    consensus_bound: float = 1.5
-    """Group fits and the current position re-seed from the best three-point fit (deterministic
-    RANSAC over the heaviest pairs) when a pair's residual exceeds this, and drop the pairs beyond
-    it, so moving points in view cannot pull them (m; 0 disables)."""
-    unverified_weight: float = 0.5
-    """Weight factor, in group fits and the current position, of points not (yet) verified static.
-    (Using verified points only would be safer against moving points but, with few points in view,
-    costs more accuracy through weaker geometry than it saves.)"""
-    spread_floor: float = 0.2
-    """Anchors and current-position points are weighted by 1 / (spread^2 + this^2), where spread is
-    how much the point's groups disagree about its global position (m)."""
-    max_groups_per_point: int = 24
-    """Points in more groups have their lightest redundant closed group removed (bounds memory)."""
-    stale_after: int = 10
-    """Ungrouped points unseen for this many iterations are dropped (clutter, one-off points)."""
-    coast: bool = True
-    """In an iteration with fewer than three usable mapped points, move the pose by the motion of
-    this iteration's locally matched raw points when they give one; False holds the pose."""
-
-    def at_noise(self, sigma: float) -> RelativePointConfig:
-        """These settings with ``observation_sigma = sigma`` (m) and the ``NOISE_SCALED`` bounds scaled to it."""
-        factor = sigma / SIMULATOR_SIGMA
-        scaled = {name: getattr(self, name) * factor for name in NOISE_SCALED}
-        return dataclasses.replace(self, observation_sigma=sigma, **scaled)
-
-    def __post_init__(self) -> None:
-        if self.observation_sigma is not None and not (
-            isinstance(self.observation_sigma, int | float) and 0 < self.observation_sigma < math.inf
-        ):
-            raise UsageError(f"observation_sigma must be a positive number, got {self.observation_sigma!r}")
-        positive_int = {
-            "ring_size": self.ring_size, "match_window": self.match_window,
-            "max_creations_per_iteration": self.max_creations_per_iteration, "seed_points": self.seed_points,
-            "creation_every": self.creation_every, "trim_rounds": self.trim_rounds,
-            "regroup_min_iterations": self.regroup_min_iterations, "regroup_after": self.regroup_after,
-            "dynamic_min_iterations": self.dynamic_min_iterations, "max_groups_per_point": self.max_groups_per_point,
-            "dynamic_window": self.dynamic_window, "dynamic_every": self.dynamic_every,
-            "dynamic_references": self.dynamic_references, "dynamic_block": self.dynamic_block,
-            "stale_after": self.stale_after, "loop_every": self.loop_every, "loop_young": self.loop_young,
-            "loop_gap": self.loop_gap, "adjustment_iterations": self.adjustment_iterations,
-            "relocate_points": self.relocate_points, "adjustment_members": self.adjustment_members,
-        }  # fmt: skip
-        for name, value in positive_int.items():
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise UsageError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("creation_delay", "max_regroups_per_iteration"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-                raise UsageError(f"{name} must be an integer >= 0, got {value!r}")
-        positive = {
-            "match_bound": self.match_bound, "global_match_bound": self.global_match_bound,
-            "min_basis_spread": self.min_basis_spread, "collinear_tolerance": self.collinear_tolerance,
-            "dynamic_gap_ratio": self.dynamic_gap_ratio, "dynamic_verify_factor": self.dynamic_verify_factor,
-            "dynamic_moving_factor": self.dynamic_moving_factor, "spread_floor": self.spread_floor,
-            "dynamic_spread_factor": self.dynamic_spread_factor, "unverified_weight": self.unverified_weight,
-            "dynamic_spread_verify": self.dynamic_spread_verify,
-        }  # fmt: skip
-        non_negative = {
-            "dynamic_world_factor": self.dynamic_world_factor, "merge_bound": self.merge_bound, "trim": self.trim, "trim_floor": self.trim_floor,
-            "consensus_bound": self.consensus_bound, "match_angle": self.match_angle, "loop_search": self.loop_search,
-            "loop_max_rotation": self.loop_max_rotation, "adjustment_prior": self.adjustment_prior,
-            "adjustment_dynamic_factor": self.adjustment_dynamic_factor,
-            "adjustment_robust": self.adjustment_robust, "dynamic_noise_floor": self.dynamic_noise_floor,
-            "dynamic_tail_sigmas": self.dynamic_tail_sigmas,
-            "loop_ambiguity": self.loop_ambiguity,
-        }  # fmt: skip
-        for name, value in positive.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
-        for name, value in non_negative.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
-        for name in ("predict_motion", "global_matching", "dynamic_detection", "coast", "final_adjustment"):
-            if not isinstance(getattr(self, name), bool):
-                raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
-        if self.unverified_weight > 1.0 or self.dynamic_spread_verify > 1.0:
-            raise UsageError("unverified_weight and dynamic_spread_verify are fractions in (0, 1]")
-        if not (
-            isinstance(self.loop_support, int) and not isinstance(self.loop_support, bool) and self.loop_support >= 3
-        ):
-            raise UsageError(f"loop_support must be an integer >= 3, got {self.loop_support!r}")
-        for name in ("adjustment_members", "relocate_points"):
-            if getattr(self, name) < 3:
-                raise UsageError(
-                    f"{name} must be at least 3 (a rigid fit needs three points), got {getattr(self, name)}"
-                )
-        if self.seed_points < 3:
-            raise UsageError(
-                f"seed_points must be at least 3 (a rigid fit needs three anchors), got {self.seed_points}"
-            )
-        if self.match_window >= self.ring_size or self.creation_delay >= self.ring_size:
-            raise UsageError("match_window and creation_delay must be below ring_size")
-        if max(self.regroup_min_iterations, self.regroup_after, self.dynamic_window) > self.ring_size:
-            raise UsageError("regroup_min_iterations, regroup_after and dynamic_window must not exceed ring_size")
-
 
 class RelativePointEstimator(Estimator):
     """The Relative Point algorithm (the paper's *RltMapper*); see the module docstring.
