@@ -360,7 +360,7 @@ def test_run_segmented_finishes_every_local_map_it_keeps() -> None:
 
 class _GroupingMapper(_IdMapper):
     """A stub like the Relative Point estimator: a feature enters the map only on its fourth sighting (in a
-    burst), while ``summary()`` counts the features started (``new_points``) when ``counts`` is set."""
+    burst), while it counts the features started (``features_started``) when ``counts`` is set."""
 
     def __init__(self, counts: bool) -> None:
         super().__init__()
@@ -377,8 +377,9 @@ class _GroupingMapper(_IdMapper):
         ids = np.array(sorted(i for i, n in self.sightings.items() if n >= 4), dtype=np.int64)
         return LandmarkMap(np.zeros((len(ids), 3)), np.ones(len(ids), np.int64), np.zeros(len(ids), bool), ids)
 
-    def summary(self) -> dict[str, object]:
-        return {"new_points": len(self.sightings)} if self.counts else {}
+    @property
+    def features_started(self) -> int | None:
+        return len(self.sightings) if self.counts else None
 
 
 def test_run_segmented_counts_matches_from_started_features_when_reported() -> None:

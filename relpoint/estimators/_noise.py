@@ -231,6 +231,10 @@ class NoiseAdaptive(Estimator):
     def map_size(self) -> int:
         return self._inner.map_size if self._inner is not None else 0
 
+    @property
+    def features_started(self) -> int | None:
+        return self._inner.features_started if self._inner is not None else None
+
     def finish(self, trajectory: Trajectory) -> Trajectory:
         if self._inner is None:  # the log ended while observations were held back
             self._start()

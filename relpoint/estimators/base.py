@@ -68,6 +68,12 @@ class Estimator(abc.ABC):
         return None
 
     @property
+    def features_started(self) -> int | None:
+        """Features started so far for observations that matched nothing, mapped yet or not; None (the
+        default) when every new feature is at once a new landmark, so that the map's growth counts them."""
+        return None
+
+    @property
     def map_size(self) -> int:
         """Number of landmarks currently mapped (for timing.csv)."""
         return len(self.landmark_map())

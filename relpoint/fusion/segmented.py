@@ -8,9 +8,9 @@ at the identity of a new local frame. Every local map thus stays rigid in its ow
 run would instead re-associate old landmarks after a gap (a loop closure across the break) and bend
 the path inside a "segment", which no rigid transform to the fixes can undo.
 
-Matched features are the observed points that did not start a new feature. An estimator whose
-``summary()`` counts the features it started (:data:`FEATURES_STARTED`, the Relative Point estimator's
-``new_points``) is read from that count; for the others a new feature is a new landmark, i.e. the
+Matched features are the observed points that did not start a new feature. An estimator that counts
+the features it started (:attr:`~relpoint.estimators.base.Estimator.features_started`, the Relative
+Point estimator's ``new_points``) is read from that count; for the others a new feature is a new landmark, i.e. the
 map's growth (:func:`.segmentation.matched_counts_from_map_growth`). Map growth would not do for the
 Relative Point estimator: a point enters its map only when a group places it, a few iterations
 after it was first seen and matched, so the first grouping of a fresh local map (about 20 points at
@@ -74,17 +74,6 @@ class SegmentedRun:
     map_size: IntArray
     seconds: np.ndarray
     fixes: list[PositionFix]
-
-
-#: Key of an estimator's :meth:`~relpoint.estimators.base.Estimator.summary` counting the features it has
-#: started for unmatched observations, mapped yet or not (the Relative Point estimator's ``new_points``).
-FEATURES_STARTED = "new_points"
-
-
-def _features_started(estimator: Estimator) -> int | None:
-    """Features ``estimator`` has started so far, when its summary counts them (:data:`FEATURES_STARTED`)."""
-    value = estimator.summary().get(FEATURES_STARTED)
-    return int(value) if isinstance(value, int | np.integer) else None
 
 
 def run_segmented(
@@ -164,9 +153,9 @@ def run_segmented(
         size_before = 0
         if estimator is not None:
             size_before = estimator.map_size
-            started_before = _features_started(estimator)
+            started_before = estimator.features_started
             pose = estimator.step(item)
-            started_after = _features_started(estimator)
+            started_after = estimator.features_started
             if started_before is not None and started_after is not None:
                 pairs = len(item) - max(started_after - started_before, 0)
             else:

@@ -471,6 +471,12 @@ class RelativePointEstimator(Estimator):
         n = store.high_water
         return int(np.count_nonzero(store.alive[:n] & self._reported(np.arange(n))))
 
+    @property
+    def features_started(self) -> int:
+        """Points started so far (``new_points``): a point enters the map only when a group places it,
+        a few iterations after it was first seen, so the map's growth would not count them."""
+        return self.counts["new_points"]
+
     def summary(self) -> dict[str, Any]:
         store = self.store
         n = store.high_water
