@@ -303,14 +303,18 @@ class _IdMapper(Estimator):
         return LandmarkMap(np.zeros((len(ids), 3)), np.ones(len(ids), np.int64), np.zeros(len(ids), bool), ids)
 
 
+def _break_ids(k: int) -> np.ndarray:
+    """Ids seen at iteration ``k``: 0-5 see landmarks 0-9, 6-7 nothing, 8-15 see 100-109, 16 sees 200-209."""
+    if k < 6:
+        return np.arange(10)
+    if k < 8:
+        return np.zeros(0, np.int64)
+    return np.arange(100, 110) if k < 16 else np.arange(200, 210)
+
+
 def test_run_segmented_starts_a_fresh_local_map_at_every_break() -> None:
-    # Iterations 0-5 see landmarks 0-9, 6-7 see nothing, 8-15 see 100-109, 16 sees 200-209 (a one-off).
-    def ids(k: int) -> np.ndarray:
-        if k < 6:
-            return np.arange(10)
-        if k < 8:
-            return np.zeros(0, np.int64)
-        return np.arange(100, 110) if k < 16 else np.arange(200, 210)
+    # Iteration 16 is a one-off: its landmarks are seen nowhere else.
+    ids = _break_ids
 
     inputs: list[object] = []
     for k in range(17):
@@ -339,16 +343,9 @@ class _FinishingMapper(_IdMapper):
 
 
 def test_run_segmented_finishes_every_local_map_it_keeps() -> None:
-    # As in the test above: maps of 6 and 8 iterations are kept, the 2-iteration gap and the one-off are not.
-    def ids(k: int) -> np.ndarray:
-        if k < 6:
-            return np.arange(10)
-        if k < 8:
-            return np.zeros(0, np.int64)
-        return np.arange(100, 110) if k < 16 else np.arange(200, 210)
-
+    # Maps of 6 and 8 iterations are kept, the 2-iteration gap and the one-off are not (:func:`_break_ids`).
     _FinishingMapper.finished = []
-    inputs = [PointObservation(k * 100_000_000, np.zeros((len(ids(k)), 3)), ids(k)) for k in range(17)]
+    inputs = [PointObservation(k * 100_000_000, np.zeros((len(_break_ids(k)), 3)), _break_ids(k)) for k in range(17)]
     run = run_segmented(inputs, _FinishingMapper, min_matches=5, min_length=4)
     np.testing.assert_array_equal(run.labels, [0] * 6 + [-1] * 2 + [1] * 8 + [-1])
     assert _FinishingMapper.finished == [7, 9]  # each map's poses and the pose of the step that broke it
