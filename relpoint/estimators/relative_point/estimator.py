@@ -439,7 +439,8 @@ class RelativePointEstimator(Estimator):
         return True
 
     def landmark_map(self) -> LandmarkMap:
-        """Mapped points (static: least-squares global position) and dynamic points (mean position)."""
+        """Mapped points (static: least-squares global position) and points reported moving (mean position);
+        points flagged but not reported moving are left out (``landmarks_unreliable``)."""
         store = self.store
         live = store.live_ids()
         keep = live[self._reported(live)]
