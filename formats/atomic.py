@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import json
 import os
 import shutil
@@ -113,7 +114,8 @@ def remove_temporaries(path: str | os.PathLike[str]) -> int:
     """
     target = resolve_output(path)
     removed = 0
-    for pattern in (f".{target.name}.*.tmp", f".{target.name}.*.partial"):
+    name = glob.escape(target.name)  # job names may hold "[" from a grid value
+    for pattern in (f".{name}.*.tmp", f".{name}.*.partial"):
         for leftover in target.parent.glob(pattern):
             if leftover.is_dir() and not leftover.is_symlink():
                 shutil.rmtree(leftover, ignore_errors=True)

@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from formats.atomic import atomic_directory, write_text
+from formats.atomic import atomic_directory, remove_temporaries, write_text
 from formats.log import LogReader, Topics, metadata_json
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.run_output import RUN_FILES
@@ -663,6 +663,14 @@ def _cancelled_row(job: Job, reason: str) -> dict[str, Any]:
     row = _empty_row(job)
     row.update(status="cancelled", error=reason)
     return row
+
+
+def remove_plan_temporaries(plan: BatchPlan) -> None:
+    """After an interrupt, once the pool's workers are gone: remove the temporaries that a worker
+    killed before its job unwound (after :attr:`LocalPool.STOP_GRACE_S`) left beside the outputs of
+    the plan's jobs and simulated logs (:func:`formats.atomic.remove_temporaries`)."""
+    for output in [step.output for step in plan.simulations] + [job.output for job in plan.jobs]:
+        remove_temporaries(output)
 
 
 def run_plan(

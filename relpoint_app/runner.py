@@ -32,11 +32,26 @@ from relpoint_app.roles import NEED_ROLES
 
 log = logging.getLogger(__name__)
 
-def build_config(spec: EstimatorSpec, config_file: Path | None, params: tuple[str, ...]) -> Any:
-    """The estimator's config dataclass from defaults, a settings file and ``--param KEY=VALUE``."""
+def estimator_spec(name: str) -> EstimatorSpec:
+    """The registered estimator ``name``; an unknown name is a :class:`UsageError` listing the known ones."""
+    if name not in ESTIMATORS:
+        known = ", ".join(sorted(ESTIMATORS)) or "none installed"
+        raise UsageError(f"unknown estimator {name!r}", f"choose one of: {known}")
+    return ESTIMATORS[name]
+
+
+def build_config(
+    spec: EstimatorSpec,
+    config_file: Path | None,
+    params: tuple[str, ...] = (),
+    settings: dict[str, Any] | None = None,
+) -> Any:
+    """The estimator's config dataclass from defaults, a settings file, then ``settings`` by name and
+    ``--param KEY=VALUE`` items."""
     values: dict[str, Any] = {}
     if config_file is not None:
         values.update(load_settings(config_file, section=spec.name))
+    values.update(settings or {})
     return spec.build_config(values, params)
 
 
@@ -126,18 +141,13 @@ def execute_run(
 ) -> pipeline.RunResult:
     """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
 
-    ``window`` crops the log's observations, odometry and fixes (seconds from the first one read).
-
-    BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
-    spinning worker threads made the EKF about 20 times slower.
+    ``window`` crops the log's observations, odometry and fixes (seconds from the first one read);
+    the estimator runs as :func:`drive` runs it.
     """
-    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
-    estimator = spec.factory(config, np.random.default_rng(seed))
-    with threadpool_limits(limits=1, user_api="blas"):
-        result = pipeline.run(
-            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
-        )  # fmt: skip
+    result, roles = drive(
+        reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes,
+        on_iteration=on_iteration, map_every=map_every, window=window,
+    )  # fmt: skip
     run_info = {
         "estimator": spec.name,
         "parameters": dataclasses.asdict(config),
@@ -156,6 +166,33 @@ def execute_run(
     )  # fmt: skip
     write_run_directory(output, result, run_info, observations=observations, reference=reference_path(reader))
     return result
+
+
+def drive(
+    reader: LogReader,
+    spec: EstimatorSpec,
+    config: Any,
+    *,
+    seed: int = 0,
+    use_odometry: bool = True,
+    use_fixes: bool = True,
+    on_iteration: Callable[[int, Any], None] | None = None,
+    map_every: int = 0,
+    window: TimeWindow | None = None,
+) -> tuple[pipeline.RunResult, list[str]]:
+    """Build ``spec``'s estimator and run it over the log's inputs; the result and the roles read.
+
+    BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
+    spinning worker threads made the EKF about 20 times slower.
+    """
+    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
+    estimator = spec.factory(config, np.random.default_rng(seed))
+    with threadpool_limits(limits=1, user_api="blas"):
+        result = pipeline.run(
+            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
+            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
+        )  # fmt: skip
+    return result, roles
 
 
 def reference_path(reader: LogReader) -> Trajectory | None:
@@ -218,14 +255,8 @@ def run(
     relpoint.errors.RelpointError
         Unusable input (``InputError``), bad settings (``UsageError``) or an estimator failure.
     """
-    if estimator not in ESTIMATORS:
-        raise UsageError(f"unknown estimator {estimator!r}", f"choose one of: {', '.join(sorted(ESTIMATORS))}")
-    spec = ESTIMATORS[estimator]
-    values: dict[str, Any] = {}
-    if config_file is not None:
-        values.update(load_settings(Path(config_file), section=spec.name))
-    values.update(settings)
-    config = spec.build_config(values)
+    spec = estimator_spec(estimator)
+    config = build_config(spec, None if config_file is None else Path(config_file), settings=settings)
     topic_names = topics if isinstance(topics, Topics) else Topics(**(topics or {}))
     reader = LogReader(log, topic_names)
     if output is not None:
@@ -236,10 +267,5 @@ def run(
         return execute_run(
             reader, spec, config, directory, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
         )
-    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
-    built = spec.factory(config, np.random.default_rng(seed))
-    with threadpool_limits(limits=1, user_api="blas"):
-        return pipeline.run(
-            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-            built, skipped_before=reader.skipped,
-        )  # fmt: skip
+    result, _ = drive(reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window)
+    return result

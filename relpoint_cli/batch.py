@@ -15,7 +15,6 @@ from typing import Any
 
 import click
 
-from formats.atomic import remove_temporaries
 from relpoint.errors import Interrupted, UsageError
 from relpoint_app.batch_jobs import (
     BatchOutcome,
@@ -25,6 +24,7 @@ from relpoint_app.batch_jobs import (
     LocalPool,
     TlsFiles,
     parse_scheduler,
+    remove_plan_temporaries,
     run_plan,
     scheduler_security,
 )
@@ -185,11 +185,8 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
                 plan, executor, fail_fast=fail_fast, resume=resume, on_simulated=on_simulated, on_job=on_job
             )
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the executor has cancelled the running jobs
-        # A pool worker killed before its job unwound (after the pool's grace period) leaves its
-        # temporaries behind; every worker is gone now. (A Dask task unwinds on its own.)
-        if isinstance(executor, LocalPool):
-            for output in [step.output for step in plan.simulations] + [job.output for job in plan.jobs]:
-                remove_temporaries(output)
+        if isinstance(executor, LocalPool):  # a Dask task unwinds on its own
+            remove_plan_temporaries(plan)
         raise Interrupted(
             f"interrupted: {finished} of {len(plan.jobs)} job(s) done and kept, the others cancelled "
             "without leaving a job directory",

@@ -12,9 +12,8 @@ import click
 
 from formats.log import LogReader
 from formats.outputs import check_output_directory
-from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
-from relpoint_app.runner import build_config, execute_run
+from relpoint_app.runner import build_config, estimator_spec, execute_run
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
@@ -84,10 +83,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     --t-start/--t-end crop the log: seconds after its first observation, odometry or fix.
     """
     window = time_window(t_start, t_end)
-    if estimator_name not in ESTIMATORS:
-        known = ", ".join(sorted(ESTIMATORS)) or "none installed"
-        raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {known}")
-    spec = ESTIMATORS[estimator_name]
+    spec = estimator_spec(estimator_name)
     config = build_config(spec, config_file, params)
     output = check_output_directory(output, command="run", inputs=[log, config_file], overwrite=overwrite)
     reader = LogReader(log, topics_from(topic_names))
@@ -116,9 +112,7 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
 @handle_errors
 def config_command(estimator_name: str) -> None:
     """Print an estimator's parameters with their defaults, as TOML for --config."""
-    if estimator_name not in ESTIMATORS:
-        raise UsageError(f"unknown estimator {estimator_name!r}", f"choose one of: {', '.join(sorted(ESTIMATORS))}")
-    spec = ESTIMATORS[estimator_name]
+    spec = estimator_spec(estimator_name)
     click.echo(f"[{spec.name}]  # {spec.description}")
     key_settings = getattr(spec.config_class, "key_settings", {})
     if key_settings:

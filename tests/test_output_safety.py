@@ -218,3 +218,12 @@ def test_temporaries_of_a_killed_writer_are_removed_and_nothing_else(tmp_path: P
     assert remove_temporaries(tmp_path / "job") == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == [".job.z1.old", ".other.k3x.partial", "job"]
     assert remove_temporaries(tmp_path / "job") == 0
+
+
+def test_temporaries_are_found_for_a_name_with_glob_characters(tmp_path: Path) -> None:
+    from formats.atomic import remove_temporaries
+
+    (tmp_path / ".sigma=[0.1].k3x.partial").mkdir()
+    (tmp_path / ".sigma=0.k3x.partial").mkdir()  # what an unescaped "[0.1]" would match
+    assert remove_temporaries(tmp_path / "sigma=[0.1]") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".sigma=0.k3x.partial"]

@@ -940,14 +940,10 @@ class RelativePointEstimator(Estimator):
         typical = _finite_median(spread)
         spread_ratio = spread / typical if np.isfinite(typical) and typical > 0 else np.full(len(tested), np.nan)
         judged = np.isfinite(deviation)
-        tail = config.dynamic_tail_sigmas
         by_references = judged & (deviation > config.dynamic_moving_factor * noise)
         by_spread = np.isfinite(spread_ratio) & (spread_ratio > config.dynamic_spread_factor)
-        # Reported moving (not only left out) where a witness's value also stands out of the bulk.
-        beyond = (judged & (deviation > tail_bound(deviation, tail))) | (
-            np.isfinite(spread_ratio) & (spread_ratio > tail_bound(spread_ratio, tail))
-        )
         by_world = np.zeros(len(tested), bool)
+        world_ratio = np.full(len(tested), np.nan)
         if config.dynamic_world_factor > 0:
             # Third witness: scatter of the point's block-mean world positions within its current
             # run (the pose of this iteration is not known yet), against the typical scatter.
@@ -959,13 +955,20 @@ class RelativePointEstimator(Estimator):
             if np.isfinite(typical_scatter) and typical_scatter > 0:
                 world_ratio = scatter / typical_scatter
                 by_world = np.isfinite(world_ratio) & (world_ratio > config.dynamic_world_factor)
-                beyond |= np.isfinite(world_ratio) & (world_ratio > tail_bound(world_ratio, tail))
                 static_ok = ~(world_ratio > config.dynamic_verify_factor)  # NaN: no objection
             else:
                 static_ok = np.ones(len(tested), bool)
         else:
             static_ok = np.ones(len(tested), bool)
         moving = by_references | by_spread | by_world
+        beyond = np.zeros(len(tested), bool)
+        if moving.any():  # reported moving (not only left out) where a value also stands out of the bulk
+            tail = config.dynamic_tail_sigmas
+            beyond = (
+                (deviation > tail_bound(deviation, tail))
+                | (spread_ratio > tail_bound(spread_ratio, tail))
+                | (world_ratio > tail_bound(world_ratio, tail))
+            )  # NaN compares False
         by_spread &= ~by_references
         by_world &= ~by_references & ~by_spread
         static = judged & ~moving & static_ok & (deviation <= config.dynamic_verify_factor * noise)
