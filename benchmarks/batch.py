@@ -82,8 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=2, help="timed runs per --jobs value")
     args = parser.parse_args(argv)
 
-    from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
 
     with tempfile.TemporaryDirectory(prefix="relpoint-batch-bench-") as tmp:
         root = Path(tmp)

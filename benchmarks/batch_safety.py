@@ -155,8 +155,8 @@ def _alive(pid: int) -> bool:
 
 
 def signal_case(root: Path, signum: signal.Signals, timeout_s: float) -> None:
-    from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
 
     root = root / "signals"
     logs = root / "logs"

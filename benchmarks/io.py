@@ -78,8 +78,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="best of N for each reader")
     args = parser.parse_args()
 
-    from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.mcap"

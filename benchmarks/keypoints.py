@@ -46,9 +46,9 @@ def keypoint_log(frames: int, directory: Path) -> Path:
     """Import the kitchen frames as point observations (as ``relpoint import 7scenes --points``)."""
     import hashlib
 
-    from formats.keypoint_import import write_keypoint_log
     from formats.rgbd_import import seven_scenes_frames
     from relpoint.frontend.tracking import KeypointSettings
+    from relpoint_app.keypoint_import import write_keypoint_log
 
     settings = hashlib.sha256(repr(KeypointSettings()).encode()).hexdigest()[:8]  # a new front-end, a new log
     path = directory / f"kitchen_points_{frames}_{settings}.mcap"

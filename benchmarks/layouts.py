@@ -29,7 +29,8 @@ from pathlib import Path
 
 from click.testing import CliRunner
 
-from formats.layouts import Layout, LayoutSpec, raw_messages, write_layout
+from formats.layout_writers import LayoutSpec, raw_messages, write_layout
+from formats.layouts import Layout
 from formats.log import LogReader
 from relpoint_cli.main import cli
 
@@ -112,8 +113,8 @@ def main() -> None:
     parser.add_argument("--room", type=int, default=0, help="also an RGB-D room log of N frames (info and read)")
     args = parser.parse_args()
 
-    from formats.simulation_log import write_simulation
     from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

@@ -26,10 +26,14 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
+from formats.signatures import is_log, is_relpoint_result_zip
 from relpoint.errors import UsageError
 
 #: Name of the file that marks a directory as a relpoint output; JSON ``{"command", "files"}``.
 MARKER = ".relpoint-output"
+
+#: The files of a ``relpoint run`` output directory (:mod:`formats.run_output` writes them).
+RUN_FILES = ("trajectory.tum", "trajectory.csv", "map.ply", "map.csv", "timing.csv", "run.json", "result.mcap")
 
 #: Header lines of the CSV tables relpoint writes; a CSV file starting with one is relpoint's.
 _CSV_HEADERS: set[str] = set()
@@ -74,8 +78,6 @@ def _resolved_inputs(inputs: Iterable[str | os.PathLike[str] | None]) -> list[tu
 
 def _is_bag(path: Path) -> bool:
     """Whether ``path`` is a log directory (a rosbag2 bag): nothing may be written inside it."""
-    from formats.layouts import is_log
-
     return path.is_dir() and is_log(path)
 
 
@@ -128,8 +130,6 @@ def directory_owner(path: Path) -> tuple[str, set[str]] | None:
         except (OSError, ValueError):
             return None
         if isinstance(document, dict) and "relpoint_version" in document:
-            from formats.run_output import RUN_FILES  # a late import: run_output imports this module
-
             return "run", {*RUN_FILES, "map_history.csv"}
     return None
 
@@ -221,8 +221,6 @@ def written_by_relpoint(path: Path) -> bool:
     if suffix == ".md":
         return head.startswith(b"<!-- relpoint ")
     if suffix == ".zip":  # an evo result zip: the archive comment
-        from formats.evo_results import is_relpoint_result_zip  # a late import: evo_results imports atomic
-
         return is_relpoint_result_zip(path)
     return False
 

@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from formats import ros2
-from formats.layouts import is_log
 from formats.log import LogReader
 from formats.ply import read_ply
+from formats.signatures import MCAP_MAGIC, is_log
 from formats.tables import read_map_csv
 from formats.trajectory_files import (
     TrajectoryFormat,
@@ -47,7 +47,6 @@ from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
 
 log = logging.getLogger(__name__)
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 POSE_TYPES = ros2.POSE_TYPES
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"

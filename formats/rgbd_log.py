@@ -1,4 +1,4 @@
-"""Writing a simulated RGB-D sequence (``relpoint.simulation.rgbd``) as a relpoint log, with its scene beside it.
+"""Writing a simulated RGB-D sequence as a relpoint log, from core types, with its scene beside it.
 
 Per frame, at its stamp and in this order: ``/camera/depth/camera_info`` (first frame only),
 ``/ground_truth/pose`` (``T_world_camera``) and the same as ``/tf`` (world -> camera), ``/camera/color/image`` (rgb8, registered to the depth) and
@@ -10,39 +10,45 @@ PLY file for map-accuracy evaluation.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
 from formats import ros2
 from formats.log import LogWriter, Topics, metadata_json
 from formats.ply import write_ply
-from relpoint.simulation.rgbd import RgbdSimulation
-from relpoint.types import Pose
+from relpoint.geometry import FloatArray
+from relpoint.types import DepthFrame, Pose
 
 
-def write_rgbd_simulation(
-    simulation: RgbdSimulation,
+def write_rgbd_simulation_log(
+    frames: Iterable[DepthFrame],
     path: str | os.PathLike[str],
     *,
+    poses: FloatArray,
+    settings: Mapping[str, Any],
     compression: str = "zstd",
     topics: Topics | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> dict[str, int]:
-    """Write every frame of ``simulation`` to the log ``path`` (atomically) and return message counts.
+    """Write every frame to the log ``path`` (atomically) and return message counts.
+
+    ``poses`` (N, 4, 4) are the true camera poses ``T_world_camera``, one per frame; ``settings`` the
+    simulation's settings as plain values (stored with ``scenario: room``).
 
     ``on_frame(k)`` is called after frame ``k`` (for progress bars).
     """
     topics = topics or Topics()
     counts = {"camera_info": 0, "depth": 0, "color": 0, "ground_truth_pose": 0, "tf": 0}
-    metadata = {"relpoint.simulation": metadata_json({"scenario": "room", **simulation.config.to_dict()})}
+    metadata = {"relpoint.simulation": metadata_json({"scenario": "room", **settings})}
     with LogWriter(path, compression=compression, metadata=metadata) as writer:
-        for index, frame in enumerate(simulation.frames()):
+        for index, frame in enumerate(frames):
             stamp = frame.stamp_ns
             if index == 0:
                 writer.write_camera_info(stamp, frame.intrinsics, topics.camera_info)
                 counts["camera_info"] += 1
-            pose = Pose.from_matrix(stamp, simulation.poses[index])
+            pose = Pose.from_matrix(stamp, poses[index])
             writer.write_ground_truth_pose(pose, topics.ground_truth_pose)
             counts["ground_truth_pose"] += 1
             writer.write("/tf", ros2.TF_MESSAGE, ros2.tf_to_msg(stamp, "world", "camera", pose.position, pose.quat_xyzw), stamp)
@@ -57,9 +63,9 @@ def write_rgbd_simulation(
     return counts
 
 
-def write_reference_cloud(simulation: RgbdSimulation, path: str | os.PathLike[str]) -> int:
-    """Write the scene's reference cloud (x, y, z, nx, ny, nz float32, ``world``) as a binary PLY; returns its size."""
-    points, normals = simulation.reference_cloud()
+def write_reference_cloud(points: FloatArray, normals: FloatArray, path: str | os.PathLike[str]) -> int:
+    """Write a scene's reference cloud (points and unit normals (N, 3) in ``world``, metres; stored as
+    x, y, z, nx, ny, nz float32) as a binary PLY; returns its size."""
     vertices = np.empty(len(points), dtype=[(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")])
     for k, name in enumerate(("x", "y", "z")):
         vertices[name] = points[:, k]

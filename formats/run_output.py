@@ -24,8 +24,6 @@ from formats.tables import write_map_csv, write_map_history_csv, write_timing_cs
 from formats.trajectory_files import write_tum
 from relpoint.types import PointObservation, Pose, RunResult, Trajectory
 
-RUN_FILES = ("trajectory.tum", "trajectory.csv", "map.ply", "map.csv", "timing.csv", "run.json", "result.mcap")
-
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
     """SHA-256 of a file's bytes, read in 1 MiB blocks."""

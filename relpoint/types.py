@@ -404,3 +404,20 @@ class RunResult:
             "seconds_finish": self.seconds_finish,
             "seconds_prepare": self.seconds_prepare,
         }
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedStep:
+    """One iteration of a simulated run.
+
+    ``T_world_sensor`` is the true sensor pose (4, 4); ``odometry`` holds the body-frame velocities
+    that carry this pose to the next one (``None`` when odometry is off); ``fix`` is an absolute
+    position at this stamp (``None`` on iterations without one).
+    """
+
+    index: int
+    stamp_ns: int
+    T_world_sensor: FloatArray
+    observation: PointObservation
+    odometry: OdometryMeasurement | None
+    fix: PositionFix | None

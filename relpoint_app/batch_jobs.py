@@ -37,9 +37,8 @@ from typing import Any
 
 from formats.atomic import atomic_directory, remove_temporaries, write_text
 from formats.log import LogReader, Topics, metadata_json
+from formats.outputs import RUN_FILES
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
-from formats.run_output import RUN_FILES
-from formats.simulation_log import write_simulation
 from relpoint import pipeline
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
@@ -48,6 +47,7 @@ from relpoint.simulation import simulate
 from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
 from relpoint_app.evaluator import evaluation_json
 from relpoint_app.runner import execute_run
+from relpoint_app.simulation import write_simulation
 
 log = logging.getLogger(__name__)
 

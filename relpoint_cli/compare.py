@@ -24,14 +24,15 @@ from typing import Any
 import click
 
 from formats.atomic import write_text
-from formats.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_table
-from formats.evo_results import compared_from_evo, read_evo_result
+from formats.evo_results import read_evo_result
 from formats.outputs import check_output_file
-from formats.plots import PLOT_FORMATS, comparison_plot
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation, table_keys, unique_labels
+from relpoint_app.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_table
 from relpoint_app.evaluator import evaluate_files
+from relpoint_app.evo_results import compared_from_evo
+from relpoint_app.plots import PLOT_FORMATS, comparison_plot
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.evaluate import run_estimator
 from relpoint_cli.options import overwrite_option, read_paths
@@ -138,7 +139,9 @@ def load_compared(label: str, path: Path, reference: Path | None, settings: Eval
             recorded = _run_log(path)
             reference = _existing(recorded)
             if reference is None:
-                where = f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"
+                where = (
+                    f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"
+                )
                 raise InputError(f"{path}: no evaluation.json, and {where}", "pass --reference LOG")
         evaluation = evaluate_files(path, reference, settings)
         return compared_from_evaluation(label, evaluation.result, evaluation.summary,

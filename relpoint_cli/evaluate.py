@@ -3,7 +3,7 @@
 A thin command over :func:`relpoint.evaluation.evaluate_trajectory` and
 :func:`relpoint.evaluation.landmark_metrics`; inputs are read by :mod:`formats.reference_trajectories`.
 Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--save-results`` and
-``--save-rpe-results`` evo result zips, ``--plot`` figures (:mod:`formats.plots`; PNG, PDF or SVG), and ``--fail-above`` gates (exit code 5).
+``--save-rpe-results`` evo result zips, ``--plot`` figures (:mod:`relpoint_app.plots`; PNG, PDF or SVG), and ``--fail-above`` gates (exit code 5).
 """
 
 from __future__ import annotations
@@ -18,9 +18,8 @@ import click
 import numpy as np
 
 from formats.atomic import write_text
-from formats.evo_results import ape_result, rpe_result, write_evo_result
+from formats.evo_results import write_evo_result
 from formats.outputs import check_output_file, register_csv_header
-from formats.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from formats.ply import read_ply
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
@@ -33,6 +32,8 @@ from relpoint.evaluation import (
 )
 from relpoint.evaluation.dense import dense_metrics
 from relpoint_app.evaluator import evaluate_files, evaluation_json
+from relpoint_app.evo_results import ape_result, rpe_result
+from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
@@ -238,13 +239,19 @@ def run_estimator(path: Path) -> str:
     "--delta-tol", type=float, default=0.1, show_default=True, help="Relative tolerance of --all-pairs (m|d|r)."
 )
 @click.option(
-    "--min-matched", "min_matched_fraction", type=float, default=0.5, show_default=True,
+    "--min-matched",
+    "min_matched_fraction",
+    type=float,
+    default=0.5,
+    show_default=True,
     help="Fewest matched poses, as a fraction of the sparser trajectory's (0: accept any overlap).",
 )
 @click.option("--all-pairs", is_flag=True, help="Every pose starts an RPE pair.")
 @click.option("--pairs-from-reference", is_flag=True, help="Choose RPE pairs on the reference.")
 @click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    "--json",
+    "json_path",
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
     help="Write the summary as JSON ('-': to stdout, and the table to stderr).",
 )
 @click.option(

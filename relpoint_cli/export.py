@@ -32,10 +32,10 @@ import click
 import numpy as np
 
 from formats.atomic import write_text
-from formats.layouts import is_log
 from formats.outputs import check_output_file, resolve_output
 from formats.ply import landmark_vertices, read_ply, write_ply
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.signatures import is_log
 from formats.tables import write_map_csv, write_trajectory_csv
 from formats.trajectory_files import write_kitti, write_tum
 from relpoint.errors import InputError, UsageError

@@ -121,9 +121,9 @@ def _import_points(
     ctx: click.Context, layout: str, source: Path, output: Path, intrinsics: str | None, tolerance: float,
     rate: float, first: int, count: int | None, params: tuple[str, ...], compression: str, topics: Topics,
 ) -> None:  # fmt: skip
-    from formats.keypoint_import import log_frames, write_keypoint_log
     from formats.rgbd_import import seven_scenes_frames, tum_frames
     from relpoint.frontend import KeypointSettings
+    from relpoint_app.keypoint_import import log_frames, write_keypoint_log
 
     settings = KeypointSettings.from_strings(params)
     if layout == "tum":

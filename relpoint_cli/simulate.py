@@ -11,10 +11,10 @@ import click
 from formats.config_files import load_settings
 from formats.log import COMPRESSIONS
 from formats.outputs import check_output_file
-from formats.simulation_log import write_simulation
 from relpoint.errors import UsageError
 from relpoint.simulation import MOVER_MOTIONS, SCENARIOS, SimulationConfig
 from relpoint.simulation import simulate as make_simulation
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import config_options, explicit_options, overwrite_option
 from relpoint_cli.progress import progress_bar
@@ -110,8 +110,8 @@ def simulate_room(
     file_values: dict[str, Any], explicit: dict[str, Any],
 ) -> None:  # fmt: skip
     """``relpoint simulate --scenario room``: an RGB-D log of a rendered room and its reference cloud."""
-    from formats.rgbd_log import write_reference_cloud, write_rgbd_simulation
     from relpoint.simulation.rgbd import RgbdConfig, simulate_rgbd
+    from relpoint_app.simulation import write_rgbd_simulation, write_scene_cloud
 
     unused = sorted(set(explicit) - set(_ROOM_OPTIONS) - {"scenario"})
     if unused:
@@ -129,7 +129,7 @@ def simulate_room(
     with progress_bar(len(simulation), "render", unit="frame") as bar:
         counts = write_rgbd_simulation(simulation, output, compression=compression, on_frame=lambda _: bar.update(1))
     scene = output.with_suffix(".scene.ply")
-    samples = write_reference_cloud(simulation, scene)
+    samples = write_scene_cloud(simulation, scene)
     if not ctx.find_root().obj.get("quiet"):
         click.echo(
             f"wrote {output}: {counts['depth']} depth frames at {config.resolution}, "

@@ -8,8 +8,8 @@ import pytest
 from click.testing import CliRunner
 from threadpoolctl import threadpool_limits
 
-from formats.simulation_log import write_simulation
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint_app.simulation import write_simulation
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

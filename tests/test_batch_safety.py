@@ -22,12 +22,12 @@ from click.testing import CliRunner, Result
 
 from formats.atomic import atomic_directory
 from formats.outputs import MARKER
-from formats.simulation_log import write_simulation
 from relpoint.errors import UsageError
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint_app import batch_jobs, batch_plan
 from relpoint_app.batch_jobs import SchedulerAddress, parse_scheduler
 from relpoint_app.batch_plan import MAX_JOBS, load_plan, read_results
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.main import cli
 from tests.conftest import default_interrupts
 

@@ -15,10 +15,10 @@ from click.testing import CliRunner
 
 from formats.evo_results import read_evo_result
 from formats.log import LogReader
-from formats.plots import plot_title
 from formats.tables import read_map_csv, write_map_csv, write_map_history_csv
 from formats.trajectory_files import read_tum, write_tum
 from relpoint.types import LandmarkMap, Trajectory
+from relpoint_app.plots import plot_title
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
 

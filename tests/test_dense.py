@@ -343,7 +343,7 @@ def test_short_real_7scenes_run_stays_accurate() -> None:
 
 
 def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> None:
-    from formats.rgbd_log import write_rgbd_simulation
+    from relpoint_app.simulation import write_rgbd_simulation
 
     counts = write_rgbd_simulation(room, tmp_path / "room.mcap")
     assert counts == {"camera_info": 1, "depth": 2, "color": 2, "ground_truth_pose": 2, "tf": 2}

@@ -11,7 +11,6 @@ import pytest
 from click.testing import CliRunner
 
 from formats.run_output import write_run_directory
-from formats.simulation_log import write_simulation
 from formats.tables import read_map_csv
 from formats.trajectory_files import read_tum
 from relpoint.errors import EstimatorError, UsageError
@@ -33,6 +32,7 @@ from relpoint.fusion.synthetic import SyntheticRun, synthetic_local_slam
 from relpoint.pipeline import RunResult
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import LandmarkMap, PointObservation, Pose, PositionFix, Trajectory
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.main import cli
 
 # ----------------------------------------------------------------------------------- eq. 26-30

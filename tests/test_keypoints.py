@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from formats.keypoint_import import write_keypoint_log
 from formats.log import LogReader
 from formats.rgbd_import import RgbdFrame
 from relpoint.frontend import KeypointFrontEnd, KeypointSettings, KeypointTracker, back_project, depth_at_pixels
 from relpoint.types import Intrinsics, Pose
+from relpoint_app.keypoint_import import write_keypoint_log
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
 

@@ -18,12 +18,14 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from formats.layouts import Layout, LayoutSpec, detect_layout, is_log, log_sha256, raw_messages, write_layout
+from formats.layout_writers import LayoutSpec, raw_messages, write_layout
+from formats.layouts import Layout, detect_layout, log_sha256
 from formats.log import LogReader
 from formats.ply import read_ply
-from formats.simulation_log import write_simulation
+from formats.signatures import is_log
 from relpoint.errors import InputError, RelpointError
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
 

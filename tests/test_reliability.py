@@ -20,12 +20,12 @@ from hypothesis import strategies as st
 
 from formats import ros2
 from formats.log import LogReader, LogWriter
-from formats.simulation_log import write_simulation
 from relpoint import pipeline
 from relpoint.errors import RelpointError
 from relpoint.estimators import ESTIMATORS
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.main import cli
 from tests.conftest import default_interrupts
 
@@ -205,8 +205,8 @@ def test_corpus_of_damaged_logs(path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_rgbd_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from formats.rgbd_log import write_rgbd_simulation
     from relpoint.simulation.rgbd import RgbdConfig, simulate_rgbd
+    from relpoint_app.simulation import write_rgbd_simulation
 
     path = tmp_path_factory.mktemp("rgbd") / "room.mcap"
     write_rgbd_simulation(simulate_rgbd(RgbdConfig(frames=3, reference_points=1000, seed=3)), path, compression="none")

@@ -14,7 +14,6 @@ import pytest
 from click.testing import CliRunner
 
 from formats.log import LogReader
-from formats.simulation_log import write_simulation
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
@@ -22,6 +21,7 @@ from relpoint.estimators.relative_point import RelativePointEstimator
 from relpoint.estimators.relative_point import estimator as relative_point_estimator
 from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
 from relpoint.types import PositionFix, Trajectory
+from relpoint_app.simulation import write_simulation
 from relpoint_cli.main import cli
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,9 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from formats.log import LogReader, LogWriter
-from formats.outputs import MARKER
+from formats.outputs import MARKER, RUN_FILES
 from formats.ply import read_ply
-from formats.run_output import RUN_FILES
 from formats.trajectory_files import read_tum
 from relpoint.estimators import ESTIMATORS
 from relpoint.types import PointObservation

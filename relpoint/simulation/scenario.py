@@ -12,7 +12,6 @@ concern, so enabling odometry or fixes does not change the observations of the s
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from relpoint.types import (
     OdometryMeasurement,
     PointObservation,
     PositionFix,
+    SimulatedStep,
     Trajectory,
 )
 
@@ -40,23 +40,6 @@ GAPS_START_POSITION = (60.0, -40.0, -15.0)
 GAPS_START_HEADING = 35.0
 #: Random streams, one per concern; new ones go at the end so the older streams (and logs) stay the same.
 _STREAMS = ("landmarks", "dynamics", "noise", "clutter", "odometry", "fixes", "movers")
-
-
-@dataclass(frozen=True, eq=False)
-class SimulatedStep:
-    """One iteration of a simulated run.
-
-    ``T_world_sensor`` is the true sensor pose (4, 4); ``odometry`` holds the body-frame velocities
-    that carry this pose to the next one (``None`` when odometry is off); ``fix`` is an absolute
-    position at this stamp (``None`` on iterations without one).
-    """
-
-    index: int
-    stamp_ns: int
-    T_world_sensor: FloatArray
-    observation: PointObservation
-    odometry: OdometryMeasurement | None
-    fix: PositionFix | None
 
 
 class Simulation:
