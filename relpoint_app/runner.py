@@ -27,6 +27,7 @@ from formats.run_output import write_run_directory
 from relpoint import pipeline
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
+from relpoint.estimators.base import Estimator
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
 from relpoint_app.roles import NEED_ROLES
 
@@ -142,9 +143,9 @@ def execute_run(
     """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
 
     ``window`` crops the log's observations, odometry and fixes (seconds from the first one read);
-    the estimator runs as :func:`drive` runs it.
+    the estimator runs as :func:`run_estimator` runs it.
     """
-    result, roles = drive(
+    result, roles = run_estimator(
         reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes,
         on_iteration=on_iteration, map_every=map_every, window=window,
     )  # fmt: skip
@@ -168,7 +169,7 @@ def execute_run(
     return result
 
 
-def drive(
+def run_estimator(
     reader: LogReader,
     spec: EstimatorSpec,
     config: Any,
@@ -180,19 +181,35 @@ def drive(
     map_every: int = 0,
     window: TimeWindow | None = None,
 ) -> tuple[pipeline.RunResult, list[str]]:
-    """Build ``spec``'s estimator and run it over the log's inputs; the result and the roles read.
+    """Build ``spec``'s estimator from ``config`` and ``seed`` and :func:`drive` it over the log's
+    input roles; the result and the roles read."""
+    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
+    estimator = spec.factory(config, np.random.default_rng(seed))
+    result = drive(reader, estimator, roles, on_iteration=on_iteration, map_every=map_every, window=window)
+    return result, roles
+
+
+def drive(
+    reader: LogReader,
+    estimator: Estimator,
+    roles: list[str],
+    *,
+    on_iteration: Callable[[int, Any], None] | None = None,
+    map_every: int = 0,
+    window: TimeWindow | None = None,
+) -> pipeline.RunResult:
+    """The one drive loop over a log: ``estimator`` run by :func:`relpoint.pipeline.run` over the
+    records of ``roles``, cropped to ``window``; ``relpoint run``, ``relpoint fuse --restart``, batch
+    jobs and the Python API all come here.
 
     BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
     spinning worker threads made the EKF about 20 times slower.
     """
-    roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
-    estimator = spec.factory(config, np.random.default_rng(seed))
     with threadpool_limits(limits=1, user_api="blas"):
-        result = pipeline.run(
+        return pipeline.run(
             estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
             estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
         )  # fmt: skip
-    return result, roles
 
 
 def reference_path(reader: LogReader) -> Trajectory | None:
@@ -267,5 +284,5 @@ def run(
         return execute_run(
             reader, spec, config, directory, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
         )
-    result, _ = drive(reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window)
+    result, _ = run_estimator(reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window)
     return result
