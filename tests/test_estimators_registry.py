@@ -21,10 +21,31 @@ def test_builtin_declarations_match_each_spec(name: str) -> None:
     assert ESTIMATORS.inputs(name) == (spec.needs, spec.uses)
 
 
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_every_estimator_is_built_as_config_and_rng_and_declares_its_input_kind(name: str) -> None:
+    import numpy as np
+
+    from relpoint.estimators._noise import NoiseAdaptive
+    from relpoint.estimators.base import Estimator
+
+    spec = ESTIMATORS[name]
+    assert spec.needs == {spec.input_kind} and spec.input_kind in ("points", "depth")
+    config = spec.config_class()
+    direct = spec.estimator_class(config, np.random.default_rng(0))
+    assert isinstance(direct, Estimator) and direct.name == name
+    assert direct.dense_map() is None or spec.input_kind == "depth"
+    built = spec.factory(config, np.random.default_rng(0))
+    # an estimator whose noise is unset waits for it; one given the noise is built at once
+    assert isinstance(built, NoiseAdaptive) == (spec.noise_adaptive and config.observation_sigma is None)
+    if spec.noise_adaptive:
+        fitted = spec.factory(config.at_noise(0.05), np.random.default_rng(0))
+        assert isinstance(fitted, spec.estimator_class) and fitted.config.observation_sigma == 0.05
+
+
 def test_registry_lists_builtins_and_registered_specs_and_refuses_unknown_names() -> None:
     registry = EstimatorRegistry()
     assert list(registry) == list(BUILTIN) and len(registry) == len(BUILTIN)
-    extra = EstimatorSpec("extra", "a test estimator", dict, lambda config, rng: None, frozenset({"points"}))
+    extra = EstimatorSpec("extra", "a test estimator", dict, lambda config, rng: None)
     registry.register(extra)
     assert "extra" in registry and registry["extra"] is extra and list(registry)[-1] == "extra"
     assert registry.inputs("extra") == (frozenset({"points"}), frozenset())
@@ -42,7 +63,7 @@ def test_info_imports_no_estimator_scipy_or_numba() -> None:
         "from relpoint_cli.main import main\n"
         "try:\n    main()\nexcept SystemExit as stop:\n    assert not stop.code, stop.code\n"
         "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba', 'open3d', 'cv2')"
-        " or m.startswith('relpoint.estimators.') and m.split('.')[2] not in ('base', '_noise'))\n"
+        " or m.startswith('relpoint.estimators.') and m.split('.')[2] not in ('base', '_noise', 'spec'))\n"
         "assert not heavy, heavy\n"
     )
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)

@@ -12,7 +12,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
-from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator
+from relpoint.estimators.spec import EstimatorSpec
 
 
 @dataclass(frozen=True)

@@ -150,7 +150,7 @@ def estimate_observation_noise(observations: Sequence[PointObservation]) -> floa
     return max(floor, registered) if registered is not None else floor
 
 
-class NoiseAdaptive(Estimator):
+class NoiseAdaptive(Estimator[PointObservation]):
     """An estimator built once the observation noise is known from the first ``frames`` observations
     of at least ``MIN_POINTS`` points (or the first ``MAX_HELD`` iterations).
 

@@ -9,17 +9,13 @@ reads files, prints or exits: the pipeline (``relpoint.pipeline``) drives it and
 from __future__ import annotations
 
 import abc
-import dataclasses
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
+from relpoint.types import DepthFrame, LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
 POINTS = "points"
@@ -28,26 +24,39 @@ ODOMETRY = "odometry"
 FIX = "fix"
 
 
-class Estimator(abc.ABC):
-    """Base class of point-landmark estimators.
+#: What one iteration of an estimator reads: a point cloud or a depth frame.
+InputT = TypeVar("InputT", PointObservation, DepthFrame)
 
-    Subclasses set :attr:`name` and implement :meth:`step` and :meth:`landmark_map`. Poses are
-    ``T_world_sensor``: the first pose is the identity unless an absolute reference is fused.
+
+class Estimator(abc.ABC, Generic[InputT]):
+    """Base class of the estimators: ``Estimator[PointObservation]`` for point-landmark estimators,
+    ``Estimator[DepthFrame]`` for dense ones.
+
+    Subclasses set :attr:`name`, are built as ``cls(config, rng)`` (:class:`~.spec.EstimatorSpec`)
+    and implement :meth:`step` and :meth:`landmark_map`. Poses are ``T_world_sensor``: the first pose
+    is the identity unless an absolute reference is fused.
     """
 
     name: ClassVar[str]
 
     @abc.abstractmethod
-    def step(self, observation: PointObservation) -> Pose:
-        """Process one iteration's untransformed points; return the sensor pose at its stamp."""
+    def step(self, observation: InputT) -> Pose:
+        """Process one iteration's input (untransformed points or a depth frame, sensor frame);
+        return the sensor pose at its stamp."""
 
-    def prepare(self) -> None:  # noqa: B027 - optional hook
-        """Compile or load what :meth:`step` runs, once, before the first iteration (timed apart from them)."""
+    @classmethod
+    def compile(cls) -> None:
+        """Compile or load the class's compiled code (shared by every instance); nothing by default."""
 
-    def add_odometry(self, odometry: OdometryMeasurement) -> None:  # noqa: B027 - optional hook
+    def prepare(self) -> None:
+        """Compile or load what :meth:`step` runs, once, before the first iteration (timed apart from
+        them); by default :meth:`compile`."""
+        self.compile()
+
+    def add_odometry(self, odometry: OdometryMeasurement) -> None:
         """Take a body-frame velocity measurement (ignored by estimators that do not use odometry)."""
 
-    def add_fix(self, fix: PositionFix) -> None:  # noqa: B027 - optional hook
+    def add_fix(self, fix: PositionFix) -> None:
         """Take an absolute position fix (ignored by estimators that do not fuse fixes)."""
 
     @abc.abstractmethod
@@ -81,34 +90,3 @@ class Estimator(abc.ABC):
     def summary(self) -> dict[str, Any]:
         """Estimator-specific summary figures for run.json (counts, flags); JSON-serialisable."""
         return {}
-
-
-@dataclass(frozen=True)
-class EstimatorSpec:
-    """How to build one estimator: its config class, a factory and the input roles it needs.
-
-    ``factory(config, rng)`` returns a fresh :class:`Estimator`; ``rng`` is the only source of
-    randomness it may use.
-    """
-
-    name: str
-    description: str
-    config_class: type
-    factory: Callable[[Any, np.random.Generator], Any]
-    needs: frozenset[str]
-    uses: frozenset[str] = frozenset()
-
-    def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
-        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``, read as
-        each field's kind); unknown keys and bad values are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(self.config_class)}
-        keys = [str(k).replace("-", "_") for k in values] + [
-            item.split("=", 1)[0].strip().replace("-", "_") for item in params if "=" in item
-        ]
-        unknown = sorted(set(keys) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown {self.name} parameter(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
-                f"see `relpoint config --estimator {self.name}` for the parameters",
-            )
-        return self.config_class.from_strings(params, base=values)

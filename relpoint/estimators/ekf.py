@@ -51,9 +51,10 @@ from relpoint.estimators._association import (
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
-from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
+from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
-from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
+from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, rigid_consensus, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
@@ -174,6 +175,10 @@ class EkfConfig(Settings):
     runs out the best hypothesis so far is used, a warning says so and ``jcbb_gave_up`` in
     ``run.json`` counts the iterations; a run stopped by the clock depends on the machine's speed."""
 
+    def at_noise(self, sigma: float) -> EkfConfig:
+        """These settings with ``observation_sigma = sigma`` (m)."""
+        return dataclasses.replace(self, observation_sigma=sigma)
+
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
             raise UsageError(f"unknown association {self.association!r}", f"choose one of {', '.join(ASSOCIATIONS)}")
@@ -224,7 +229,7 @@ MOVER_RECENT = 3
 MOVER_MIN_MATCHED = 8
 
 
-class EkfSlam(Estimator):
+class EkfSlam(Estimator[PointObservation]):
     """Joint EKF over the sensor pose (error state) and every 3D point landmark.
 
     Each :meth:`step` predicts to the observation's stamp, associates the points with the map,
@@ -237,7 +242,8 @@ class EkfSlam(Estimator):
 
     name: ClassVar[str] = "ekf"
 
-    def __init__(self, config: EkfConfig | None = None) -> None:
+    def __init__(self, config: EkfConfig | None = None, rng: np.random.Generator | None = None) -> None:
+        del rng  # the EKF draws no random numbers
         self.config = config or EkfConfig()
         self._gaps = GapBridge()
         cv = self.config.motion == "constant_velocity"
@@ -816,20 +822,12 @@ class EkfSlam(Estimator):
                 self._known[int(ids[i])] = first_new + offset
 
 
-def _build(config: EkfConfig, rng: np.random.Generator) -> Estimator:
-    del rng  # the EKF draws no random numbers
-    if config.observation_sigma is not None:
-        return EkfSlam(config)
-    return NoiseAdaptive(
-        lambda sigma: EkfSlam(dataclasses.replace(config, observation_sigma=sigma)), SIMULATOR_SIGMA, "ekf"
-    )
-
-
 SPEC = EstimatorSpec(
     name="ekf",
     description="EKF-SLAM: joint EKF over the 6D sensor pose and 3D point landmarks (NN or JCBB association)",
     config_class=EkfConfig,
-    factory=_build,
-    needs=frozenset({POINTS}),
+    estimator_class=EkfSlam,
+    input_kind=POINTS,
     uses=frozenset({ODOMETRY, FIX}),
+    noise_adaptive=True,
 )

@@ -47,9 +47,10 @@ from relpoint.errors import UsageError
 from relpoint.estimators._association import chi2_gate
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
-from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
+from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
-from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator, EstimatorSpec
+from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
+from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
@@ -159,6 +160,10 @@ class FastSlamConfig(Settings):
     """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
     iterations, by the covariance-weighted correction (eq. 31-32)."""
 
+    def at_noise(self, sigma: float) -> FastSlamConfig:
+        """These settings with ``observation_sigma = sigma`` (m)."""
+        return dataclasses.replace(self, observation_sigma=sigma)
+
     def __post_init__(self) -> None:
         if self.fix_alignment not in FIX_ALIGNMENTS:
             raise UsageError(
@@ -219,7 +224,7 @@ def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> n
     return np.minimum(np.searchsorted(cumulative, pointers, side="left"), n - 1).astype(np.int64)
 
 
-class FastSlam(Estimator):
+class FastSlam(Estimator[PointObservation]):
     """FastSLAM 1.0 / 2.0 with per-particle maximum-likelihood association.
 
     Parameters
@@ -654,19 +659,12 @@ class FastSlam(Estimator):
         self._stats["resamples"] += 1
 
 
-def _build(config: FastSlamConfig, rng: np.random.Generator) -> Estimator:
-    if config.observation_sigma is not None:
-        return FastSlam(config, rng)
-    return NoiseAdaptive(
-        lambda sigma: FastSlam(dataclasses.replace(config, observation_sigma=sigma), rng), SIMULATOR_SIGMA, "fastslam"
-    )
-
-
 SPEC = EstimatorSpec(
     name="fastslam",
     description="FastSLAM 1.0/2.0: particles over the sensor pose with per-particle 3x3 landmark EKFs",
     config_class=FastSlamConfig,
-    factory=_build,
-    needs=frozenset({POINTS}),
+    estimator_class=FastSlam,
+    input_kind=POINTS,
     uses=frozenset({ODOMETRY, FIX}),
+    noise_adaptive=True,
 )

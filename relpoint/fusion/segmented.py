@@ -88,7 +88,7 @@ class SegmentedRun:
     fixes: list[PositionFix]
 
 
-class RestartingEstimator(Estimator):
+class RestartingEstimator(Estimator[PointObservation]):
     """A local SLAM that starts a fresh estimator (a new local map) at every break; see the module.
 
     ``make_estimator()`` returns a fresh point estimator. After the run (:meth:`finish`),
@@ -144,7 +144,7 @@ class RestartingEstimator(Estimator):
     def add_fix(self, fix: PositionFix) -> None:
         self._fixes.append(fix)
 
-    def step(self, observation: PointObservation) -> Pose:  # type: ignore[override]
+    def step(self, observation: PointObservation) -> Pose:
         if not isinstance(observation, PointObservation):
             raise UsageError("a restarting local SLAM runs point estimators only, not depth frames")
         estimator = self._estimator

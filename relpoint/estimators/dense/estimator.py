@@ -21,10 +21,11 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.errors import EstimatorError, UsageError
-from relpoint.estimators.base import DEPTH, Estimator, EstimatorSpec
+from relpoint.estimators.base import DEPTH, Estimator
 from relpoint.estimators.dense.fusion import PointMap
 from relpoint.estimators.dense.icp import SIGMA_1M, IcpSettings, alignment_cost, depth_sigma, track
 from relpoint.estimators.dense.maps import Level, build_pyramid
+from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, invert_pose
 from relpoint.settings import Settings
 from relpoint.types import DepthFrame, LandmarkMap, Pose
@@ -176,7 +177,7 @@ def _downsample_color(color: npt.NDArray[np.uint8], factor: int) -> npt.NDArray[
     return ((total + n // 2) // n).astype(np.uint8)
 
 
-class DenseFusion(Estimator):
+class DenseFusion(Estimator[DepthFrame]):
     """Dense SLAM over depth frames: map-to-frame projective ICP tracking and point-based fusion.
 
     :meth:`step` returns ``T_world_camera`` (camera optical frame) for each frame; the first is the
@@ -185,7 +186,8 @@ class DenseFusion(Estimator):
 
     name: ClassVar[str] = "dense"
 
-    def __init__(self, config: DenseConfig | None = None) -> None:
+    def __init__(self, config: DenseConfig | None = None, rng: np.random.Generator | None = None) -> None:
+        del rng  # deterministic
         self.config = config or DenseConfig()
         self._icp = self.config.icp_settings()
         self._fusion_cos = math.cos(math.radians(self.config.fusion_normal_angle))
@@ -257,7 +259,7 @@ class DenseFusion(Estimator):
             self._radial = np.exp(-r2 / (2 * self.config.radial_sigma**2)).astype(np.float32).reshape(-1)
         return self._radial
 
-    def step(self, observation: DepthFrame) -> Pose:  # type: ignore[override]
+    def step(self, observation: DepthFrame) -> Pose:
         """Track the frame against the map, fuse it, and return ``T_world_camera`` at its stamp."""
         frame = observation
         if not isinstance(frame, DepthFrame):
@@ -344,16 +346,11 @@ class DenseFusion(Estimator):
         }
 
 
-def _build(config: DenseConfig, rng: np.random.Generator) -> DenseFusion:
-    del rng  # deterministic
-    return DenseFusion(config)
-
-
 SPEC = EstimatorSpec(
     name="dense",
     description="Dense RGB-D SLAM: map-to-frame projective point-to-plane ICP and point-based fusion",
     config_class=DenseConfig,
-    factory=_build,
-    needs=frozenset({DEPTH}),
+    estimator_class=DenseFusion,
+    input_kind=DEPTH,
     uses=frozenset({"color"}),  # optional: colours of the map points
 )

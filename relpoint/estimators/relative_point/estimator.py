@@ -80,8 +80,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
-from relpoint.estimators.base import POINTS, Estimator, EstimatorSpec
+from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators.base import POINTS, Estimator
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
 from relpoint.estimators.relative_point.charting import PointCharting
@@ -114,6 +114,7 @@ from relpoint.estimators.relative_point.registration import (
     match_nearest,
 )
 from relpoint.estimators.relative_point.tally import IdTally
+from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray
 from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
@@ -127,7 +128,7 @@ ADJUSTMENT_TOLERANCE = 0.05
 #: Iterations on either side whose relocations set an iteration's correction after the final adjustment.
 RELOCATION_WINDOW = 10
 
-class RelativePointEstimator(Estimator):
+class RelativePointEstimator(Estimator[PointObservation]):
     """The Relative Point algorithm (the paper's *RltMapper*); see the module docstring.
 
     :meth:`step` takes one iteration's untransformed points and returns ``T_world_sensor``; the
@@ -137,7 +138,8 @@ class RelativePointEstimator(Estimator):
 
     name: ClassVar[str] = "relpoint"
 
-    def __init__(self, config: RelativePointConfig | None = None) -> None:
+    def __init__(self, config: RelativePointConfig | None = None, rng: np.random.Generator | None = None) -> None:
+        del rng  # the algorithm draws no random numbers
         self.config = config = config or RelativePointConfig()
         self.store = PointStore(config.ring_size)
         self.charting = PointCharting(config.ring_size)
@@ -185,8 +187,9 @@ class RelativePointEstimator(Estimator):
 
     # -- Estimator interface ---------------------------------------------------------------------
 
-    def prepare(self) -> None:
-        """Compile or load the compiled inner loops (:mod:`._kernels`) before the first iteration."""
+    @classmethod
+    def compile(cls) -> None:
+        """Compile or load the compiled inner loops (:mod:`._kernels`)."""
         _kernels.prepare()
 
     def step(self, observation: PointObservation) -> Pose:
@@ -1267,18 +1270,11 @@ def _finite_median(values: FloatArray) -> float:
     return _median(finite) if len(finite) else float("nan")
 
 
-def _build(config: RelativePointConfig, rng: np.random.Generator) -> Estimator:
-    del rng  # the algorithm is deterministic
-    if config.observation_sigma is not None:
-        return RelativePointEstimator(config.at_noise(config.observation_sigma))
-    return NoiseAdaptive(lambda sigma: RelativePointEstimator(config.at_noise(sigma)), SIMULATOR_SIGMA, "relpoint",
-                         prepare=_kernels.prepare)  # fmt: skip
-
-
 SPEC = EstimatorSpec(
     name="relpoint",
     description="Relative Point: relative maps of co-observed point groups joined by least squares (Kraut)",
     config_class=RelativePointConfig,
-    factory=_build,
-    needs=frozenset({POINTS}),
+    estimator_class=RelativePointEstimator,
+    input_kind=POINTS,
+    noise_adaptive=True,
 )

@@ -1,0 +1,69 @@
+"""What the registry knows of an estimator (:class:`EstimatorSpec`) and how it builds one."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from relpoint.errors import UsageError
+from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
+from relpoint.estimators.base import DEPTH, POINTS, Estimator
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """One estimator as ``relpoint run`` knows it: its class, its settings class and its inputs.
+
+    Every estimator class is built as ``estimator_class(config, rng)``; ``rng`` is the only source of
+    randomness it may use. ``input_kind`` is what one iteration reads (:data:`POINTS` or
+    :data:`DEPTH`), ``uses`` the optional input roles it also takes (odometry, fixes, colour).
+    ``noise_adaptive``: the settings hold ``observation_sigma`` and an ``at_noise(sigma)`` that fits
+    them to a noise; when the noise is unset, :meth:`factory` builds the estimator once the noise is
+    estimated from the first observations (:class:`~relpoint.estimators._noise.NoiseAdaptive`).
+    """
+
+    name: str
+    description: str
+    config_class: type
+    estimator_class: Callable[[Any, np.random.Generator], Estimator]
+    input_kind: str = POINTS
+    uses: frozenset[str] = frozenset()
+    noise_adaptive: bool = False
+
+    def __post_init__(self) -> None:
+        if self.input_kind not in (POINTS, DEPTH):
+            raise ValueError(f"input_kind must be {POINTS!r} or {DEPTH!r}, got {self.input_kind!r}")
+
+    @property
+    def needs(self) -> frozenset[str]:
+        """The input roles a log must have: the one of :attr:`input_kind`."""
+        return frozenset({self.input_kind})
+
+    def factory(self, config: Any, rng: np.random.Generator) -> Estimator:
+        """A fresh estimator for ``config``; noise-adaptive ones wait for the noise when it is unset."""
+        if not self.noise_adaptive:
+            return self.estimator_class(config, rng)
+        if config.observation_sigma is not None:
+            return self.estimator_class(config.at_noise(config.observation_sigma), rng)
+        compile_code = getattr(self.estimator_class, "compile", None)
+        return NoiseAdaptive(lambda sigma: self.estimator_class(config.at_noise(sigma), rng), SIMULATOR_SIGMA,
+                             self.name, prepare=compile_code)  # fmt: skip
+
+    def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
+        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``, read as
+        each field's kind); unknown keys and bad values are a :class:`UsageError`."""
+        known = {f.name for f in dataclasses.fields(self.config_class)}
+        keys = [str(k).replace("-", "_") for k in values] + [
+            item.split("=", 1)[0].strip().replace("-", "_") for item in params if "=" in item
+        ]
+        unknown = sorted(set(keys) - known)
+        if unknown:
+            raise UsageError(
+                f"unknown {self.name} parameter(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
+                f"see `relpoint config --estimator {self.name}` for the parameters",
+            )
+        return self.config_class.from_strings(params, base=values)
