@@ -22,6 +22,7 @@ from formats.ply import landmark_vertices, write_ply
 from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
+from relpoint.geometry import apply_transform
 from relpoint.types import PointObservation, Pose, RunResult, Trajectory
 
 
@@ -106,7 +107,7 @@ def write_result_mcap(
             while pending is not None and pending.stamp_ns <= stamp:
                 if pending.stamp_ns == stamp and len(pending.points):
                     T = rotations[k]
-                    world = pending.points @ T[:3, :3].T + T[:3, 3]
+                    world = apply_transform(T, pending.points)
                     columns = {axis: world[:, i].astype(np.float32) for i, axis in enumerate("xyz")}
                     if pending.ids is not None:
                         columns["id"] = pending.ids.astype(np.int32)

@@ -24,11 +24,10 @@ from relpoint.estimators.relative_point.dynamics import (
     tail_bound,
     world_block_deviation,
 )
-from relpoint.estimators.relative_point.estimator import quaternion_xyzw
 from relpoint.estimators.relative_point.grouping import select_members
 from relpoint.estimators.relative_point.groups import basis_rotation, choose_basis, relative_coordinates
 from relpoint.estimators.relative_point.loops import drift_profile, drift_share, required_support, vote_offset
-from relpoint.estimators.relative_point.lsf import apply, fit_transform, is_collinear
+from relpoint.estimators.relative_point.lsf import fit_transform, is_collinear
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.estimators.relative_point.registration import (
     NO_MATCH,
@@ -38,7 +37,7 @@ from relpoint.estimators.relative_point.registration import (
     match_nearest,
 )
 from relpoint.estimators.relative_point.tally import IdTally
-from relpoint.geometry import fit_rigid
+from relpoint.geometry import apply_transform, fit_rigid, quaternion_xyzw
 
 SEEDS = st.integers(min_value=0, max_value=2**32 - 1)
 PROPERTY = settings(max_examples=60, deadline=None, derandomize=True)
@@ -60,7 +59,7 @@ def test_fit_recovers_known_rigid_transform(seed: int, n: int, noise: float) -> 
     rng = np.random.default_rng(seed)
     T = random_pose(rng)
     source = rng.uniform(-30.0, 30.0, (n, 3))
-    target = apply(T, source) + rng.normal(0.0, noise, (n, 3))
+    target = apply_transform(T, source) + rng.normal(0.0, noise, (n, 3))
     fit = fit_transform(source, target, trim=0.0)
     assert fit is not None
     R = fit.T[:3, :3]
@@ -84,7 +83,7 @@ def test_fit_is_a_proper_rotation_even_for_a_mirrored_target(seed: int, n: int) 
     rng = np.random.default_rng(seed)
     source = rng.normal(0.0, 10.0, (n, 3))
     mirror = np.diag([1.0, 1.0, -1.0])
-    target = apply(random_pose(rng), source @ mirror)
+    target = apply_transform(random_pose(rng), source @ mirror)
     fit = fit_transform(source, target, trim=0.0)
     assert fit is not None
     assert np.linalg.det(fit.T[:3, :3]) == pytest.approx(1.0, abs=1e-9)
@@ -97,7 +96,7 @@ def test_fit_recovers_transform_of_coplanar_points(seed: int, noise: float) -> N
     rng = np.random.default_rng(seed)
     T = random_pose(rng)
     source = np.c_[rng.uniform(-20, 20, (25, 2)), np.zeros(25)]
-    fit = fit_transform(source, apply(T, source) + rng.normal(0, noise, (25, 3)), trim=0.0)
+    fit = fit_transform(source, apply_transform(T, source) + rng.normal(0, noise, (25, 3)), trim=0.0)
     assert fit is not None
     assert np.linalg.det(fit.T[:3, :3]) == pytest.approx(1.0, abs=1e-9)
     assert np.allclose(fit.T[:3, :3], T[:3, :3], atol=1e-9 + 0.02 * (noise > 0))
@@ -107,7 +106,7 @@ def test_fit_trims_gross_outliers_and_weights_pull() -> None:
     rng = np.random.default_rng(0)
     T = random_pose(rng)
     source = rng.uniform(-30, 30, (40, 3))
-    target = apply(T, source) + rng.normal(0, 0.1, (40, 3))
+    target = apply_transform(T, source) + rng.normal(0, 0.1, (40, 3))
     target[:5] += rng.normal(0, 20.0, (5, 3))  # five mismatched pairs
     fit = fit_transform(source, target, trim=3.0, floor=0.5)
     assert fit is not None
@@ -143,7 +142,7 @@ def test_basis_frame_is_invariant_under_rigid_motion(seed: int, m: int) -> None:
     points = rng.uniform(-40, 40, (m, 3))
     basis = choose_basis(points, 1.0)
     assert basis is not None
-    moved = np.stack([points, apply(random_pose(rng, 100.0), points), apply(random_pose(rng, 100.0), points)], axis=1)
+    moved = np.stack([points, apply_transform(random_pose(rng, 100.0), points), apply_transform(random_pose(rng, 100.0), points)], axis=1)
     relative, valid = relative_coordinates(moved, basis, 1.0)
     assert valid.all()
     assert np.allclose(relative[:, 1:], relative[:, :1], atol=1e-8)
@@ -538,7 +537,7 @@ def rigid_tracks(rng: np.random.Generator, m: int, length: int, moving: int, noi
     for t in range(length):
         world = points.copy()
         world[:moving] += drift[:, t]
-        tracks[:, t] = apply(random_pose(rng, 10.0), world) + rng.normal(0, noise, (m, 3))
+        tracks[:, t] = apply_transform(random_pose(rng, 10.0), world) + rng.normal(0, noise, (m, 3))
     return tracks
 
 
@@ -568,7 +567,7 @@ def test_consensus_rejects_a_moving_minority_that_trimming_keeps() -> None:
     rng = np.random.default_rng(1)
     T = random_pose(rng)
     source = rng.uniform(-30, 30, (14, 3))
-    target = apply(T, source) + rng.normal(0, 0.2, (14, 3))
+    target = apply_transform(T, source) + rng.normal(0, 0.2, (14, 3))
     target[:5] += rng.normal(0, 3.0, (5, 3))
     trimmed = fit_transform(source, target, trim=3.0, floor=0.5)
     robust = fit_transform(source, target, trim=3.0, floor=0.5, consensus=1.0)
@@ -577,7 +576,7 @@ def test_consensus_rejects_a_moving_minority_that_trimming_keeps() -> None:
     assert not robust.inliers[:5].any() and robust.inliers[5:].all()
     assert np.linalg.norm(robust.T[:3, 3] - T[:3, 3]) < 0.3 < np.linalg.norm(trimmed.T[:3, 3] - T[:3, 3])
     # Without outliers beyond the bound the consensus changes nothing.
-    clean = apply(T, source) + rng.normal(0, 0.2, (14, 3))
+    clean = apply_transform(T, source) + rng.normal(0, 0.2, (14, 3))
     plain, guarded = fit_transform(source, clean), fit_transform(source, clean, consensus=1.0)
     assert plain is not None and guarded is not None and np.array_equal(plain.T, guarded.T)
 
@@ -607,7 +606,7 @@ def test_block_deviation_separates_a_slow_mover() -> None:
     for t in range(length):
         world = points.copy()
         world[0] += np.array([3.0, 0.0, 0.0]) * t / length
-        tracks[:, t] = apply(random_pose(rng, 10.0), world) + rng.normal(0, 0.3, (m, 3))
+        tracks[:, t] = apply_transform(random_pose(rng, 10.0), world) + rng.normal(0, 0.3, (m, 3))
     valid = np.ones((m, length), bool)
     references = np.arange(1, 7)
     plain = deviation_to_references(tracks, valid, references, 15)
@@ -694,7 +693,7 @@ def test_trimming_kernels_equal_numpy() -> None:
         assert _kernels._masked_median(values, use) == np.median(values[use])
         source = rng.uniform(-30, 30, (n, 3))
         T = random_pose(rng)
-        target = apply(T, source) + rng.normal(0, 0.3, (n, 3))
+        target = apply_transform(T, source) + rng.normal(0, 0.3, (n, 3))
         target[: n // 5] += rng.normal(0, 5.0, (n // 5, 3))
         weights = rng.uniform(0.5, 2.0, n)
         residual = np.linalg.norm(target - source @ T[:3, :3].T - T[:3, 3], axis=1)

@@ -38,9 +38,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from scipy import stats
-from scipy.spatial.transform import Rotation
 
-from relpoint.geometry import FloatArray, fit_rigid, skew
+from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation
 from relpoint.lagrange import interpolate_fixes
 from relpoint.types import PositionFix
 
@@ -89,22 +88,6 @@ def line_spread(points: npt.ArrayLike) -> float:
         return 0.0
     singular = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
     return float(np.sqrt(np.sum(singular[1:] ** 2) / len(p)))
-
-
-def _smallest_rotation(u: FloatArray, v: FloatArray) -> FloatArray:
-    """The rotation (3, 3) of least angle taking direction ``u`` onto direction ``v``."""
-    u = u / np.linalg.norm(u)
-    v = v / np.linalg.norm(v)
-    axis = np.cross(u, v)
-    sin, cos = np.linalg.norm(axis), float(u @ v)
-    if sin < 1e-12:
-        if cos > 0:
-            return np.eye(3)
-        # Opposite: half a turn about any axis perpendicular to u.
-        other = np.eye(3)[int(np.argmin(np.abs(u)))]
-        axis = np.cross(u, other)
-        return Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
-    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
 
 
 class FixFrame:
@@ -245,7 +228,7 @@ class FixFrame:
         rotation = np.eye(3)
         travel_local, travel_world = local[-1] - local[0], world[-1] - world[0]
         if len(local) >= 2 and np.linalg.norm(travel_world) > 3.0 * np.sqrt(np.trace(self._fix_covariances[-1])):
-            rotation = _smallest_rotation(travel_local, travel_world)
+            rotation = smallest_rotation(travel_local, travel_world)
         T = np.eye(4)
         T[:3, :3] = rotation
         T[:3, 3] = world.mean(axis=0) - rotation @ local.mean(axis=0)
@@ -268,7 +251,7 @@ class FixFrame:
         result = fit_rigid(local, world, weights=weights)
         agree = self._agree_with_local(local, local_cov, world, world_cov)
         T = np.eye(4) if agree else result.as_matrix()
-        placed = local @ T[:3, :3].T + T[:3, 3]
+        placed = apply_transform(T, local)
         # Information of (dt, dphi) about the weighted centroid, from every pair, counted once per fix.
         noise = world_cov + T[:3, :3] @ local_cov @ T[:3, :3].T
         try:

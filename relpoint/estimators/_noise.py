@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from relpoint.estimators.base import Estimator
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, kabsch
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Median length of a 3D Gaussian vector with unit per-axis deviation, times sqrt(2) (two noisy points).
@@ -47,15 +47,6 @@ RANGE_FRACTION = 0.005
 #: The simulator's default noise (m), which the distance settings' defaults were chosen for; the
 #: fallback when the first observations cannot be registered.
 SIMULATOR_SIGMA = 0.3
-
-
-def _kabsch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """``(R, t)`` minimising ``|R source + t - target|`` over (N, 3) point pairs."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    U, _, Vt = np.linalg.svd((source - cs).T @ (target - ct))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, ct - R @ cs
 
 
 def register(
@@ -86,7 +77,7 @@ def register(
         if keep.sum() < 3:
             return None
         residual = distance[keep]
-        R_new, t_new = _kabsch(second[keep], first[nearest[keep]])
+        R_new, t_new = kabsch(second[keep], first[nearest[keep]])
         if np.allclose(R_new, R, atol=1e-9) and np.allclose(t_new, t, atol=1e-9):
             break
         R, t = R_new, t_new

@@ -55,7 +55,7 @@ from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
-from relpoint.geometry import FloatArray, rigid_consensus, skew, so3_exp, twist_step
+from relpoint.geometry import FloatArray, apply_transform, rigid_consensus, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -366,7 +366,7 @@ class EkfSlam(Estimator[PointObservation]):
             positions = np.vstack([positions, self._movers.positions])
         if self._frame is not None:
             T = self._frame.provisional
-            positions = positions @ T[:3, :3].T + T[:3, 3]
+            positions = apply_transform(T, positions)
         dynamic = np.arange(len(positions)) >= n
         return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id)
 

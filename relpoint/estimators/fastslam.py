@@ -51,7 +51,7 @@ from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
-from relpoint.geometry import FloatArray, skew, so3_exp, twist_step
+from relpoint.geometry import FloatArray, apply_transform, skew, so3_exp, twist_step
 from relpoint.settings import Settings, require_non_negative, require_positive
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -415,7 +415,7 @@ class FastSlam(Estimator[PointObservation]):
         positions = self.means[best, :n].copy()
         if self._frame is not None:
             T = self._frame.provisional
-            positions = positions @ T[:3, :3].T + T[:3, 3]
+            positions = apply_transform(T, positions)
         return LandmarkMap(
             positions,
             self._seen[best, :n].copy(),

@@ -23,11 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.evaluation import EvaluationError
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, homogeneous, quat_to_matrix
 from relpoint.types import IntArray, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -122,25 +121,11 @@ class MatchedPoses:
 
     def reference_matrices(self) -> FloatArray:
         """Reference poses as (K, 4, 4) matrices ``T_world_frame``."""
-        return _matrices(self.reference_positions, self.reference_rotations)
+        return homogeneous(self.reference_rotations, self.reference_positions)
 
     def estimate_matrices(self) -> FloatArray:
         """Estimated poses as (K, 4, 4) matrices ``T_world_frame``."""
-        return _matrices(self.estimate_positions, self.estimate_rotations)
-
-
-def _matrices(positions: FloatArray, rotations: FloatArray) -> FloatArray:
-    T = np.zeros((len(positions), 4, 4))
-    T[:, :3, :3] = rotations
-    T[:, :3, 3] = positions
-    T[:, 3, 3] = 1.0
-    return T
-
-
-def _rotations(quats_xyzw: FloatArray) -> FloatArray:
-    if len(quats_xyzw) == 0:
-        return np.zeros((0, 3, 3))
-    return Rotation.from_quat(quats_xyzw).as_matrix()
+        return homogeneous(self.estimate_rotations, self.estimate_positions)
 
 
 def slerp_quaternions(q0: npt.ArrayLike, q1: npt.ArrayLike, fraction: npt.ArrayLike) -> FloatArray:
@@ -183,7 +168,7 @@ def _interpolate(trajectory: Trajectory, stamps_s: FloatArray) -> tuple[FloatArr
     positions = p[idx - 1] + frac[:, None] * (p[idx] - p[idx - 1])
     q = trajectory.quats_xyzw
     quats = slerp_quaternions(q[idx - 1], q[idx], frac)
-    return positions, _rotations(quats)
+    return positions, quat_to_matrix(quats)
 
 
 def associate(
@@ -234,7 +219,7 @@ def associate(
             hint=f"reference spans {time_span(reference)}, estimate spans {time_span(estimate)}",
         )
     short_p = short.positions[idx_short]
-    short_R = _rotations(short.quats_xyzw[idx_short])
+    short_R = quat_to_matrix(short.quats_xyzw[idx_short])
     short_ns = short.stamps_ns[idx_short]
     if interpolate:
         if len(long_) < 2:
@@ -243,7 +228,7 @@ def associate(
         long_ns = short_ns - round(short_offset * 1e9)
     else:
         long_p = long_.positions[idx_long]
-        long_R = _rotations(long_.quats_xyzw[idx_long])
+        long_R = quat_to_matrix(long_.quats_xyzw[idx_long])
         long_ns = long_.stamps_ns[idx_long]
     logger.debug(
         "matched %d of max. %d poses (max diff %g s, offset %g s)", idx_short.size, len(short), max_diff, offset

@@ -27,7 +27,7 @@ def rigid_outliers(
 
     def misses(source: FloatArray, target: FloatArray) -> npt.NDArray[np.bool_]:
         fit = fit_rigid(source, target)
-        return np.linalg.norm(current @ fit.rotation.T + fit.translation - previous, axis=1) > tolerance
+        return np.linalg.norm(fit.apply(current) - previous, axis=1) > tolerance
 
     best = np.ones(n, dtype=bool)
     for _ in range(samples):

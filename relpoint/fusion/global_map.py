@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from relpoint.errors import EstimatorError
 from relpoint.fusion.bspline import PathSpline
-from relpoint.geometry import FloatArray, fit_rigid
+from relpoint.geometry import FloatArray, apply_transform, fit_rigid
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,8 +63,7 @@ class SegmentTransform:
 
     def apply(self, points_local: npt.ArrayLike) -> FloatArray:
         """Eq. 38: ``R_k L + T_k`` for points (N, 3) in the local frame -> (N, 3) in ``world``."""
-        points = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
-        return points @ self.rotation.T + self.translation
+        return apply_transform(self.matrix, np.asarray(points_local, dtype=np.float64).reshape(-1, 3))
 
     def point_covariance(self, points_local: npt.ArrayLike) -> FloatArray:
         """Covariance (N, 3, 3) of mapped points due to the transform's uncertainty, m² (module docstring)."""

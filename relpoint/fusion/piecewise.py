@@ -72,7 +72,7 @@ def rigid_fit_statistic(local: FloatArray, targets: FloatArray, target_cov: Floa
     total_cov = target_cov + local_cov
     weights = 1.0 / np.maximum(np.trace(total_cov, axis1=1, axis2=2) / 3.0, 1e-12)
     fit = fit_rigid(local, targets, weights=weights)
-    residuals = targets - (local @ fit.rotation.T + fit.translation)
+    residuals = targets - fit.apply(local)
     S = target_cov + np.einsum("ab,nbc,dc->nad", fit.rotation, local_cov, fit.rotation)
     return float(np.einsum("na,na->", residuals, np.linalg.solve(S, residuals[..., None])[..., 0]))
 

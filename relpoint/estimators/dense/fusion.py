@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.dense.icp import project, transform_soa
+from relpoint.estimators.dense.icp import project
 from relpoint.estimators.dense.maps import Level
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, transform_soa32
 
 F32 = npt.NDArray[np.float32]
 I64 = npt.NDArray[np.int64]
@@ -122,7 +122,7 @@ class PointMap:
         index = np.full(k.height * k.width, -1, dtype=np.int64)
         if self.size == 0:
             return index.reshape(k.height, k.width)
-        p_cam = transform_soa(T_camera_world, self.positions)
+        p_cam = transform_soa32(T_camera_world, self.positions)
         pixel, inside = project(p_cam, level)
         ids = np.flatnonzero(inside)
         pixel = pixel[ids]

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.dense.maps import Level
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, transform_soa32
 
 logger = logging.getLogger(__name__)
 
@@ -58,15 +58,6 @@ class Correspondences:
 
     def __len__(self) -> int:
         return len(self.index)
-
-
-def transform_soa(T: FloatArray, points: F32) -> F32:
-    """Apply a 4x4 transform to points stored column-wise (3, N) float32; returns (3, N)."""
-    R = T[:3, :3].astype(np.float32)
-    t = T[:3, 3].astype(np.float32)[:, None]
-    if points.shape[1] > 50_000:  # float32 GEMM with an inner dimension of 3 is slow on large inputs
-        return np.einsum("ij,jn->in", R, points) + t
-    return R @ points + t
 
 
 def project(points_cam: F32, level: Level) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
@@ -112,7 +103,7 @@ def associate(
     normal_cos_threshold: smallest cosine of the angle between the map normal (rotated into the camera)
         and the frame normal; -1 disables the check.
     """
-    p_cam = transform_soa(T_camera_world, points)
+    p_cam = transform_soa32(T_camera_world, points)
     pixel, inside = project(p_cam, level)
     # Pixels outside the image point at pixel 0; the validity plane rejects them below.
     gathered = np.take(level.planes, pixel, axis=1)

@@ -104,7 +104,7 @@ from relpoint.estimators.relative_point.groups import (
     relative_coordinates,
 )
 from relpoint.estimators.relative_point.loops import drift_profile, vote_offset
-from relpoint.estimators.relative_point.lsf import _median, apply, fit_transform
+from relpoint.estimators.relative_point.lsf import _median, fit_transform
 from relpoint.estimators.relative_point.points import IntArray, PointStore
 from relpoint.estimators.relative_point.registration import (
     NO_MATCH,
@@ -115,7 +115,7 @@ from relpoint.estimators.relative_point.registration import (
 )
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.estimators.spec import EstimatorSpec
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, apply_transform, quaternion_xyzw, rigid_inverse
 from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -229,7 +229,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
             logger.debug("iteration %d: fewer than three usable non-collinear mapped points, pose coasted", k)
             self.counts["degenerate_iterations"] += 1
             T_world_sensor = self._coast()
-        self.store.world_sum[ids] += apply(T_world_sensor, points)
+        self.store.world_sum[ids] += apply_transform(T_world_sensor, points)
         self._housekeeping(k)
         self._refresh_index()
         return self._finish(k, observation.stamp_ns, T_world_sensor)
@@ -255,7 +255,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         """
         if not self.config.final_adjustment or len(trajectory) != self._iteration:
             return trajectory
-        T_incremental = trajectory_matrices(trajectory)
+        T_incremental = trajectory.matrices()
         residual_before = self._support_residual(T_incremental)
         incremental_poses = [(group, group.T_world_group.copy()) for group in self.groups.groups.values()]
         if not self.adjust():
@@ -273,7 +273,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
                 older = self._merged_uid[older]
             if older in row_of:
                 row_of.setdefault(newer, row_of[older])
-        T_before = trajectory_matrices(trajectory)
+        T_before = trajectory.matrices()
         T_fit = T_before.copy()
         fitted = np.zeros(len(T_before), bool)
         seen = np.zeros((len(T_before), 3))
@@ -299,7 +299,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         for k in range(len(T_before)):
             if fitted[k]:
                 T_after[k] = T_fit[k]
-                correction = T_fit[k] @ _rigid_inverse(T_before[k])
+                correction = T_fit[k] @ rigid_inverse(T_before[k])
             else:
                 T_after[k] = correction @ T_before[k]
         # Drift builds up slowly, and so does its correction; a fit on the few observations an
@@ -346,7 +346,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
             if np.count_nonzero(usable) < 3:
                 continue
             T = T_world_sensor[k]
-            placed = observed[usable].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            placed = apply_transform(T, observed[usable].astype(np.float64))
             per_iteration.append(np.sqrt(np.mean(np.sum((placed - store.positions(rows[usable])) ** 2, axis=1))))
         return float(np.median(per_iteration)) if per_iteration else float("nan")
 
@@ -523,7 +523,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         self._motion_measured = T_new is not None
         if config.predict_motion and T_new is not None:
             # Largest change of prediction over the references: translation plus angle x range.
-            (c00, _, _, x), (_, c11, _, y), (_, _, c22, z), _ = (T_new @ _rigid_inverse(before)).tolist()
+            (c00, _, _, x), (_, c11, _, y), (_, _, c22, z), _ = (T_new @ rigid_inverse(before)).tolist()
             angle = math.acos(min(1.0, max(-1.0, (c00 + c11 + c22 - 1.0) / 2.0)))
             reach = math.sqrt(float(np.max(np.einsum("ij,ij->i", reference, reference))))
             shift = math.sqrt(x * x + y * y + z * z) + angle * reach
@@ -577,7 +577,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         if len(unmatched) == 0 or len(self.index) == 0:
             return
         store = self.store
-        world = apply(self._provisional_pose(), points[unmatched])
+        world = apply_transform(self._provisional_pose(), points[unmatched])
         recent = k - self.config.match_window
         bound2 = self.config.global_match_bound**2
         claims: list[tuple[float, int, int]] = []
@@ -624,7 +624,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         )
         if len(old) < config.loop_support:
             return
-        young = apply(self._provisional_pose(), points[young_rows])
+        young = apply_transform(self._provisional_pose(), points[young_rows])
         old_positions = store.positions(old)
         near = np.all(
             (old_positions >= young.min(axis=0) - config.loop_search)
@@ -795,7 +795,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
         if root:
             t0 = int(iterations[valid][0])
             T0 = self._poses[t0 % config.ring_size] if t0 < k else self._T_world_sensor
-            anchor_targets = apply(T0, observations[:, int(np.flatnonzero(valid)[0])])
+            anchor_targets = apply_transform(T0, observations[:, int(np.flatnonzero(valid)[0])])
         group = RelativeGroup(
             gid=self.groups.new_gid(),
             kind=ROOT if root else kind,
@@ -1161,7 +1161,7 @@ class RelativePointEstimator(Estimator[PointObservation]):
 
         Good to a fraction of the matching bound, and free; the fit to mapped points comes after grouping.
         """
-        return self._T_world_sensor @ _rigid_inverse(self.motion.T_curr_prev)
+        return self._T_world_sensor @ rigid_inverse(self.motion.T_curr_prev)
 
     def _refresh_index(self) -> None:
         """Move changed global positions in the global index."""
@@ -1217,51 +1217,8 @@ class RelativePointEstimator(Estimator[PointObservation]):
         return Pose(int(stamp_ns), (x, y, z), quaternion_xyzw(T_world_sensor[:3, :3]))
 
 
-def trajectory_matrices(trajectory: Trajectory) -> FloatArray:
-    """Poses (N, 4, 4) ``T_world_sensor`` of a trajectory."""
-    T = np.repeat(np.eye(4)[None], len(trajectory), axis=0)
-    T[:, :3, :3] = Rotation.from_quat(trajectory.quats_xyzw).as_matrix()
-    T[:, :3, 3] = trajectory.positions
-    return T
-
-
-def quaternion_xyzw(R: FloatArray) -> tuple[float, float, float, float]:
-    """Unit quaternion ``(x, y, z, w)``, ``w >= 0``, of a rotation matrix (3, 3) (Shepperd's method).
-
-    Equal to ``Rotation.from_matrix(R).as_quat(canonical=True)``, which costs about 0.1 ms per call
-    (5 % of the per-iteration budget at 100 points); the tests check the two agree.
-    """
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R.tolist()
-    trace = m00 + m11 + m22
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = ((m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s)
-    elif m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        q = (0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s)
-    elif m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        q = ((m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-        q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
-    norm = math.sqrt(sum(c * c for c in q))
-    sign = -1.0 if q[3] < 0.0 else 1.0
-    x, y, z, w = (sign * c / norm for c in q)
-    return x, y, z, w
-
-
 _LOOP_YOUNG_MAX = 64
 """Young points that vote on a loop's offset at most (an even sample of them in a dense view)."""
-
-
-def _rigid_inverse(T: FloatArray) -> FloatArray:
-    """Inverse of a rigid 4x4 transform (transpose the rotation; cheaper than a general inverse)."""
-    inverse = np.empty((4, 4))
-    inverse[:3, :3] = T[:3, :3].T
-    inverse[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
-    inverse[3] = (0.0, 0.0, 0.0, 1.0)
-    return inverse
 
 
 def _finite_median(values: FloatArray) -> float:

@@ -29,9 +29,9 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import basis_coordinates, replace_contribution, spread_basis
-from relpoint.estimators.relative_point.lsf import apply, fit_transform
+from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import PointStore
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, apply_transform
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -250,13 +250,13 @@ class GroupMap:
             self.failed_fits += 1
             return False
         group.T_world_group = fit.T
-        self._contribute(group, apply(fit.T, relative), float(group.count))
+        self._contribute(group, apply_transform(fit.T, relative), float(group.count))
         return True
 
     def move(self, group: RelativeGroup, T_world_group: FloatArray) -> None:
         """Give a placed group the pose ``T_world_group`` (4, 4) (the final adjustment), with its contribution."""
         group.T_world_group = T_world_group
-        self._contribute(group, apply(T_world_group, group.relative_map), group.weight)
+        self._contribute(group, apply_transform(T_world_group, group.relative_map), group.weight)
 
     def shift(self, group: RelativeGroup, offset: FloatArray) -> None:
         """Translate a placed group by ``offset`` (3,) m in ``world`` (loop closure), with its contribution."""

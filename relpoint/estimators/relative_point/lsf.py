@@ -167,9 +167,3 @@ def _consensus(
     if np.count_nonzero(chosen) < 3 or support[best] <= float(w[residual <= bound].sum()):
         return None
     return chosen
-
-
-def apply(T: npt.ArrayLike, points: FloatArray) -> FloatArray:
-    """Map points (N, 3) with a 4x4 transform."""
-    T = np.asarray(T)
-    return points @ T[:3, :3].T + T[:3, 3]

@@ -1,0 +1,137 @@
+"""Least-squares rigid fitting of point pairs: the weighted Umeyama/Kabsch fit, plain Kabsch, and a
+RANSAC consensus of the pairs one rigid motion explains.
+
+Conventions (see ``docs/log-format.md``): a pose ``T_a_b`` is a 4x4 homogeneous matrix that maps
+coordinates in frame ``b`` to frame ``a`` (``p_a = T_a_b @ p_b``); quaternions are ``(x, y, z, w)``;
+metres and radians throughout.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.geometry.se3 import check_points
+from relpoint.geometry.so3 import FloatArray
+
+
+class RigidFit(NamedTuple):
+    """Result of :func:`fit_rigid`: ``target ≈ scale * rotation @ source + translation``."""
+
+    rotation: FloatArray
+    translation: FloatArray
+    scale: float
+    rms: float
+
+    def apply(self, points: FloatArray) -> FloatArray:
+        """Map points (N, 3) of the source frame into the target's: ``scale * R p + t``."""
+        return (self.scale * points) @ self.rotation.T + self.translation
+
+    def as_matrix(self) -> FloatArray:
+        """The fit as a 4x4 similarity matrix (scale folded into the upper-left block)."""
+        T = np.eye(4)
+        T[:3, :3] = self.scale * self.rotation
+        T[:3, 3] = self.translation
+        return T
+
+
+def fit_rigid(
+    source: npt.ArrayLike,
+    target: npt.ArrayLike,
+    *,
+    with_scale: bool = False,
+    weights: npt.ArrayLike | None = None,
+) -> RigidFit:
+    """Least-squares rigid (or similarity) transform taking ``source`` points onto ``target`` points.
+
+    Umeyama (1991) / Arun et al. (1987): SVD of the cross-covariance, with the reflection case
+    handled by flipping the sign of the smallest singular direction, so the result is always a proper
+    rotation (det = +1).
+
+    Parameters
+    ----------
+    source, target:
+        Corresponding points, shape (N, 3), N >= 3 for a unique rotation.
+    with_scale:
+        Also estimate a uniform scale (Sim(3)); otherwise the scale is 1 (SE(3)).
+    weights:
+        Optional non-negative per-pair weights, shape (N,).
+
+    Raises
+    ------
+    ValueError
+        If the shapes differ or fewer than one pair is given.
+    """
+    source = check_points(source, "source")
+    target = check_points(target, "target")
+    if source.shape != target.shape or len(source) == 0:
+        raise ValueError(f"source {source.shape} and target {target.shape} must be equal, non-empty shapes")
+    if weights is None:
+        w = np.full(len(source), 1.0 / len(source))
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        w = w / w.sum()
+    mean_source = w @ source
+    mean_target = w @ target
+    src = source - mean_source
+    tgt = target - mean_target
+    covariance = (tgt * w[:, None]).T @ src
+    U, singular, Vt = np.linalg.svd(covariance)
+    reflection = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        reflection[2, 2] = -1.0
+    rotation = U @ reflection @ Vt
+    if with_scale:
+        variance = float(w @ np.sum(src**2, axis=1))
+        scale = float(np.sum(singular * np.diag(reflection)) / variance) if variance > 0 else 1.0
+    else:
+        scale = 1.0
+    translation = mean_target - scale * rotation @ mean_source
+    residual = target - (scale * source @ rotation.T + translation)
+    rms = float(np.sqrt(w @ np.sum(residual**2, axis=1)))
+    return RigidFit(rotation, translation, scale, rms)
+
+
+def kabsch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(R, t)`` minimising ``|R source + t - target|`` over (N, 3) point pairs, unweighted."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    U, _, Vt = np.linalg.svd((source - cs).T @ (target - ct))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, ct - R @ cs
+
+
+def rigid_consensus(
+    source: npt.ArrayLike, target: npt.ArrayLike, tolerance: float | npt.ArrayLike, samples: int = 64, seed: int = 0
+) -> npt.NDArray[np.bool_]:
+    """Pairs ``source[i] <-> target[i]`` (N, 3) that one rigid motion explains within ``tolerance`` (m).
+
+    RANSAC over three-pair samples (``samples`` draws from ``seed``; all fitted at once with a batched
+    SVD) keeps the motion with the most pairs within ``tolerance`` (a scalar or (N,)); it is refitted to
+    them and the pairs within ``tolerance`` of the refitted motion are returned. With fewer than six
+    pairs every pair is kept: too few to outvote.
+    """
+    source = check_points(source, "source")
+    target = check_points(target, "target")
+    n = len(source)
+    if n < 6:
+        return np.ones(n, dtype=bool)
+    tolerance = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (n,))
+    rng = np.random.default_rng(seed)
+    picks = np.stack([rng.choice(n, 3, replace=False) for _ in range(samples)])  # (S, 3)
+    a, b = source[picks], target[picks]  # (S, 3, 3)
+    ca, cb = a.mean(axis=1, keepdims=True), b.mean(axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(np.einsum("sni,snj->sij", a - ca, b - cb))
+    flip = np.linalg.det(np.einsum("sji,skj->sik", Vt, U)) < 0  # det(V U^T)
+    Vt[flip, 2] *= -1.0
+    R = np.einsum("sji,skj->sik", Vt, U)  # V U^T: takes source onto target
+    t = cb[:, 0] - np.einsum("sij,sj->si", R, ca[:, 0])
+    residual = np.linalg.norm(np.einsum("sij,nj->sni", R, source) + t[:, None] - target[None], axis=2)
+    best = int(np.argmax((residual <= tolerance).sum(axis=1)))
+    inliers = residual[best] <= tolerance
+    if inliers.sum() < 3:
+        return np.ones(n, dtype=bool)
+    fit = fit_rigid(source[inliers], target[inliers])
+    return np.linalg.norm(fit.apply(source) - target, axis=1) <= tolerance
