@@ -18,7 +18,7 @@ from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.estimators.relative_point import RelativePointEstimator
-from relpoint.estimators.relative_point import estimator as relative_point_estimator
+from relpoint.estimators.relative_point.phases import adjustment as final_adjustment_phase
 from relpoint.simulation import MOVER_MOTIONS, SimulationConfig, paths, simulate
 from relpoint.types import PositionFix, Trajectory
 from relpoint_app.simulation import write_simulation
@@ -245,7 +245,7 @@ def test_final_adjustment_that_fails_its_check_leaves_the_incremental_solution(
     estimator, incremental = _relative_point_run()
     before = estimator.landmark_map()
     # A tolerance below -100 % fails every adjustment: the incremental map and trajectory must come back.
-    monkeypatch.setattr(relative_point_estimator, "ADJUSTMENT_TOLERANCE", -1.01)
+    monkeypatch.setattr(final_adjustment_phase, "ADJUSTMENT_TOLERANCE", -1.01)
     final = estimator.finish(incremental)
     report = estimator.summary()["final_adjustment"]
     assert report["kept"] == "incremental" and "m from their points" in report["reason"]

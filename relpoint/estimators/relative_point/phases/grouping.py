@@ -1,0 +1,187 @@
+"""New points and the groups over them: first groups, regrouping over intervals of co-visibility, and each group built on three basis points."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from relpoint.estimators.relative_point.grouping import select_members
+from relpoint.estimators.relative_point.groups import (
+    FIRST,
+    LATER,
+    ROOT,
+    RelativeGroup,
+    choose_basis,
+    relative_coordinates,
+)
+from relpoint.estimators.relative_point.points import IntArray
+from relpoint.estimators.relative_point.registration import (
+    NO_MATCH,
+)
+from relpoint.estimators.relative_point.state import EstimatorState
+from relpoint.geometry import FloatArray, apply_transform
+
+logger = logging.getLogger(__name__)
+
+
+class Grouping(EstimatorState):
+    """New points and the groups over them: first groups, regrouping over intervals of co-visibility, and each group built on three basis points.
+
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
+    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+
+    def _add_points(self, points: FloatArray, ids: IntArray, k: int, gt_ids: IntArray | None) -> IntArray:
+        """Create points for unmatched observations, then append every observation to its ring."""
+        new = np.flatnonzero(ids == NO_MATCH)
+        if len(new):
+            ids[new] = self.store.new_points(len(new))
+            self.ungrouped.add(ids[new])
+            self.counts["new_points"] += len(new)
+        self.store.add_observations(ids, points, k)
+        duplicate = self.charting.chart(k, ids)
+        if duplicate.any():  # registration is one-to-one, so this is a bug, not a data problem
+            raise AssertionError("point charted twice in one iteration")
+        if gt_ids is not None:
+            self.tally.add(self.store.uid[ids], gt_ids)
+        return ids
+
+    def _create_first_groups(self, k: int) -> None:
+        """First groupings (paper II-C): creation points a few iterations after they are first seen."""
+        config, store = self.config, self.store
+        if k % config.creation_every:
+            return
+        listed = self.ungrouped.ids()
+        if len(listed) == 0:
+            return
+        alive = store.alive[listed]
+        done = ~alive | store.mapped(listed) | store.dynamic[listed]
+        stale = alive & ~done & (k - store.last_iter[listed] > config.stale_after)
+        if stale.any():
+            self._drop_points(listed[stale])
+        if (done | stale).any():
+            self.ungrouped.discard(listed[done | stale])
+        due = ~done & ~stale & (store.last_iter[listed] == k) & (k - store.run_start[listed] >= config.creation_delay)
+        attempts = 0
+        for creation in listed[due].tolist():
+            if attempts >= config.max_creations_per_iteration:
+                break
+            if store.mapped(np.array([creation]))[0] or self._next_creation_try.get(creation, -1) > k:
+                continue
+            attempts += 1
+            first = max(int(store.run_start[creation]), k - config.ring_size + 1)
+            if not self._create_group(k, creation, first, k, FIRST):
+                self._next_creation_try[creation] = k + max(config.creation_delay, 1)
+                self.counts["failed_groupings"] += 1
+
+    def _regroup(self, k: int) -> None:
+        """Regrouping (paper II-C): recompute points over longer intervals from stored observations."""
+        config, store = self.config, self.store
+        if config.max_regroups_per_iteration == 0:
+            return
+        previous = self.charting.seen(k - 1)
+        if len(previous):
+            previous = previous[store.alive[previous]]
+            left = previous[store.last_iter[previous] == k - 1]
+            left = left[(k - store.run_start[left] >= config.regroup_min_iterations)]
+            current = self.charting.seen(k)
+            long_run = current[k - store.run_start[current] + 1 >= config.regroup_after]
+            due = np.concatenate([left, long_run])
+            due = due[
+                (store.n_later_groups[due] == 0)
+                & (store.pos_weight[due] > 0)
+                & ~store.dynamic[due]
+                & (k - store.regroup_attempt[due] >= config.regroup_after)
+            ]
+            for point in due.tolist():
+                store.regroup_attempt[point] = k
+                self._regroup_queue.append(point)
+        done = 0
+        while self._regroup_queue and done < config.max_regroups_per_iteration:
+            point = self._regroup_queue.popleft()
+            if not store.alive[point] or store.dynamic[point] or store.n_later_groups[point] > 0:
+                continue
+            first = int(store.run_start[point])
+            last = int(store.last_iter[point])
+            if k - first >= config.ring_size:
+                first = k - config.ring_size + 1
+            if last - first + 1 < config.regroup_min_iterations:
+                continue
+            done += 1
+            if not self._create_group(k, point, first, last, LATER):
+                self.counts["failed_groupings"] += 1
+
+    def _create_group(self, k: int, creation: int, first: int, last: int, kind: str) -> bool:
+        """Build, check and place one group with ``creation`` as creation point over ``[first, last]``."""
+        config, store = self.config, self.store
+        candidates = self.charting.enumerate(first, last)
+        candidates = candidates[store.alive[candidates] & ~store.dynamic[candidates]]
+        where = np.flatnonzero(candidates == creation)
+        if len(where) == 0:
+            return False
+        presence = store.presence(candidates, first, last)
+        selection = select_members(presence, store.mapped(candidates), int(where[0]), config.seed_points)
+        root = False
+        if selection is None and kind == FIRST and self._no_anchor_in_view(candidates):
+            # Nothing mapped in view (the start, or the map was lost): anchor to observations + pose.
+            selection = select_members(presence, np.ones(len(candidates), bool), int(where[0]), config.seed_points)
+            root = True
+        if selection is None:
+            return False
+        rows, interval = selection
+        members = candidates[rows]
+        iterations = first + np.flatnonzero(interval)
+        observations, _ = store.observations(members, iterations)
+        moving, beyond, verified = self._detect_dynamic(k, members, observations, len(iterations))
+        if len(moving):
+            keep = ~np.isin(members, moving)
+            members, observations = members[keep], observations[keep]
+        if len(members) < config.seed_points + 1:
+            return False
+        basis = self._choose_basis(members, observations[:, 0])
+        if basis is None:
+            return False
+        relative, valid = relative_coordinates(observations, basis, config.min_basis_spread)
+        if not valid.any():
+            return False
+        anchor_targets = None
+        if root:
+            t0 = int(iterations[valid][0])
+            T0 = self._poses[t0 % config.ring_size] if t0 < k else self._T_world_sensor
+            anchor_targets = apply_transform(T0, observations[:, int(np.flatnonzero(valid)[0])])
+        group = RelativeGroup(
+            gid=self.groups.new_gid(),
+            kind=ROOT if root else kind,
+            members=members,
+            basis=basis,
+            rel_sum=relative[:, valid].sum(axis=1),
+            count=int(valid.sum()),
+            last_iteration=int(iterations[-1]),
+            is_open=bool(iterations[-1] == k),
+            anchor_targets=anchor_targets,
+        )
+        newly_mapped = members[~store.mapped(members)]
+        if not self.groups.add(group):
+            return False
+        self._flag_dynamic(moving, "grouping", beyond)
+        store.verified[verified] = k
+        self._newly_mapped.append(newly_mapped)
+        if group.kind == FIRST:
+            self._first_groups.append(group.gid)
+        self.counts[{ROOT: "root_groups", FIRST: "first_groups", LATER: "regroups"}[group.kind]] += 1
+        crowded = members[store.n_groups[members] > config.max_groups_per_point]
+        self._over_grouped.update(crowded.tolist())
+        return True
+
+    def _choose_basis(self, members: IntArray, points: FloatArray) -> tuple[int, int, int] | None:
+        """Basis rows of ``members``: among points verified static when they allow one, else among all."""
+        spread = self.config.min_basis_spread
+        trusted = np.flatnonzero(self.store.verified[members] >= 0)
+        if len(trusted) >= 3:
+            basis = choose_basis(points[trusted], spread)
+            if basis is not None:
+                return int(trusted[basis[0]]), int(trusted[basis[1]]), int(trusted[basis[2]])
+        return choose_basis(points, spread)
+
+    def _no_anchor_in_view(self, candidates: IntArray) -> bool:
+        return int(np.count_nonzero(self.store.mapped(candidates) & ~self.store.dynamic[candidates])) < 3

@@ -1,0 +1,203 @@
+"""How each iteration is placed: local, far and global matching of the observed points, and the pose fitted to the mapped static points they matched (or coasted when too few)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from relpoint.estimators.relative_point.lsf import fit_transform
+from relpoint.estimators.relative_point.points import IntArray
+from relpoint.estimators.relative_point.registration import (
+    NO_MATCH,
+    match_mutual,
+    match_nearest,
+)
+from relpoint.estimators.relative_point.state import EstimatorState
+from relpoint.geometry import FloatArray, apply_transform, rigid_inverse
+
+logger = logging.getLogger(__name__)
+
+
+class Localisation(EstimatorState):
+    """How each iteration is placed: local, far and global matching of the observed points, and the pose fitted to the mapped static points they matched (or coasted when too few).
+
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
+    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+
+    def _register(self, points: FloatArray, k: int) -> IntArray:
+        """Local matching (paper II-A): ids (N,) of the recent points matched, ``NO_MATCH`` elsewhere."""
+        config, store = self.config, self.store
+        ids = np.full(len(points), NO_MATCH, np.int64)
+        # Each recently seen point, once: from the charting of the iteration it was last seen in.
+        recent = []
+        for t in range(k - config.match_window, k):
+            seen = self.charting.seen(t)
+            recent.append(seen[store.last_iter[seen] == t])
+        refs = np.concatenate(recent)
+        if len(refs) == 0:
+            return ids
+        reference = store.latest(refs)
+        age = k - store.last_iter[refs]
+        predicted = self.motion.predict(reference, age) if config.predict_motion else reference
+        row, _ = match_nearest(predicted, points, config.match_bound)
+        pairs = np.flatnonzero((row != NO_MATCH) & (age[row] == 1))
+        before = self.motion.T_curr_prev
+        T_new = self.motion.update(reference[row[pairs]], points[pairs], config.trim_floor)
+        self._motion_measured = T_new is not None
+        if config.predict_motion and T_new is not None:
+            # Largest change of prediction over the references: translation plus angle x range.
+            (c00, _, _, x), (_, c11, _, y), (_, _, c22, z), _ = (T_new @ rigid_inverse(before)).tolist()
+            angle = math.acos(min(1.0, max(-1.0, (c00 + c11 + c22 - 1.0) / 2.0)))
+            reach = math.sqrt(float(np.max(np.einsum("ij,ij->i", reference, reference))))
+            shift = math.sqrt(x * x + y * y + z * z) + angle * reach
+            if shift > 0.5 * config.match_bound:
+                # The prediction was off (a turn began): match again from the refreshed motion.
+                predicted = self.motion.predict(reference, age)
+                row, _ = match_nearest(predicted, points, config.match_bound)
+        if config.predict_motion and config.match_angle > 0:
+            self._match_far(reference, predicted, age, points, row)
+        matched = row != NO_MATCH
+        ids[matched] = refs[row[matched]]
+        self.counts["local_matches"] += int(np.count_nonzero(matched))
+        return ids
+
+    def _match_far(
+        self, reference: FloatArray, predicted: FloatArray, age: IntArray, points: FloatArray, row: IntArray
+    ) -> None:
+        """Second round of local matching, in place on ``row``: bounds grow with the predicted range.
+
+        ``reference`` (R, 3) are the recent points' latest observations, ``predicted`` (R, 3) the same
+        carried into the current sensor frame, ``age`` (R,) iterations since each was observed.
+
+        The leftover observations and the recent points nobody matched are paired as mutual nearest
+        neighbours within ``match_bound + match_angle * range``; new pairs refresh the motion.
+        """
+        free_points = np.flatnonzero(row == NO_MATCH)
+        if len(free_points) == 0:
+            return
+        taken = np.zeros(len(reference), bool)
+        taken[row[row != NO_MATCH]] = True
+        free_refs = np.flatnonzero(~taken)
+        if len(free_refs) == 0:
+            return
+        predicted = predicted[free_refs]
+        bounds = self.config.match_bound + self.config.match_angle * np.sqrt(
+            np.einsum("ij,ij->i", predicted, predicted)
+        )
+        found = match_mutual(predicted, points[free_points], bounds)
+        matched = found != NO_MATCH
+        if not matched.any():
+            return
+        row[free_points[matched]] = free_refs[found[matched]]
+        self.counts["far_matches"] += int(np.count_nonzero(matched))
+        pairs = np.flatnonzero((row != NO_MATCH) & (age[np.maximum(row, 0)] == 1))
+        if self.motion.update(reference[row[pairs]], points[pairs], self.config.trim_floor) is not None:
+            self._motion_measured = True
+
+    def _match_globally(self, points: FloatArray, ids: IntArray, k: int) -> None:
+        """Global matching (paper II-D) of unmatched points through the provisional current position."""
+        unmatched = np.flatnonzero(ids == NO_MATCH)
+        if len(unmatched) == 0 or len(self.index) == 0:
+            return
+        store = self.store
+        world = apply_transform(self._provisional_pose(), points[unmatched])
+        recent = k - self.config.match_window
+        bound2 = self.config.global_match_bound**2
+        claims: list[tuple[float, int, int]] = []
+        keys = self.index.keys(world).tolist()
+        for q, position, key in zip(unmatched.tolist(), world, keys, strict=True):
+            candidates = np.asarray(self.index.candidates_at(key), np.int64)
+            if len(candidates) == 0:
+                continue
+            candidates = candidates[store.last_iter[candidates] < recent]
+            if len(candidates) == 0:
+                continue
+            d2 = np.sum((store.positions(candidates) - position) ** 2, axis=1)
+            best = int(np.argmin(d2))
+            if d2[best] <= bound2:
+                claims.append((float(d2[best]), q, int(candidates[best])))
+        taken: set[int] = set()
+        for _, q, point in sorted(claims):
+            if point not in taken:
+                taken.add(point)
+                ids[q] = point
+        self.counts["global_matches"] += len(taken)
+
+    def _locate(self, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_]) -> FloatArray | None:
+        """Current position (paper II-D): LSF of this iteration's observations to their global positions.
+
+        ``mapped`` marks the observations of static points with a global position.
+        """
+        store = self.store
+        if len(self.groups):
+            return self._fit_pose(points[mapped], ids[mapped])
+        # Before the first group: the first observations are global positions (world = first frame).
+        known = ids != NO_MATCH
+        use = known & (store.obs_iter[np.where(known, ids, 0), 0] == 0)
+        return self._fit_sensor(points[use], store.obs[ids[use], 0], None)
+
+    def _mapped_static(self, ids: IntArray) -> npt.NDArray[np.bool_]:
+        """Which of this iteration's point ids (NO_MATCH for none) have a global position and are static."""
+        store = self.store
+        safe = np.where(ids != NO_MATCH, ids, 0)
+        return (ids != NO_MATCH) & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
+
+    def _fit_pose(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
+        """``T_world_sensor`` fitting observations (N, 3) (sensor frame) to their points' global positions.
+
+        Points whose groups disagree about their position (slow movers) and points not yet verified
+        static count for less; gross outliers are trimmed. ``None`` if the fit is degenerate.
+        """
+        store, config = self.store, self.config
+        weights = 1.0 / (store.spread(ids) ** 2 + config.spread_floor**2)
+        weights *= np.where(store.verified[ids] >= 0, 1.0, config.unverified_weight)
+        return self._fit_sensor(points, store.positions(ids), weights)
+
+    def _fit_sensor(self, points: FloatArray, targets: FloatArray, weights: FloatArray | None) -> FloatArray | None:
+        """``T_world_sensor`` by the trimmed least-squares fit of ``points`` (sensor) onto ``targets`` (world)."""
+        config = self.config
+        fit = fit_transform(
+            points,
+            targets,
+            trim=config.trim,
+            floor=config.trim_floor,
+            collinear_tolerance=config.collinear_tolerance,
+            weights=weights,
+            rounds=config.trim_rounds,
+            consensus=config.consensus_bound,
+        )
+        return None if fit is None else fit.T
+
+    def _coast(self) -> FloatArray:
+        """Pose of an iteration without a usable fit to mapped points.
+
+        When this iteration's local matches gave the raw-point motion (three or more non-collinear
+        matched points, mapped or not), the last pose moves by it (visual odometry); otherwise the
+        pose is held. Constant-velocity coasting was tried and rejected: on hand-held real data
+        (Starry Night) it extrapolated erratic motion and doubled the trajectory error. With
+        ``coast=False`` the pose is always held.
+        """
+        if self.config.coast and self._motion_measured:
+            return self._provisional_pose()
+        return self._T_world_sensor
+
+    def _provisional_pose(self) -> FloatArray:
+        """``T_world_sensor`` of this iteration before its fit: the last pose moved by the raw-point motion.
+
+        Good to a fraction of the matching bound, and free; the fit to mapped points comes after grouping.
+        """
+        return self._T_world_sensor @ rigid_inverse(self.motion.T_curr_prev)
+
+    def _refresh_index(self) -> None:
+        """Move changed global positions in the global index."""
+        changed = self.groups.take_changed()
+        if len(changed) == 0:
+            return
+        store = self.store
+        alive = changed[store.alive[changed]]
+        indexable = (store.pos_weight[alive] > 0) & ~store.dynamic[alive]
+        self.index.update(alive[indexable], store.positions(alive[indexable]))
+        self.index.remove(alive[~indexable])
