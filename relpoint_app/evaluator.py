@@ -11,12 +11,17 @@ import json
 import logging
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 import relpoint
+from formats.atomic import write_text
+from formats.outputs import register_csv_header
+from formats.ply import read_ply
 from formats.reference_trajectories import (
     check_index_pairing,
     is_index_stamped,
@@ -27,7 +32,9 @@ from formats.reference_trajectories import (
 from formats.tables import read_map_history_csv
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationResult, EvaluationSettings, evaluate_trajectory, landmark_metrics
+from relpoint.evaluation.dense import dense_metrics
 from relpoint.evaluation.evaluate import frame_mismatch
+from relpoint.geometry import FloatArray
 from relpoint.pipeline import RunResult
 from relpoint.types import GroundTruthLandmarks, LandmarkMap, TimeWindow, Trajectory
 
@@ -179,3 +186,83 @@ def evaluation_json(summary: dict[str, float], settings: EvaluationSettings, inp
     document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
                 "relpoint_version": relpoint.__version__}  # fmt: skip
     return json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"
+
+
+def run_estimator(path: Path) -> str:
+    """The estimator named in a run directory's run.json ("" for other inputs or an unreadable run.json)."""
+    run_json = path / "run.json"
+    if not run_json.is_file():
+        return ""
+    try:
+        document = json.loads(run_json.read_text(encoding="utf-8")[:10_000_000])
+    except (OSError, ValueError):
+        return ""
+    return str(document.get("estimator", "")) if isinstance(document, dict) else ""
+
+
+def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]:
+    """Descriptions of the exceeded bounds (NaN values fail); raises :class:`UsageError` for unknown keys."""
+    unknown = sorted(k for k in gates if k not in summary)
+    if unknown:
+        raise UsageError(
+            f"--fail-above: unknown summary key(s) {', '.join(unknown)}",
+            f"known keys: {', '.join(sorted(summary))}",
+        )
+    return [
+        f"{key}={summary[key]:.6g} > {bound:g}"
+        for key, bound in gates.items()
+        if math.isnan(summary[key]) or summary[key] > bound
+    ]
+
+
+def dense_map_clouds(
+    estimate: Path, reference_cloud: Path, result: EvaluationResult, settings: EvaluationSettings
+) -> tuple[FloatArray, FloatArray]:
+    """A dense run's map points (N, 3), aligned as the trajectory was, and the reference cloud's (M, 3), m."""
+    map_path = estimate / "map.ply"
+    if not map_path.is_file():
+        raise UsageError(f"--reference-cloud needs a run directory with a map.ply as ESTIMATE, not {estimate}")
+    vertices = read_ply(map_path)
+    reference = read_ply(reference_cloud)
+    points = np.stack([vertices[a] for a in "xyz"], axis=1).astype(np.float64)
+    if settings.align is not AlignMode.NONE:
+        points = result.alignment.apply_positions(points)
+    reference_points = np.stack([reference[a] for a in "xyz"], axis=1).astype(np.float64)
+    return points, reference_points
+
+
+def dense_map_summary(
+    points: FloatArray, reference_points: FloatArray, threshold: float, on_progress: Callable[[int], None] | None = None
+) -> dict[str, float]:
+    """Accuracy and completeness (dense_* keys) of map points against a reference cloud (both (N, 3), m);
+    ``on_progress(n)`` counts the points done, of both clouds together."""
+    metrics = dense_metrics(points, reference_points, threshold=threshold, workers=-1, on_progress=on_progress)
+    return metrics.summary()
+
+
+ERRORS_CSV_HEADER = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m"
+register_csv_header(ERRORS_CSV_HEADER)
+
+
+def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
+    """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
+    the landmark RMSE at poses where the run recorded its map (``--map-every``).
+
+    RPE columns are empty for poses that end no pair (with ``--all-pairs`` or deltas in metres or degrees
+    several pairs can share a last pose; the last such pair is written).
+    """
+    n = len(result.stamps_ns)
+    rpe_t = np.full(n, np.nan)
+    rpe_r = np.full(n, np.nan)
+    if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
+        rpe_t[result.rpe_translation.second] = result.rpe_translation.errors
+        rpe_r[result.rpe_rotation_deg.second] = result.rpe_rotation_deg.errors
+    landmark_rmse = landmark_rmse or {}
+    header = ERRORS_CSV_HEADER + "\n"
+    body = []
+    for i, stamp in enumerate(result.stamps_ns.tolist()):
+        seconds, nanos = divmod(int(stamp), 1_000_000_000)
+        values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i],
+                  landmark_rmse.get(int(stamp), math.nan))  # fmt: skip
+        body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
+    write_text(path, header + "\n".join(body) + ("\n" if body else ""))

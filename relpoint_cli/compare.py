@@ -1,40 +1,25 @@
-"""``relpoint compare``: the evaluations of several runs in one table and one figure (issue 19, evo_res).
+"""``relpoint compare``: the evaluations of several runs in one table and one figure (evo_res).
 
-Each RESULT is read into a :class:`~relpoint.evaluation.comparison.ComparedRun`:
-
-* a ``relpoint run`` output directory: evaluated against ``--reference`` when given; else against the
-  reference its ``evaluation.json`` names (``relpoint batch`` writes one), with that file's settings;
-  else against the log its ``run.json`` names (its ``/ground_truth/pose``), with ``--align``. When the
-  reference is gone, the ``evaluation.json`` summary alone fills the table;
-* an ``evaluate --json`` summary: its figures; re-evaluated with its settings when its estimate and
-  reference still exist, for the plots;
-* an evo result zip (``evo_ape``/``evo_rpe --save_results``, or ``evaluate --save-results``).
+The options, the table and the figure; each RESULT is read by :func:`relpoint_app.comparer.load_compared`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
-import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import click
 
 from formats.atomic import write_text
-from formats.evo_results import read_evo_result
 from formats.outputs import check_output_file
-from relpoint.errors import InputError, RelpointError, UsageError
+from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
-from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation, table_keys, unique_labels
+from relpoint.evaluation.comparison import ComparedRun, table_keys, unique_labels
 from relpoint_app.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_table
-from relpoint_app.evaluator import evaluate_files
-from relpoint_app.evo_results import compared_from_evo
+from relpoint_app.comparer import load_compared
 from relpoint_app.plots import PLOT_FORMATS, comparison_plot
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.evaluate import run_estimator
 from relpoint_cli.options import overwrite_option, read_paths
 
 log = logging.getLogger(__name__)
@@ -46,115 +31,6 @@ Examples:
   relpoint compare results/*/ --format csv -o table.csv --keys ate_rmse,rpe_trans_rmse,lm_err_rmse
   relpoint compare ape_orb.zip ape_vins.zip eval.json --plot compare.png --plot-kind violin
 """
-
-_MAX_JSON_BYTES = 50_000_000
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        if path.stat().st_size > _MAX_JSON_BYTES:
-            raise InputError(f"{path}: larger than {_MAX_JSON_BYTES >> 20} MB, not an evaluation summary")
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
-    except (ValueError, UnicodeDecodeError) as error:
-        raise InputError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(document, dict) or not isinstance(document.get("summary"), dict):
-        raise InputError(f"{path}: not a relpoint evaluation summary (no summary object)",
-                         "give the file written by `relpoint evaluate --json`")  # fmt: skip
-    return document
-
-
-def _summary_of(document: dict[str, Any], path: Path) -> dict[str, float]:
-    try:
-        return {str(k): (math.nan if v is None else float(v)) for k, v in document["summary"].items()}
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: malformed summary (values must be numbers or null)") from None
-
-
-def _saved_settings(document: dict[str, Any], path: Path) -> EvaluationSettings:
-    """The settings an evaluation summary was computed with (unknown fields ignored)."""
-    saved = document.get("settings")
-    known = {f.name for f in dataclasses.fields(EvaluationSettings)}
-    try:
-        return EvaluationSettings(**{k: v for k, v in (saved or {}).items() if k in known})
-    except (UsageError, TypeError, ValueError) as error:
-        raise InputError(f"{path}: malformed settings ({error})") from None
-
-
-def _existing(text: Any) -> Path | None:
-    return Path(text) if isinstance(text, str) and text and Path(text).exists() else None
-
-
-def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, document: dict[str, Any]) -> ComparedRun:
-    """A run from an evaluation summary: its figures, and its per-pose errors re-computed with its settings
-    when its inputs still exist (fresh figures overlay the saved ones; saved-only ones, e.g. ``dense_*``,
-    stay). When they are gone or cannot be re-read, the saved figures alone, with a warning."""
-    inputs = document.get("inputs") if isinstance(document.get("inputs"), dict) else {}
-    settings = _saved_settings(document, path)
-    summary = _summary_of(document, path)
-    estimate = estimate or _existing(inputs.get("estimate"))
-    reference = _existing(inputs.get("reference"))
-    estimator = run_estimator(estimate) if estimate is not None else ""
-    if not summary:
-        log.warning("%s holds no evaluation figures (was there a ground truth?)", path)
-    elif estimate is None or reference is None:
-        log.warning("%s: its estimate or reference (%s) is not readable here; only its summary is compared",
-                    path, inputs.get("reference"))  # fmt: skip
-    else:
-        try:
-            evaluation = evaluate_files(
-                estimate, reference, settings, reference_topic=inputs.get("reference_topic"),
-                estimate_topic=inputs.get("estimate_topic"), parent=inputs.get("parent"), child=inputs.get("child"),
-            )  # fmt: skip
-        except RelpointError as error:
-            log.warning("%s: cannot re-evaluate it (%s); only its summary is compared", path, error)
-        else:
-            return compared_from_evaluation(label, evaluation.result, summary | evaluation.summary,
-                                            estimator=estimator, source=f"{path} (re-evaluated)")  # fmt: skip
-    return ComparedRun(label=label, estimator=estimator, align=settings.align.value, summary=summary,
-                       source=f"{path} (summary)")  # fmt: skip
-
-
-def _run_log(directory: Path) -> str | None:
-    """The input log a run directory's run.json names (as it was given to `relpoint run`), if any."""
-    try:
-        document = json.loads((directory / "run.json").read_text(encoding="utf-8")[:10_000_000])
-    except (OSError, ValueError):
-        return None
-    recorded = document.get("input", {}) if isinstance(document, dict) else {}
-    path = recorded.get("path") if isinstance(recorded, dict) else None
-    return path if isinstance(path, str) and path else None
-
-
-def load_compared(label: str, path: Path, reference: Path | None, settings: EvaluationSettings) -> ComparedRun:
-    """One RESULT of ``relpoint compare`` (see the module docstring); InputError when it is none of them."""
-    if path.is_dir():
-        if not (path / "trajectory.tum").is_file():
-            raise InputError(f"{path}: not a relpoint run directory (no trajectory.tum)",
-                             "give run directories, evaluate --json summaries or evo result zips")  # fmt: skip
-        if reference is None and (path / "evaluation.json").is_file():
-            return _from_saved_evaluation(label, path / "evaluation.json", path, _read_json(path / "evaluation.json"))
-        if reference is None:
-            recorded = _run_log(path)
-            reference = _existing(recorded)
-            if reference is None:
-                where = (
-                    f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"
-                )
-                raise InputError(f"{path}: no evaluation.json, and {where}", "pass --reference LOG")
-        evaluation = evaluate_files(path, reference, settings)
-        return compared_from_evaluation(label, evaluation.result, evaluation.summary,
-                                        estimator=run_estimator(path), source=f"{path} against {reference}")  # fmt: skip
-    if not path.exists():
-        raise InputError(f"{path}: no such file or directory")
-    if path.suffix.lower() == ".zip":
-        return compared_from_evo(label, read_evo_result(path), source=f"{path} (evo result)")
-    if path.suffix.lower() == ".json":
-        return _from_saved_evaluation(label, path, None, _read_json(path))
-    raise InputError(f"{path}: not a run directory, an evaluation .json or an evo result .zip",
-                     "give run directories, evaluate --json summaries or evo result zips")  # fmt: skip
-
 
 def _parse_keys(text: str | None) -> list[str] | None:
     if text is None:

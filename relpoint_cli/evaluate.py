@@ -8,30 +8,33 @@ Outputs: a table on stdout, ``--json`` summary, ``--csv`` per-pose errors, ``--s
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 
 from formats.atomic import write_text
 from formats.evo_results import write_evo_result
-from formats.outputs import check_output_file, register_csv_header
-from formats.ply import read_ply
+from formats.outputs import check_output_file
 from relpoint.errors import GateExceeded, UsageError
 from relpoint.evaluation import (
     STATISTICS,
     AlignMode,
     DeltaUnit,
-    EvaluationResult,
     EvaluationSettings,
     PoseRelation,
 )
-from relpoint.evaluation.dense import dense_metrics
-from relpoint_app.evaluator import evaluate_files, evaluation_json
+from relpoint_app.evaluator import (
+    check_gates,
+    dense_map_clouds,
+    dense_map_summary,
+    evaluate_files,
+    evaluation_json,
+    run_estimator,
+    write_errors_csv,
+)
 from relpoint_app.evo_results import ape_result, rpe_result
 from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
@@ -77,21 +80,6 @@ def parse_gates(items: tuple[str, ...]) -> dict[str, float]:
     return gates
 
 
-def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]:
-    """Descriptions of the exceeded bounds (NaN values fail); raises :class:`UsageError` for unknown keys."""
-    unknown = sorted(k for k in gates if k not in summary)
-    if unknown:
-        raise UsageError(
-            f"--fail-above: unknown summary key(s) {', '.join(unknown)}",
-            f"known keys: {', '.join(sorted(summary))}",
-        )
-    return [
-        f"{key}={summary[key]:.6g} > {bound:g}"
-        for key, bound in gates.items()
-        if math.isnan(summary[key]) or summary[key] > bound
-    ]
-
-
 def _fmt(value: float) -> str:
     if math.isnan(value):
         return "n/a"
@@ -135,64 +123,6 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
         click.echo(text, nl=False)
     else:
         write_text(path, text)
-
-
-def dense_map_summary(
-    estimate: Path, reference_cloud: Path, result: EvaluationResult, settings: EvaluationSettings, threshold: float
-) -> dict[str, float]:
-    """Accuracy and completeness of a run's dense map.ply against a reference cloud (dense_* keys)."""
-    map_path = estimate / "map.ply"
-    if not map_path.is_file():
-        raise UsageError(f"--reference-cloud needs a run directory with a map.ply as ESTIMATE, not {estimate}")
-    vertices = read_ply(map_path)
-    reference = read_ply(reference_cloud)
-    points = np.stack([vertices[a] for a in "xyz"], axis=1).astype(np.float64)
-    if settings.align is not AlignMode.NONE:
-        points = result.alignment.apply_positions(points)
-    reference_points = np.stack([reference[a] for a in "xyz"], axis=1).astype(np.float64)
-    with progress_bar(len(points) + len(reference_points), "dense map", unit="point") as bar:
-        metrics = dense_metrics(points, reference_points, threshold=threshold, workers=-1, on_progress=bar.update)
-    return metrics.summary()
-
-
-ERRORS_CSV_HEADER = "stamp_s,ape_translation_m,ape_rotation_deg,ape,rpe_translation_m,rpe_rotation_deg,landmark_rmse_m"
-register_csv_header(ERRORS_CSV_HEADER)
-
-
-def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
-    """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
-    the landmark RMSE at poses where the run recorded its map (``--map-every``).
-
-    RPE columns are empty for poses that end no pair (with ``--all-pairs`` or deltas in metres or degrees
-    several pairs can share a last pose; the last such pair is written).
-    """
-    n = len(result.stamps_ns)
-    rpe_t = np.full(n, np.nan)
-    rpe_r = np.full(n, np.nan)
-    if result.rpe_translation is not None and result.rpe_rotation_deg is not None:
-        rpe_t[result.rpe_translation.second] = result.rpe_translation.errors
-        rpe_r[result.rpe_rotation_deg.second] = result.rpe_rotation_deg.errors
-    landmark_rmse = landmark_rmse or {}
-    header = ERRORS_CSV_HEADER + "\n"
-    body = []
-    for i, stamp in enumerate(result.stamps_ns.tolist()):
-        seconds, nanos = divmod(int(stamp), 1_000_000_000)
-        values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i],
-                  landmark_rmse.get(int(stamp), math.nan))  # fmt: skip
-        body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
-    write_text(path, header + "\n".join(body) + ("\n" if body else ""))
-
-
-def run_estimator(path: Path) -> str:
-    """The estimator named in a run directory's run.json ("" for other inputs or an unreadable run.json)."""
-    run_json = path / "run.json"
-    if not run_json.is_file():
-        return ""
-    try:
-        document = json.loads(run_json.read_text(encoding="utf-8")[:10_000_000])
-    except (OSError, ValueError):
-        return ""
-    return str(document.get("estimator", "")) if isinstance(document, dict) else ""
 
 
 @click.command(epilog=EXAMPLES)
@@ -322,7 +252,9 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
     if reference_cloud is not None:
-        summary |= dense_map_summary(estimate, reference_cloud, result, settings, dense_threshold)
+        points, reference_points = dense_map_clouds(estimate, reference_cloud, result, settings)
+        with progress_bar(len(points) + len(reference_points), "dense map", unit="point") as bar:
+            summary |= dense_map_summary(points, reference_points, dense_threshold, bar.update)
 
     exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
     inputs = {
