@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 from relpoint.errors import UsageError
@@ -14,6 +14,10 @@ MOVER_MOTIONS = ("oscillate", "line", "random-walk", "stop-and-go", "static-then
 #: Settings added after logs were first written: a log records them only when they differ from
 #: their defaults, so the same older settings still give a byte-identical file.
 _LATER_SETTINGS = ("mover_motion", "mover_speed", "scale")
+#: The settings that are lengths of path and landmarks: :attr:`SimulationConfig.scale` multiplies them.
+SCALED_LENGTHS = (
+    "step", "range", "min_range", "spread_lateral", "spread_vertical", "dynamic_amplitude", "radius", "climb", "length",
+)  # fmt: skip
 
 
 def setting(default: Any, help: str) -> Any:
@@ -117,14 +121,29 @@ class SimulationConfig(Settings):
         defaults = {f.name: f.default for f in fields(self)}
         return {key: value for key, value in values.items() if key not in _LATER_SETTINGS or value != defaults[key]}
 
-    def scene(self) -> SimulationConfig:
+    def scene(self) -> SceneView:
         """These settings with :attr:`scale` folded into every length (``scale`` 1)."""
-        if self.scale == 1.0:
-            return self
-        s = self.scale
-        lengths = {
-            name: getattr(self, name) * s
-            for name in ("step", "range", "min_range", "spread_lateral", "spread_vertical", "dynamic_amplitude",
-                         "radius", "climb", "length")
-        }  # fmt: skip
-        return replace(self, **lengths, density=self.density / s, scale=1.0)
+        return SceneView(self)
+
+
+class SceneView:
+    """A :class:`SimulationConfig` read with its ``scale`` folded into every length: what the scenario draws.
+
+    Each setting reads through to the config; one of :data:`SCALED_LENGTHS` comes multiplied by
+    ``scale``, ``density`` (landmarks per 100 m) divided by it, and ``scale`` is 1. It is no
+    SimulationConfig itself: a folded length may lie beyond what a user may set (``step`` 1000 m at
+    ``scale`` 10, say).
+    """
+
+    def __init__(self, config: SimulationConfig) -> None:
+        self._config = config
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):  # not a setting (and never _config, unpickled or copied before it is set)
+            raise AttributeError(name)
+        value = getattr(self._config, name)
+        if name in SCALED_LENGTHS:
+            return value * self._config.scale
+        if name == "density":
+            return value / self._config.scale
+        return 1.0 if name == "scale" else value
