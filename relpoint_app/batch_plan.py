@@ -525,15 +525,10 @@ def load_plan(
         raise UsageError(f"plan: unknown topic role(s) in topics; known roles: {known}") from None
     topics = tuple(sorted((str(k), str(v)) for k, v in topics_table.items()))
 
-    evaluation_table = _table(data.get("evaluation"), "evaluation")
-    known_settings = {f.name for f in dataclasses.fields(EvaluationSettings)}
-    unknown = sorted(set(evaluation_table) - known_settings)
-    if unknown:
-        raise UsageError(f"plan: unknown evaluation setting(s) {', '.join(unknown)}")
     try:
-        evaluation = EvaluationSettings(**evaluation_table)
-    except (TypeError, ValueError) as error:
-        raise UsageError(f"plan: bad evaluation setting: {error}") from None
+        evaluation = EvaluationSettings.from_mapping(_table(data.get("evaluation"), "evaluation"))
+    except UsageError as error:
+        raise UsageError(f"plan: {error.message}", error.hint) from None
 
     points = _grid_points(tables)
     jobs = [

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -25,7 +24,7 @@ from formats.reference_trajectories import (
     load_trajectory,
 )
 from formats.tables import read_map_history_csv
-from relpoint.errors import InputError, UsageError
+from relpoint.errors import InputError
 from relpoint.evaluation import AlignMode, EvaluationResult, EvaluationSettings, evaluate_trajectory, landmark_metrics
 from relpoint.evaluation.evaluate import frame_mismatch
 from relpoint.pipeline import RunResult
@@ -150,12 +149,7 @@ def evaluate(
         ``summary`` holds ``ate_*``, ``ape_*``, ``rpe_*`` and, with landmarks on both sides,
         ``lm_*`` and ``dyn_*``; ``result`` the per-pose errors.
     """
-    unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(EvaluationSettings)})
-    if unknown:
-        raise UsageError(
-            f"unknown evaluation setting(s): {', '.join(unknown)}", "see relpoint.evaluation.EvaluationSettings"
-        )
-    evaluation_settings = EvaluationSettings(align=align, **settings)
+    evaluation_settings = EvaluationSettings.from_mapping({"align": align, **settings})
     if not isinstance(estimate, RunResult):
         return evaluate_files(Path(estimate), Path(reference), evaluation_settings, reference_topic=reference_topic)
     ref = load_trajectory(reference, topic=reference_topic)

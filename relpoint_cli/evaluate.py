@@ -300,7 +300,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     """
     window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
-    settings = EvaluationSettings(**options)
+    settings = EvaluationSettings.from_mapping(options)
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
     plot_files = [plot_dir / f"{stem}.{plot_format}" for stem in EVALUATION_PLOTS] if plot_dir is not None else []
     for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):
