@@ -9,7 +9,6 @@ reads files, prints or exits: the pipeline (``relpoint.pipeline``) drives it and
 from __future__ import annotations
 
 import abc
-import dataclasses
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -17,8 +16,8 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Input roles a log can provide (named after the default topics of the log format).
@@ -93,22 +92,12 @@ class EstimatorSpec:
 
     name: str
     description: str
-    config_class: type
+    config_class: type[Settings]
     factory: Callable[[Any, np.random.Generator], Any]
     needs: frozenset[str]
     uses: frozenset[str] = frozenset()
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
-        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``, read as
-        each field's kind); unknown keys and bad values are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(self.config_class)}
-        keys = [str(k).replace("-", "_") for k in values] + [
-            item.split("=", 1)[0].strip().replace("-", "_") for item in params if "=" in item
-        ]
-        unknown = sorted(set(keys) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown {self.name} parameter(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
-                f"see `relpoint config --estimator {self.name}` for the parameters",
-            )
+        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``) over them:
+        :meth:`Settings.from_strings <relpoint.settings.Settings.from_strings>`."""
         return self.config_class.from_strings(params, base=values)
