@@ -32,6 +32,7 @@ from relpoint.evaluation import (
     PoseRelation,
 )
 from relpoint.evaluation.dense import dense_metrics
+from relpoint.settings import split_item
 from relpoint_app.evaluator import evaluate_files, evaluation_json
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
@@ -62,10 +63,7 @@ def parse_gates(items: tuple[str, ...]) -> dict[str, float]:
     """``KEY=VALUE`` bounds of ``--fail-above``; raises :class:`UsageError` on malformed items."""
     gates: dict[str, float] = {}
     for item in items:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise UsageError(f"--fail-above {item!r} is not KEY=VALUE")
+        key, value = split_item(item, "--fail-above")
         try:
             bound = float(value)
         except ValueError:
