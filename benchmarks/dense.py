@@ -54,10 +54,6 @@ def main(argv: list[str] | None = None) -> int:
 
     factor = 2 if args.resolution == "320x240" else 1
     settings = EvaluationSettings(align="se3", rpe=False, kitti=False)
-    params = {}
-    for item in args.param:
-        key, value = item.split("=", 1)
-        params[key] = eval(value, {}, {})  # benchmark convenience: numbers, booleans, tuples
 
     def ate(reference: Trajectory, poses: list) -> float:
         estimate = Trajectory.from_matrices(reference.stamps_ns, np.array(poses))
@@ -91,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
 
-        estimator = DenseFusion(DenseConfig(**{"downsample": factor, **params}))
+        estimator = DenseFusion(DenseConfig.from_strings(args.param, base={"downsample": factor}))
         wall, cpu, poses = [], [], []
         for i, raw in enumerate(depths_mm):
             frame = DepthFrame(int(stamps[i]), raw * np.float32(1e-3), full, full_colors[i])
@@ -190,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
 
         sim = simulate_rgbd(RgbdConfig(frames=args.sim_frames, resolution=args.resolution, seed=0))
         frames = list(sim.frames())
-        estimator = DenseFusion(DenseConfig(**params))
+        estimator = DenseFusion(DenseConfig.from_strings(args.param))
         wall, cpu, poses = [], [], []
         for frame in frames:
             t0, c0 = time.perf_counter(), time.process_time()

@@ -198,12 +198,14 @@ def ate(truth: object, trajectory: object) -> float:
     return float(result.summary["ate_rmse"])
 
 
-def parse_params(text: str) -> dict[str, object]:
-    params: dict[str, object] = {}
-    for item in filter(None, text.split(",")):
-        key, value = item.split("=", 1)
-        params[key.strip()] = eval(value, {}, {})  # benchmark convenience: numbers, booleans, None
-    return params
+def parse_params(name: str, text: str) -> dict[str, object]:
+    """The ``K=V,...`` settings of estimator ``name``, each value read as its setting's kind."""
+    from relpoint.estimators import ESTIMATORS
+    from relpoint.settings import split_item
+
+    config_class = ESTIMATORS[name].config_class
+    pairs = [split_item(item, "--best-" + name) for item in text.split(",") if item]
+    return {key: config_class.parse_text(key, value) for key, value in pairs}
 
 
 def report_runs(
@@ -269,8 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(REPO))
     names = [n for n in args.estimators.split(",") if n]
     fixed = {"observation_sigma": 0.3} if args.scale_free == "off" else {}
-    best = {"relpoint": parse_params(args.best_relpoint), "ekf": parse_params(args.best_ekf),
-            "fastslam": parse_params(args.best_fastslam)}  # fmt: skip
+    best = {"relpoint": parse_params("relpoint", args.best_relpoint), "ekf": parse_params("ekf", args.best_ekf),
+            "fastslam": parse_params("fastslam", args.best_fastslam)}  # fmt: skip
 
     if not args.no_kitchen:
         if not KITCHEN.is_dir():

@@ -222,7 +222,7 @@ def _run(job: Job, out_dir: Path) -> tuple[pipeline.RunResult, bool]:
     Returns the result and whether the log has ground-truth poses to evaluate against.
     """
     spec = ESTIMATORS[job.estimator]
-    config = spec.config_class(**dict(job.parameters))
+    config = spec.build_config(dict(job.parameters))
     reader = LogReader(job.log, Topics(**dict(job.topics)))
     log.info("running %s over %s", spec.name, job.log)
     result = execute_run(

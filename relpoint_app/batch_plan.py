@@ -29,7 +29,7 @@ from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from formats.atomic import write_text
 from formats.config_files import read_document
@@ -39,10 +39,9 @@ from formats.signatures import is_log
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import EvaluationSettings
+from relpoint.settings import Settings, setting
 from relpoint.simulation import SimulationConfig
 
-#: Keys of an estimator table that set how the job runs rather than the estimator's config.
-RUN_KEYS = ("seed", "use_odometry", "use_fixes")
 #: Top-level keys of a plan.
 PLAN_KEYS = ("results", "logs", "simulate", "estimators", "evaluation", "topics")
 #: Columns of ``results.csv`` (and keys of each ``results.json`` row), in order.
@@ -76,7 +75,22 @@ _MAX_NAME = 80
 
 Items = tuple[tuple[str, Any], ...]
 
+
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunOptions(Settings):
+    """How a job runs beside its estimator's config: the run keys of an estimator table (or its grid)."""
+
+    settings_name: ClassVar[str] = "run"
+
+    seed: int = setting(0, low=0, high=math.inf)
+    """Seed of the estimator's random draws."""
+    use_odometry: bool = True
+    """Hand ``/odom`` to estimators that use it (when the log has it); false is ``relpoint run --no-odometry``."""
+    use_fixes: bool = True
+    """Hand ``/fix`` to estimators that use it (when the log has it); false is ``relpoint run --no-fixes``."""
 
 
 @dataclass(frozen=True)
@@ -389,16 +403,14 @@ def _estimator_tables(value: Any) -> dict[str, tuple[dict[str, Any], dict[str, A
     return parsed
 
 
-def _run_options(values: dict[str, Any], where: str) -> tuple[int, bool, bool]:
-    seed = values.pop("seed", 0)
-    use_odometry = values.pop("use_odometry", True)
-    use_fixes = values.pop("use_fixes", True)
-    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
-        raise UsageError(f"{where}: seed must be a non-negative integer, got {seed!r}")
-    for name, flag in (("use_odometry", use_odometry), ("use_fixes", use_fixes)):
-        if not isinstance(flag, bool):
-            raise UsageError(f"{where}: {name} must be true or false, got {flag!r}")
-    return seed, use_odometry, use_fixes
+def _run_options(values: dict[str, Any], where: str) -> RunOptions:
+    """The run keys taken out of an estimator's ``values`` (the rest is its config)."""
+    keys = [field.name for field in dataclasses.fields(RunOptions)]
+    options = {key: values.pop(key) for key in keys if key in values}
+    try:
+        return RunOptions.from_mapping(options)
+    except UsageError as error:
+        raise UsageError(f"{where}: {error.message}", error.hint) from None
 
 
 def _estimator_config(name: str, values: dict[str, Any], where: str) -> None:
@@ -416,9 +428,7 @@ class _GridPoint:
     estimator: str
     directory: str
     parameters: Items
-    seed: int
-    use_odometry: bool
-    use_fixes: bool
+    options: RunOptions
 
 
 def _grid_points(tables: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]) -> list[_GridPoint]:
@@ -429,16 +439,14 @@ def _grid_points(tables: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]) ->
         where = f"estimators.{name}"
         for values, swept in expand_grid(fixed, grid, where):
             config_values = dict(values)
-            seed, use_odometry, use_fixes = _run_options(config_values, where)
+            options = _run_options(config_values, where)
             _estimator_config(name, config_values, where)
             directory = f"{name}/{_slug(swept)}"
             if directory in seen:
                 raise UsageError(f"plan: grid values of {where} give the job directory {directory} twice",
                                  "make the values differ in their text")  # fmt: skip
             seen.add(directory)
-            points.append(
-                _GridPoint(name, directory, tuple(sorted(config_values.items())), seed, use_odometry, use_fixes)
-            )
+            points.append(_GridPoint(name, directory, tuple(sorted(config_values.items())), options))
     return points
 
 
@@ -525,22 +533,17 @@ def load_plan(
         raise UsageError(f"plan: unknown topic role(s) in topics; known roles: {known}") from None
     topics = tuple(sorted((str(k), str(v)) for k, v in topics_table.items()))
 
-    evaluation_table = _table(data.get("evaluation"), "evaluation")
-    known_settings = {f.name for f in dataclasses.fields(EvaluationSettings)}
-    unknown = sorted(set(evaluation_table) - known_settings)
-    if unknown:
-        raise UsageError(f"plan: unknown evaluation setting(s) {', '.join(unknown)}")
     try:
-        evaluation = EvaluationSettings(**evaluation_table)
-    except (TypeError, ValueError) as error:
-        raise UsageError(f"plan: bad evaluation setting: {error}") from None
+        evaluation = EvaluationSettings.from_mapping(_table(data.get("evaluation"), "evaluation"))
+    except UsageError as error:
+        raise UsageError(f"plan: {error.message}", error.hint) from None
 
     points = _grid_points(tables)
     jobs = [
         Job(
             job_id=f"{label}/{point.directory}", log=log, estimator=point.estimator, parameters=point.parameters,
-            seed=point.seed, use_odometry=point.use_odometry, use_fixes=point.use_fixes, topics=topics,
-            evaluation=evaluation, output=root.joinpath(label, point.directory),
+            seed=point.options.seed, use_odometry=point.options.use_odometry, use_fixes=point.options.use_fixes,
+            topics=topics, evaluation=evaluation, output=root.joinpath(label, point.directory),
         )
         for log, label in _log_labels(logs).items()  # in the order of ``logs``
         for point in points

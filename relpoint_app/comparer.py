@@ -59,8 +59,8 @@ def _saved_settings(document: dict[str, Any], path: Path) -> EvaluationSettings:
     saved = document.get("settings")
     known = {f.name for f in dataclasses.fields(EvaluationSettings)}
     try:
-        return EvaluationSettings(**{k: v for k, v in (saved or {}).items() if k in known})
-    except (UsageError, TypeError, ValueError) as error:
+        return EvaluationSettings.from_mapping({k: v for k, v in (saved or {}).items() if k in known})
+    except UsageError as error:
         raise InputError(f"{path}: malformed settings ({error})") from None
 
 

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -157,12 +156,7 @@ def evaluate(
         ``summary`` holds ``ate_*``, ``ape_*``, ``rpe_*`` and, with landmarks on both sides,
         ``lm_*`` and ``dyn_*``; ``result`` the per-pose errors.
     """
-    unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(EvaluationSettings)})
-    if unknown:
-        raise UsageError(
-            f"unknown evaluation setting(s): {', '.join(unknown)}", "see relpoint.evaluation.EvaluationSettings"
-        )
-    evaluation_settings = EvaluationSettings(align=align, **settings)
+    evaluation_settings = EvaluationSettings.from_mapping({"align": align, **settings})
     if not isinstance(estimate, RunResult):
         return evaluate_files(Path(estimate), Path(reference), evaluation_settings, reference_topic=reference_topic)
     ref = load_trajectory(reference, topic=reference_topic)

@@ -26,6 +26,7 @@ from relpoint.evaluation import (
     EvaluationSettings,
     PoseRelation,
 )
+from relpoint.settings import split_item
 from relpoint_app.evaluator import (
     check_gates,
     dense_map_clouds,
@@ -66,10 +67,7 @@ def parse_gates(items: tuple[str, ...]) -> dict[str, float]:
     """``KEY=VALUE`` bounds of ``--fail-above``; raises :class:`UsageError` on malformed items."""
     gates: dict[str, float] = {}
     for item in items:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise UsageError(f"--fail-above {item!r} is not KEY=VALUE")
+        key, value = split_item(item, "--fail-above")
         try:
             bound = float(value)
         except ValueError:
@@ -237,7 +235,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     """
     window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
-    settings = EvaluationSettings(**options)
+    settings = EvaluationSettings.from_mapping(options)
     read = read_paths(estimate, reference, reference_cloud, times, reference_times)
     plot_files = [plot_dir / f"{stem}.{plot_format}" for stem in EVALUATION_PLOTS] if plot_dir is not None else []
     for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):

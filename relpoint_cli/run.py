@@ -121,12 +121,10 @@ def config_command(estimator_name: str) -> None:
             click.echo(f"#   {name}: {why}")
     for f in dataclasses.fields(spec.config_class):
         default = f.default if f.default is not dataclasses.MISSING else None
-        help_text = f.metadata.get("help", "") or (
-            spec.config_class.field_help(f.name) if hasattr(spec.config_class, "field_help") else ""
-        )
-        limits = spec.config_class.field_limits(f.name) if hasattr(spec.config_class, "field_limits") else None
-        if limits is not None:
-            help_text = f"{help_text} [{limits[0]:g} .. {limits[1]:g}]".strip()
+        help_text = f.metadata.get("help", "") or spec.config_class.field_help(f.name)
+        takes = spec.config_class.field_range(f.name)
+        if takes is not None:
+            help_text = f"{help_text} {takes}".strip()
         comment = f"  # {help_text}" if help_text else ""
         if default is None:
             click.echo(f"# {f.name} =  (unset){comment}")

@@ -113,7 +113,7 @@ def test_plan_expands_logs_estimators_and_grids(plan_file: Path, tmp_path: Path)
     [
         ('logs = "*.mcap"\nestimators = ["ekf"]\n', "matches no file"),
         ('[[simulate]]\nname = "a"\n[estimators.magic]\n', "unknown estimator 'magic'"),
-        ('[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n', "unknown ekf parameter(s): no_such"),
+        ('[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n', "unknown ekf setting(s): no_such; see `relpoint config --estimator ekf`"),
         ('[[simulate]]\nname = "a"\n[estimators.ekf.grid]\nobservation_sigma = 0.3\n', "must be a non-empty list"),
         ('estimators = ["ekf"]\n[[simulate]]\nname = "a"\n[evaluation]\nalign = "banana"\n', "align"),
         ('[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n', "simulate[0]: simulation setting density must be between 0.001"),

@@ -58,7 +58,7 @@ def test_unknown_estimator_and_parameters_are_usage_errors(tmp_path: Path, small
     code, err = invoke(
         "run", str(small_log), "--estimator", ESTIMATOR, "--param", "no_such=1", "-o", str(tmp_path / "o")
     )
-    assert code == 2 and "unknown ekf parameter(s): no_such" in err
+    assert code == 2 and "unknown ekf setting(s): no_such; see `relpoint config --estimator ekf`" in err
     assert not (tmp_path / "o").exists()
 
 

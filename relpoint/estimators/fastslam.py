@@ -52,7 +52,7 @@ from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, skew, so3_exp, twist_step
-from relpoint.settings import Settings, require_non_negative, require_positive
+from relpoint.settings import Settings, setting
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)
@@ -96,67 +96,60 @@ class FastSlamConfig(Settings):
         "linear_acceleration_noise, angular_acceleration_noise": "the proposal's motion spread between "
         "observations (m/s^2, rad/s^2).",
     }
-    limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "particles": (1, 10_000), "new_landmark_probability": (0.0, 1.0), "start_landmark_probability": (0.0, 1.0),
-        "observation_sigma": (1e-6, 1e3), "linear_acceleration_noise": (0.0, 1e4),
-        "angular_acceleration_noise": (0.0, 1e3), "initial_speed_sigma": (0.0, 1e4),
-        "initial_turn_rate_sigma": (0.0, 1e2), "pose_noise": (0.0, 1e2), "resample_threshold": (0.0, 1.0),
-        "search_radius": (1e-6, 1e6), "fix_min_spread": (1e-3, 1e6), "fix_gate_probability": (0.0, 1.0), "fix_gate_patience": (0, 1_000_000), "fix_drift": (0.0, 10.0),
-        "fix_window": (0, 1_000_000),
-    }  # fmt: skip
+    settings_hint: ClassVar[str] = "see `relpoint config --estimator fastslam` for the parameters"
 
-    variant: str = "2.0"
+    variant: str = setting("2.0", choices=VARIANTS)
     """``2.0`` (proposal includes the points) or ``1.0`` (proposal is the motion model)."""
-    particles: int = 50
+    particles: int = setting(50, low=1, high=10_000)
     """Number of particles."""
-    observation_sigma: float | None = None
+    observation_sigma: float | None = setting(None, low=1e-6, high=1e3)
     """Standard deviation of a point measurement, per axis (m). Unset (the default): ``relpoint run``
     estimates it from the first observations of the log (:mod:`relpoint.estimators._noise`); a
     ``FastSlam`` built directly, without ``SPEC.factory``, takes the simulator's 0.3 m. It sets the
     measurement covariance, the new-landmark likelihood and (unset) ``search_radius``."""
-    new_landmark_probability: float = 0.9999
+    new_landmark_probability: float = setting(0.9999, above=0, below=1)
     """Sets the new-landmark likelihood: the density of a point at this chi-square quantile of a
     fresh landmark's innovation. A point starts a landmark in a particle when no landmark there
     explains it with a higher likelihood."""
-    start_landmark_probability: float = 0.9999999
+    start_landmark_probability: float = setting(0.9999999, above=0, below=1)
     """A point that no landmark explains starts a landmark only if it also lies outside this wider
     quantile of every candidate landmark; points in between are discarded. Without the band a point
     of a drifted landmark (a loop closure) starts a duplicate that then wins every later association."""
-    linear_acceleration_noise: float = 2.0
+    linear_acceleration_noise: float = setting(2.0, low=0, high=1e4)
     """Constant-velocity proposal: white linear acceleration noise (m/s^2)."""
-    angular_acceleration_noise: float = 0.5
+    angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
-    initial_speed_sigma: float = 10.0
+    initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
     """Prior standard deviation of the initial linear velocity (m/s)."""
-    initial_turn_rate_sigma: float = 0.3
+    initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
     """Prior standard deviation of the initial angular velocity (rad/s)."""
-    pose_noise: float = 0.01
+    pose_noise: float = setting(0.01, low=0, high=1e2)
     """Extra position noise per iteration, per axis (m), and the same in radians for orientation;
     keeps the proposal full rank when odometry is perfect."""
-    resample_threshold: float = 0.5
+    resample_threshold: float = setting(0.5, low=0, high=1)
     """Resample when the effective sample size falls below this fraction of the particles."""
-    search_radius: float | None = None
+    search_radius: float | None = setting(None, low=1e-6, high=1e6)
     """Landmarks farther than this from a point (in every particle) are not considered for it (m).
     Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
     the simulator's 0.3 m and 0.25 m for a depth camera's 1.5 cm."""
-    fix_alignment: str = "rigid"
+    fix_alignment: str = setting("rigid", choices=FIX_ALIGNMENTS)
     """How position fixes (``/fix``) enter: ``rigid`` runs in the local frame until at least three
     non-collinear fixes pin it, fits the rigid transform local -> fix frame to the mean local
     positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
     by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
     proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
-    fix_gate_probability: float = 0.999
+    fix_gate_probability: float = setting(0.999, low=0, high=1)
     """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
     the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
-    fix_gate_patience: int = 3
+    fix_gate_patience: int = setting(3, low=0, high=1_000_000)
     """Fixes in a row outside the gate that are held back; the ones after are fused with their
     covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
-    fix_min_spread: float = 8.0
+    fix_min_spread: float = setting(8.0, low=1e-3, high=1e6)
     """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
-    fix_drift: float = 0.1
+    fix_drift: float = setting(0.1, low=0, high=10)
     """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
     (m/m, per axis), the drift of the local map that the fixes correct."""
-    fix_window: int = 100
+    fix_window: int = setting(100, low=0, high=1_000_000)
     """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
     iterations, by the covariance-weighted correction (eq. 31-32)."""
 
@@ -164,44 +157,14 @@ class FastSlamConfig(Settings):
         """These settings with ``observation_sigma = sigma`` (m)."""
         return dataclasses.replace(self, observation_sigma=sigma)
 
-    def __post_init__(self) -> None:
-        if self.fix_alignment not in FIX_ALIGNMENTS:
-            raise UsageError(
-                f"unknown fix alignment {self.fix_alignment!r}", f"choose one of {', '.join(FIX_ALIGNMENTS)}"
-            )
-        if self.variant not in VARIANTS:
-            raise UsageError(f"unknown FastSLAM variant {self.variant!r}", f"choose one of {', '.join(VARIANTS)}")
-        if not (isinstance(self.particles, int) and self.particles >= 1):
-            raise UsageError(f"particles must be a positive integer, got {self.particles!r}")
-        positive = {"fix_min_spread": self.fix_min_spread}
-        for name in ("observation_sigma", "search_radius"):
-            if getattr(self, name) is not None:
-                positive[name] = getattr(self, name)
-        non_negative = {
-            "linear_acceleration_noise": self.linear_acceleration_noise,
-            "angular_acceleration_noise": self.angular_acceleration_noise,
-            "initial_speed_sigma": self.initial_speed_sigma, "initial_turn_rate_sigma": self.initial_turn_rate_sigma,
-            "pose_noise": self.pose_noise, "fix_drift": self.fix_drift,
-        }  # fmt: skip
-        require_positive(positive)
-        require_non_negative(non_negative)
-        if not (isinstance(self.new_landmark_probability, float) and 0.0 < self.new_landmark_probability < 1.0):
-            raise UsageError(
-                f"new_landmark_probability must be strictly between 0 and 1, got {self.new_landmark_probability!r}"
-            )
-        if not (isinstance(self.start_landmark_probability, float) and 0.0 < self.start_landmark_probability < 1.0):
-            raise UsageError(
-                f"start_landmark_probability must be strictly between 0 and 1, got {self.start_landmark_probability!r}"
-            )
+    def check(self) -> None:
+        """A point between the new-landmark quantile and the start quantile is discarded: the start
+        quantile is the wider one."""
         if self.start_landmark_probability < self.new_landmark_probability:
             raise UsageError(
-                f"start_landmark_probability ({self.start_landmark_probability}) must be at least "
-                f"new_landmark_probability ({self.new_landmark_probability})"
+                "fastslam setting start_landmark_probability must be at least new_landmark_probability "
+                f"({self.new_landmark_probability}), got {self.start_landmark_probability}"
             )
-        if not (isinstance(self.fix_window, int) and self.fix_window >= 0):
-            raise UsageError(f"fix_window must be a non-negative integer, got {self.fix_window!r}")
-        if not (isinstance(self.resample_threshold, int | float) and 0.0 <= self.resample_threshold <= 1.0):
-            raise UsageError(f"resample_threshold must be between 0 and 1, got {self.resample_threshold!r}")
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:

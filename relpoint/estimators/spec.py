@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from relpoint.errors import UsageError
 from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
 from relpoint.estimators.base import DEPTH, POINTS, Estimator
+from relpoint.settings import Settings
 
 
 @dataclass(frozen=True)
@@ -28,7 +27,7 @@ class EstimatorSpec:
 
     name: str
     description: str
-    config_class: type
+    config_class: type[Settings]
     estimator_class: Callable[[Any, np.random.Generator], Estimator]
     input_kind: str = POINTS
     uses: frozenset[str] = frozenset()
@@ -54,16 +53,6 @@ class EstimatorSpec:
                              self.name, prepare=compile_code)  # fmt: skip
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
-        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``, read as
-        each field's kind); unknown keys and bad values are a :class:`UsageError`."""
-        known = {f.name for f in dataclasses.fields(self.config_class)}
-        keys = [str(k).replace("-", "_") for k in values] + [
-            item.split("=", 1)[0].strip().replace("-", "_") for item in params if "=" in item
-        ]
-        unknown = sorted(set(keys) - known)
-        if unknown:
-            raise UsageError(
-                f"unknown {self.name} parameter(s): {', '.join(str(k)[:40] for k in unknown[:10])}",
-                f"see `relpoint config --estimator {self.name}` for the parameters",
-            )
+        """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``) over them:
+        :meth:`Settings.from_strings <relpoint.settings.Settings.from_strings>`."""
         return self.config_class.from_strings(params, base=values)

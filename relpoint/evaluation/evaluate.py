@@ -8,9 +8,11 @@ error arrays for CSV output and plots.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -23,11 +25,16 @@ from relpoint.evaluation.kitti import KITTI_LENGTHS, KittiSegmentErrors, kitti_s
 from relpoint.evaluation.rpe import DeltaUnit, RelativeErrors, accumulated_distances, rpe_errors
 from relpoint.evaluation.statistics import STATISTICS, error_statistics
 from relpoint.geometry import FloatArray
+from relpoint.settings import Settings, is_number, setting
 from relpoint.types import IntArray, Trajectory
+
+#: The pose relations of the APE (and so of the ``ape_*`` and ``rpe_*`` figures together):
+#: ``point_distance_error_ratio`` is defined for the RPE only.
+APE_RELATIONS = tuple(relation for relation in PoseRelation if relation is not PoseRelation.POINT_DISTANCE_ERROR_RATIO)
 
 
 @dataclass(frozen=True)
-class EvaluationSettings:
+class EvaluationSettings(Settings):
     """Options of a trajectory evaluation (CLI option and evo flag in brackets).
 
     Attributes
@@ -49,48 +56,43 @@ class EvaluationSettings:
         the two trajectories come from different runs or time bases.
     """
 
-    align: AlignMode = AlignMode.NONE
-    n_to_align: int = -1
-    t_max_diff: float = 0.01
-    t_offset: float = 0.0
+    settings_name: ClassVar[str] = "evaluation"
+
+    align: AlignMode = setting(AlignMode.NONE, choices=AlignMode)
+    n_to_align: int = setting(-1, low=1, high=1e9, also=(-1,))
+    t_max_diff: float = setting(0.01, low=0, high=1e10)
+    t_offset: float = setting(0.0, low=-1e10, high=1e10)
     interpolate: bool = False
-    pose_relation: PoseRelation = PoseRelation.TRANS_PART
-    delta: float = 1.0
-    delta_unit: DeltaUnit = DeltaUnit.FRAMES
-    delta_tol: float = 0.1
+    pose_relation: PoseRelation = setting(PoseRelation.TRANS_PART, choices=APE_RELATIONS)
+    delta: float = setting(1.0, above=0, high=1e9)
+    delta_unit: DeltaUnit = setting(DeltaUnit.FRAMES, choices=DeltaUnit)
+    delta_tol: float = setting(0.1, low=0, below=math.inf)
     all_pairs: bool = False
     pairs_from_reference: bool = False
     rpe: bool = True
     kitti: bool = True
-    kitti_lengths: tuple[float, ...] = KITTI_LENGTHS
-    kitti_step: int = 10
-    min_matched_fraction: float = 0.5
+    kitti_lengths: tuple[float, ...] = setting(KITTI_LENGTHS, above=0, below=math.inf)
+    kitti_step: int = setting(10, low=1, high=1e9)
+    min_matched_fraction: float = setting(0.5, low=0, high=1)
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "align", AlignMode.parse(self.align))
-        object.__setattr__(self, "pose_relation", PoseRelation.parse(self.pose_relation))
-        object.__setattr__(self, "delta_unit", DeltaUnit.parse(self.delta_unit))
-        object.__setattr__(self, "kitti_lengths", tuple(float(x) for x in self.kitti_lengths))
-        if self.n_to_align == 0 or self.n_to_align < -1:
-            raise UsageError(f"n_to_align must be -1 (all poses) or a positive count, got {self.n_to_align}")
-        if not (np.isfinite(self.t_max_diff) and self.t_max_diff >= 0):
-            raise UsageError(f"t_max_diff must be a finite number >= 0 s, got {self.t_max_diff}")
-        if not np.isfinite(self.t_offset):
-            raise UsageError(f"t_offset must be finite, got {self.t_offset}")
-        if not (np.isfinite(self.delta) and 0 < self.delta <= 1e9):
-            raise UsageError(f"delta must be a positive number up to 1e9, got {self.delta}")
-        if abs(self.t_offset) > 1e10 or self.t_max_diff > 1e10 or self.n_to_align > 1e9 or self.kitti_step > 1e9:
-            raise UsageError("t_offset and t_max_diff must be within 1e10 s, n_to_align and kitti_step within 1e9")
-        if not 0.0 <= self.min_matched_fraction <= 1.0:
-            raise UsageError(f"min_matched_fraction must be between 0 and 1, got {self.min_matched_fraction}")
-        if self.delta_unit is DeltaUnit.FRAMES and float(self.delta) != int(self.delta):
-            raise UsageError(f"delta must be an integer for delta unit f (frames), got {self.delta}")
-        if not (np.isfinite(self.delta_tol) and self.delta_tol >= 0):
-            raise UsageError(f"delta_tol must be a finite number >= 0, got {self.delta_tol}")
-        if self.pose_relation is PoseRelation.POINT_DISTANCE_ERROR_RATIO:
-            raise UsageError("pose relation point_distance_error_ratio is defined for the RPE only")
-        if self.kitti_step < 1 or any(not (np.isfinite(x) and x > 0) for x in self.kitti_lengths):
-            raise UsageError("kitti_step must be >= 1 and kitti_lengths positive distances")
+    def normalise(self) -> None:
+        """Text to the enum members (``se3`` to ``AlignMode.SE3``, ...; text that names none is left for
+        the choices check to report), the KITTI lengths to floats."""
+        for name, parse in (("align", AlignMode.parse), ("pose_relation", PoseRelation.parse),
+                            ("delta_unit", DeltaUnit.parse)):  # fmt: skip
+            if isinstance(getattr(self, name), str):
+                with contextlib.suppress(UsageError):
+                    object.__setattr__(self, name, parse(getattr(self, name)))
+        if isinstance(self.kitti_lengths, list | tuple):
+            lengths = tuple(float(x) if is_number(x) else x for x in self.kitti_lengths)
+            object.__setattr__(self, "kitti_lengths", lengths)
+
+    def check(self) -> None:
+        """A delta in frames is a whole number of frames."""
+        if self.delta_unit is DeltaUnit.FRAMES and not float(self.delta).is_integer():
+            raise UsageError(
+                f"evaluation setting delta must be a whole number for delta unit f (frames), got {self.delta}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values (strings for the enums) for dumping beside the results."""

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
-from relpoint.settings import Settings, require_positive
+from relpoint.settings import Settings, setting
 from relpoint.types import IntArray
 
 
@@ -29,60 +29,45 @@ class KeypointSettings(Settings):
     """How corners are detected, tracked and lifted to 3D (pixels unless stated)."""
 
     settings_name: ClassVar[str] = "keypoint"
-    limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "max_corners": (1, 100_000),
-        "quality_level": (1e-6, 1.0),
-        "min_distance": (1, 1000),
-        "window": (3, 255),
-        "pyramid_levels": (0, 8),
-        "forward_backward_px": (0.01, 100.0),
-        "depth_radius": (0, 20),
-        "depth_jump": (0.0, 10.0),
-        "min_depth": (0.0, 1000.0),
-        "max_depth": (0.0, 1e6),
-        "rigid_tolerance": (0.0, 1.0),
-        "rigid_floor": (0.0, 10.0),
-        "rigid_samples": (1, 100_000),
-        "track_tolerance": (0.0, 1.0),
-    }
-
     #: Corners kept per frame (tracked plus new).
-    max_corners: int = 300
+    max_corners: int = setting(300, low=1, high=100_000)
     #: Shi-Tomasi quality: a corner's smaller eigenvalue relative to the frame's strongest corner.
-    quality_level: float = 0.01
+    quality_level: float = setting(0.01, low=1e-6, high=1)
     #: Smallest distance between two corners (new corners keep it from tracked ones too).
-    min_distance: int = 12
+    min_distance: int = setting(12, low=1, high=1000)
     #: Side of the Lucas-Kanade search window.
-    window: int = 21
+    window: int = setting(21, low=3, high=255)
     #: Pyramid levels above the full image (0 = no pyramid).
-    pyramid_levels: int = 3
+    pyramid_levels: int = setting(3, low=0, high=8)
     #: Largest forward-backward tracking error for a track to survive.
-    forward_backward_px: float = 1.0
+    forward_backward_px: float = setting(1.0, low=0.01, high=100)
     #: Half-width of the depth window that must be measured and flat around a corner.
-    depth_radius: int = 2
+    depth_radius: int = setting(2, low=0, high=20)
     #: Largest depth spread in that window relative to the corner's depth (a discontinuity above it).
-    depth_jump: float = 0.03
+    depth_jump: float = setting(0.03, low=0, high=10)
     #: Trusted depth range of the sensor, m.
-    min_depth: float = 0.3
-    max_depth: float = 5.0
+    min_depth: float = setting(0.3, low=0, high=1000)
+    max_depth: float = setting(5.0, above=0, high=1e6)
     #: Tracks whose 3D point does not follow the rigid motion shared by the tracks seen in both this
     #: frame and the previous one, by more than ``rigid_tolerance`` times its depth plus ``rigid_floor``
     #: (m), are ended: a corner sliding along an edge or across an occlusion. 0 disables the check.
-    rigid_tolerance: float = 0.01
-    rigid_floor: float = 0.005
+    rigid_tolerance: float = setting(0.01, low=0, high=1)
+    rigid_floor: float = setting(0.005, low=0, high=10)
     #: Tracks whose 3D point strays from the mean of the track's earlier points (carried into this
     #: frame by the chained frame-to-frame motions of that check) by more than ``track_tolerance``
     #: times its depth plus ``rigid_floor`` (m) are ended: a corner that slides slowly, or whose depth
     #: drifts with the viewpoint, passes every frame-to-frame check. 0 disables it (needs the check).
-    track_tolerance: float = 0.02
+    track_tolerance: float = setting(0.02, low=0, high=1)
     #: RANSAC draws (three-point samples) of that check; they come from ``seed``.
-    rigid_samples: int = 100
-    seed: int = 0
+    rigid_samples: int = setting(100, low=1, high=100_000)
+    seed: int = setting(0, low=0)
 
-    def __post_init__(self) -> None:
-        require_positive({"forward_backward_px": self.forward_backward_px, "max_depth": self.max_depth})
+    def check(self) -> None:
+        """The trusted depth range holds depths."""
         if self.min_depth >= self.max_depth:
-            raise UsageError(f"keypoint min_depth {self.min_depth} must be below max_depth {self.max_depth}")
+            raise UsageError(
+                f"keypoint setting min_depth must be below max_depth ({self.max_depth}), got {self.min_depth}"
+            )
 
 
 def to_gray(rgb: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:

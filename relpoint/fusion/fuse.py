@@ -48,7 +48,7 @@ from relpoint.fusion.piecewise import Piece, split_segment
 from relpoint.fusion.segmentation import NO_SEGMENT, segment_run, segment_slices
 from relpoint.geometry import FloatArray
 from relpoint.lagrange import interpolate_fixes
-from relpoint.settings import Settings
+from relpoint.settings import Settings, setting
 from relpoint.types import IntArray, LandmarkMap, PositionFix, Trajectory
 
 log = logging.getLogger(__name__)
@@ -60,43 +60,32 @@ class FusionConfig(Settings):
 
     settings_name: ClassVar[str] = "fusion"
 
-    min_matches: int = 5
+    min_matches: int = setting(5, low=1)
     """``m_l`` of Algorithm 3: a pair of iterations with fewer matched features breaks the local map."""
-    max_position_error: float = math.inf
+    max_position_error: float = setting(math.inf, above=0, high=math.inf)
     """A local map also ends when its estimated position error exceeds this (m; inf = never)."""
-    local_sigma: float = 0.1
+    local_sigma: float = setting(0.1, low=0)
     """Position standard deviation of a local estimate relative to its neighbours (m, per axis)."""
-    drift_fraction: float = 0.01
+    drift_fraction: float = setting(0.01, low=0)
     """Growth of the estimated local position error per metre travelled within a segment (for
     ``max_position_error``)."""
-    min_segment_length: int = 4
+    min_segment_length: int = setting(4, low=4)
     """Segments with fewer iterations are dropped (a cubic B-spline needs four positions)."""
-    min_pairs: int = 3
+    min_pairs: int = setting(3, low=3)
     """Fewest (spline position, fix) pairs that place a segment (at least 3)."""
-    min_spread: float = 1.0
+    min_spread: float = setting(1.0, low=0)
     """Smallest RMS distance of a segment's pair positions from a straight line (m); below it the
     rotation is undetermined and the segment is left out."""
-    split_significance: float = 0.001
+    split_significance: float = setting(0.001, low=0, below=1)
     """A segment whose rigid fit to the fixes fails a chi-square test at this significance is split
     into pieces placed each by its own rigid fit (:mod:`.piecewise`); 0 = never split."""
 
-    def __post_init__(self) -> None:
-        if not (isinstance(self.min_matches, int) and self.min_matches >= 1):
-            raise UsageError(f"min_matches must be a positive integer, got {self.min_matches!r}")
-        if not (isinstance(self.min_segment_length, int) and self.min_segment_length >= 4):
-            raise UsageError(f"min_segment_length must be an integer >= 4, got {self.min_segment_length!r}")
-        if not (isinstance(self.min_pairs, int) and self.min_pairs >= 3):
-            raise UsageError(f"min_pairs must be an integer >= 3, got {self.min_pairs!r}")
-        for name in ("local_sigma", "drift_fraction", "min_spread"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
-        if not (isinstance(self.split_significance, int | float) and 0 <= self.split_significance < 1):
-            raise UsageError(f"split_significance must be a number in [0, 1), got {self.split_significance!r}")
-        if not (isinstance(self.max_position_error, int | float) and self.max_position_error > 0):
-            raise UsageError(f"max_position_error must be a positive number (or inf), got {self.max_position_error!r}")
+    def check(self) -> None:
+        """The local estimate has a covariance: ``local_sigma`` and ``drift_fraction`` are not both 0."""
         if self.local_sigma == 0 and self.drift_fraction == 0:
-            raise UsageError("local_sigma and drift_fraction cannot both be 0 (the local estimate needs a covariance)")
+            raise UsageError(
+                "fusion settings local_sigma and drift_fraction cannot both be 0 (the local estimate needs a covariance)"
+            )
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, ClassVar
 
@@ -26,14 +26,10 @@ import numpy.typing as npt
 
 from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray
-from relpoint.settings import Settings
+from relpoint.settings import Settings, setting
 from relpoint.types import DepthFrame, Intrinsics, Trajectory
 
 RESOLUTIONS = {"320x240": (320, 240), "640x480": (640, 480)}
-
-
-def _setting(default: Any, help: str) -> Any:
-    return field(default=default, metadata={"help": help})
 
 
 @dataclass(frozen=True)
@@ -41,44 +37,29 @@ class RgbdConfig(Settings):
     """Settings of the simulated RGB-D room. Metres, degrees, seconds, hertz."""
 
     settings_name: ClassVar[str] = "rgbd"
-    limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "frames": (1, 100_000), "rate": (1e-3, 1e4), "reference_points": (1, 10_000_000), "seed": (0, 2**63 - 1),
-    }  # fmt: skip
+    settings_hint: ClassVar[str] = "room settings go in a --config file (see docs/dense.md)"
 
-    resolution: str = _setting("320x240", "Image size: 320x240 or 640x480.")
-    frames: int = _setting(150, "Number of frames.")
-    rate: float = _setting(30.0, "Frames per second.")
-    speed: float = _setting(0.25, "Camera speed along its path, m/s.")
-    turn_rate: float = _setting(15.0, "Rate at which the viewing direction sweeps round the room, deg/s.")
-    noise: bool = _setting(True, "Add Kinect-like depth noise, quantisation and missing pixels.")
-    grazing_angle: float = _setting(75.0, "With noise: pixels seen at more than this incidence angle are missing.")
-    dropout: float = _setting(0.01, "With noise: share of pixels missing at random.")
-    min_range: float = _setting(0.4, "Nearest measurable depth.")
-    max_range: float = _setting(5.0, "Farthest measurable depth.")
-    reference_points: int = _setting(200_000, "Points sampled from the scene's surfaces for map evaluation.")
-    seed: int = _setting(0, "Seed of every random draw.")
+    resolution: str = setting("320x240", choices=tuple(RESOLUTIONS), help="Image size: 320x240 or 640x480.")
+    frames: int = setting(150, low=1, high=100_000, help="Number of frames.")
+    rate: float = setting(30.0, low=1e-3, high=1e4, help="Frames per second.")
+    speed: float = setting(0.25, low=0, help="Camera speed along its path, m/s.")
+    turn_rate: float = setting(15.0, low=0, help="Rate at which the viewing direction sweeps round the room, deg/s.")
+    noise: bool = setting(True, help="Add Kinect-like depth noise, quantisation and missing pixels.")
+    grazing_angle: float = setting(
+        75.0, above=0, high=90, help="With noise: pixels seen at more than this incidence angle are missing."
+    )
+    dropout: float = setting(0.01, low=0, below=1, help="With noise: share of pixels missing at random.")
+    min_range: float = setting(0.4, low=0, help="Nearest measurable depth.")
+    max_range: float = setting(5.0, above=0, help="Farthest measurable depth.")
+    reference_points: int = setting(
+        200_000, low=1, high=10_000_000, help="Points sampled from the scene's surfaces for map evaluation."
+    )
+    seed: int = setting(0, low=0, high=2**63 - 1, help="Seed of every random draw.")
 
-    def __post_init__(self) -> None:
-        if self.resolution not in RESOLUTIONS:
-            raise UsageError(f"unknown resolution {self.resolution!r}", f"choose one of {', '.join(RESOLUTIONS)}")
-        if not (isinstance(self.frames, int) and self.frames >= 1):
-            raise UsageError(f"frames must be a positive integer, got {self.frames!r}")
-        for name in ("rate", "max_range"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
-        for name in ("speed", "turn_rate", "min_range"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
-        if not (0 < self.grazing_angle <= 90):
-            raise UsageError(f"grazing_angle must be in (0, 90] degrees, got {self.grazing_angle!r}")
-        if not (0 <= self.dropout < 1):
-            raise UsageError(f"dropout must be in [0, 1), got {self.dropout!r}")
+    def check(self) -> None:
+        """The measurable depth range holds depths."""
         if self.min_range >= self.max_range:
-            raise UsageError(f"min_range ({self.min_range}) must be below max_range ({self.max_range})")
-        if not (isinstance(self.reference_points, int) and self.reference_points >= 1):
-            raise UsageError(f"reference_points must be a positive integer, got {self.reference_points!r}")
+            raise UsageError(f"rgbd setting min_range must be below max_range ({self.max_range}), got {self.min_range}")
 
 
 # -- scene ------------------------------------------------------------------------------------------------

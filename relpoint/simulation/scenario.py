@@ -17,7 +17,7 @@ import numpy as np
 
 from relpoint.geometry import FloatArray, body_twist
 from relpoint.simulation import movers, paths
-from relpoint.simulation.config import SimulationConfig
+from relpoint.simulation.config import SceneView, SimulationConfig
 from relpoint.types import (
     GroundTruthLandmarks,
     OdometryMeasurement,
@@ -161,7 +161,7 @@ def _stamps_ns(config: SimulationConfig, n: int) -> np.ndarray:
     return start_ns + period_ns * np.arange(n, dtype=np.int64)
 
 
-def _iteration_count(config: SimulationConfig) -> int:
+def _iteration_count(config: SceneView) -> int:
     if config.iterations is not None:
         return config.iterations
     if config.scenario in ("figure8", "figure8-gaps"):
@@ -174,7 +174,7 @@ def _iteration_count(config: SimulationConfig) -> int:
     return STATIONARY_ITERATIONS
 
 
-def _sensor_poses(config: SimulationConfig, extra: int = 0) -> FloatArray:
+def _sensor_poses(config: SceneView, extra: int = 0) -> FloatArray:
     """True poses ``T_world_sensor`` (N, 4, 4) of every iteration (plus ``extra`` beyond the end)."""
     n = _iteration_count(config) + extra
     if config.scenario == "stationary":
@@ -204,7 +204,7 @@ def _T_survey_start() -> FloatArray:
     return T
 
 
-def _scatter_landmarks(config: SimulationConfig, rng: np.random.Generator) -> FloatArray:
+def _scatter_landmarks(config: SceneView, rng: np.random.Generator) -> FloatArray:
     """Landmark centres (M, 3) in ``world``: ``density`` per 100 m of path, scattered around it."""
     if config.scenario == "stationary":
         # The fixed viewpoint looks along +x: put about `density` points inside its frustum.

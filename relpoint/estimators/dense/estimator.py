@@ -27,7 +27,7 @@ from relpoint.estimators.dense.icp import SIGMA_1M, IcpSettings, alignment_cost,
 from relpoint.estimators.dense.maps import Level, build_pyramid
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, invert_pose
-from relpoint.settings import Settings
+from relpoint.settings import Settings, setting
 from relpoint.types import DepthFrame, LandmarkMap, Pose
 
 logger = logging.getLogger(__name__)
@@ -38,28 +38,24 @@ class DenseConfig(Settings):
     """Settings of the dense estimator. Metres, degrees, frames."""
 
     settings_name: ClassVar[str] = "dense"
-    limits: ClassVar[dict[str, tuple[float, float]]] = {
-        "downsample": (1, 64), "pyramid_levels": (1, 8), "source_stride": (1, 64), "min_correspondences": (3, 10_000_000),
-        "icp_normal_angle": (0.0, 180.0), "fusion_normal_angle": (0.0, 180.0), "min_depth": (0.0, 1e3),
-        "max_depth": (1e-3, 1e3), "unstable_age": (0, 1_000_000),
-    }  # fmt: skip
+    settings_hint: ClassVar[str] = "see `relpoint config --estimator dense` for the parameters"
 
-    downsample: int = 1
+    downsample: int = setting(1, choices=(1, 2, 4))
     """Process the depth at 1/downsample of its resolution (1, 2 or 4; 2x2 block averaging)."""
     smooth_depth: bool = True
     """Smooth the depth with an edge-preserving 3x3 mean before computing vertices and normals."""
-    pyramid_levels: int = 3
+    pyramid_levels: int = setting(3, low=1, high=5)
     """Pyramid levels for coarse-to-fine ICP (each halves the resolution)."""
-    icp_iterations: tuple[int, ...] = (4, 5, 10)
+    icp_iterations: tuple[int, ...] = setting((4, 5, 10), low=0)
     """ICP iterations per level, finest first (one entry per level)."""
-    source_stride: int = 2
+    source_stride: int = setting(2, low=1, high=8)
     """Use every ``source_stride``-th pixel (in both directions) of the rendered map as ICP source at each
     level (1 = all; 2 quarters the cost of the finest level)."""
-    icp_distance: float = 0.1
+    icp_distance: float = setting(0.1, above=0)
     """Association gate ``|p' - q|`` of ICP, metres (section 2.1)."""
-    icp_normal_angle: float = 30.0
+    icp_normal_angle: float = setting(30.0, above=0, high=180)
     """Association gate on the angle between map and frame normals, degrees."""
-    huber_delta: float = 0.02
+    huber_delta: float = setting(0.02, low=0)
     """Huber threshold on point-to-plane residuals, metres (0 = plain least squares as in the paper)."""
     constant_velocity: bool = False
     """Start ICP from the previous pose moved by the last frame-to-frame motion when that start explains
@@ -75,82 +71,48 @@ class DenseConfig(Settings):
     map_normals: bool = False
     """Measure the point-to-plane residual along the map's (fused, smoother) normal instead of the frame's
     (the paper's ``n_q``); both are still gated by the normal-angle check."""
-    convergence_rotation: float = 3e-4
+    convergence_rotation: float = setting(3e-4, above=0)
     """ICP stops a level when the rotation increment is below this (radians) ..."""
-    convergence_translation: float = 3e-4
+    convergence_translation: float = setting(3e-4, above=0)
     """... and the translation increment below this (metres)."""
-    min_correspondences: int = 100
+    min_correspondences: int = setting(100, low=6, high=10_000_000)
     """Fewer pairs than this and the frame's tracking is rejected (the pose is predicted instead)."""
-    fusion_distance: float = 0.01
+    fusion_distance: float = setting(0.01, above=0)
     """Fusion gate: largest distance between a frame point and the map point rendered at its pixel, metres,
     at zero depth ..."""
-    fusion_distance_quadratic: float = 0.005
+    fusion_distance_quadratic: float = setting(0.005, low=0)
     """... plus this times the squared depth (1/m): Kinect-like noise grows with depth squared."""
-    fusion_normal_angle: float = 30.0
+    fusion_normal_angle: float = setting(30.0, above=0, high=180)
     """Fusion gate on the normal angle, degrees."""
-    radial_sigma: float = 0.6
+    radial_sigma: float = setting(0.6, low=0)
     """Keller et al.'s radial confidence: a measurement at normalised distance ``r`` from the image centre
     is fused with weight ``exp(-r^2 / (2 sigma^2))`` (0 = weight 1 everywhere, the paper's rule)."""
-    track_min_weight: float = 2.0
+    track_min_weight: float = setting(2.0, low=0)
     """Only map points with at least this weight are ICP sources (0 = all), unless too few remain."""
-    max_weight: float = 100.0
+    max_weight: float = setting(100.0, above=0)
     """Weights stop growing here (so that the map keeps adapting)."""
-    min_depth: float = 0.1
+    min_depth: float = setting(0.1, low=0, high=1e3)
     """Depths below this are ignored, metres."""
-    max_depth: float = 4.0
+    max_depth: float = setting(4.0, low=1e-3, high=1e3)
     """Depths above this are ignored, metres (Kinect-like noise grows with depth squared)."""
     remove_unstable: bool = True
     """Remove points still below ``stable_weight`` ``unstable_age`` frames after they were added."""
-    stable_weight: float = 2.0
+    stable_weight: float = setting(2.0, above=0)
     """Weight a point needs to count as stable."""
-    unstable_age: int = 10
+    unstable_age: int = setting(10, low=1, high=1_000_000)
     """Frames an unstable point may survive."""
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "icp_iterations", tuple(self.icp_iterations))
-        if self.downsample not in (1, 2, 4):
-            raise UsageError(f"downsample must be 1, 2 or 4, got {self.downsample!r}")
-        if not (isinstance(self.pyramid_levels, int) and 1 <= self.pyramid_levels <= 5):
-            raise UsageError(f"pyramid_levels must be an integer from 1 to 5, got {self.pyramid_levels!r}")
-        if len(self.icp_iterations) != self.pyramid_levels or any(
-            not isinstance(n, int) or n < 0 for n in self.icp_iterations
-        ):
+    def check(self) -> None:
+        """One ICP iteration count per pyramid level; a depth range that holds depths."""
+        if len(self.icp_iterations) != self.pyramid_levels:
             raise UsageError(
-                f"icp_iterations must hold {self.pyramid_levels} non-negative integers (finest first), "
-                f"got {self.icp_iterations!r}"
+                f"dense setting icp_iterations must hold one count per level (pyramid_levels {self.pyramid_levels}, "
+                f"finest first), got {self.icp_iterations!r}"
             )
-        positive = ("icp_distance", "convergence_rotation", "convergence_translation", "fusion_distance",
-                    "max_weight", "max_depth", "stable_weight")  # fmt: skip
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{name} must be a positive number, got {value!r}")
-        for name in ("icp_normal_angle", "fusion_normal_angle"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and 0 < value <= 180):
-                raise UsageError(f"{name} must be an angle in (0, 180] degrees, got {value!r}")
-        for name in ("huber_delta", "min_depth", "fusion_distance_quadratic", "radial_sigma", "track_min_weight"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise UsageError(f"{name} must be a number >= 0, got {value!r}")
         if self.min_depth >= self.max_depth:
-            raise UsageError(f"min_depth ({self.min_depth}) must be below max_depth ({self.max_depth})")
-        if not (isinstance(self.source_stride, int) and 1 <= self.source_stride <= 8):
-            raise UsageError(f"source_stride must be an integer from 1 to 8, got {self.source_stride!r}")
-        if not (isinstance(self.min_correspondences, int) and self.min_correspondences >= 6):
-            raise UsageError(f"min_correspondences must be an integer >= 6, got {self.min_correspondences!r}")
-        if not (isinstance(self.unstable_age, int) and self.unstable_age >= 1):
-            raise UsageError(f"unstable_age must be a positive integer, got {self.unstable_age!r}")
-        for name in (
-            "remove_unstable",
-            "smooth_depth",
-            "depth_weighting",
-            "map_normals",
-            "fusion_depth_weighting",
-            "constant_velocity",
-        ):
-            if not isinstance(getattr(self, name), bool):
-                raise UsageError(f"{name} must be true or false, got {getattr(self, name)!r}")
+            raise UsageError(
+                f"dense setting min_depth must be below max_depth ({self.max_depth}), got {self.min_depth}"
+            )
 
     def icp_settings(self) -> IcpSettings:
         return IcpSettings(
