@@ -6,7 +6,6 @@ only when every file is complete, so an interrupted or failed run leaves no part
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Iterable
@@ -24,16 +23,6 @@ from formats.tables import write_map_csv, write_map_history_csv, write_timing_cs
 from formats.trajectory_files import write_tum
 from relpoint.geometry import apply_transform
 from relpoint.types import PointObservation, Pose, RunResult, Trajectory
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """SHA-256 of a file's bytes, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
 
 #: Most intermediate ``/relpoint/path`` messages, and most poses in each (an even subsample); the
 #: last message holds every pose.

@@ -30,7 +30,7 @@ from formats.trajectory_files import read_tum, write_tum
 from relpoint.errors import InputError, UsageError
 from relpoint.estimators import ESTIMATORS, SIMULATOR_SIGMA
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
-from relpoint.fusion.segmented import RestartingEstimator
+from relpoint.fusion.segmented import RestartingEstimator, RestartRule
 from relpoint.types import RunResult
 from relpoint_app.roles import NEED_ROLES
 from relpoint_app.runner import drive
@@ -182,14 +182,14 @@ def _restarted(
     used = set((previous.get("input") or {}).get("roles") or [])
     optional = [role for role in ("odometry",) if role in used and reader.role_present(role)]
     roles = [*needed, *optional, "fix"]
-    restarting = RestartingEstimator(
-        lambda: spec.factory(estimator_config, np.random.default_rng(seed)),
+    rule = RestartRule(
         min_matches=config.min_matches,
         min_length=config.min_segment_length,
         max_position_error=config.max_position_error,
         local_sigma=config.local_sigma,
         drift_fraction=config.drift_fraction,
     )
+    restarting = RestartingEstimator(lambda: spec.factory(estimator_config, np.random.default_rng(seed)), rule)
     run = restarting.segmented(drive(reader, restarting, roles))
     result = fuse(
         run.trajectory, run.landmarks, None, run.fixes, config, labels=run.labels, landmark_labels=run.landmark_labels

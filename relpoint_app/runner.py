@@ -133,22 +133,17 @@ def execute_run(
     output: Path,
     *,
     seed: int = 0,
-    use_odometry: bool = True,
-    use_fixes: bool = True,
-    extra_info: dict[str, Any] | None = None,
-    on_iteration: Callable[[int, Any], None] | None = None,
-    map_every: int = 0,
     window: TimeWindow | None = None,
+    extra_info: dict[str, Any] | None = None,
+    **options: Any,
 ) -> pipeline.RunResult:
     """What ``relpoint run`` does after parsing its options: run ``spec`` over the log, write ``output``.
 
     ``window`` crops the log's observations, odometry and fixes (seconds from the first one read);
-    the estimator runs as :func:`run_estimator` runs it.
+    the estimator runs as :func:`run_estimator` runs it, with ``options`` (``use_odometry``,
+    ``use_fixes``, ``on_iteration``, ``map_every``); ``extra_info`` is added to run.json.
     """
-    result, roles = run_estimator(
-        reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes,
-        on_iteration=on_iteration, map_every=map_every, window=window,
-    )  # fmt: skip
+    result, roles = run_estimator(reader, spec, config, seed=seed, window=window, **options)
     run_info = {
         "estimator": spec.name,
         "parameters": dataclasses.asdict(config),

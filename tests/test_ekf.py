@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators._association import (
     chi2_gate,
-    jcbb,
     jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
@@ -262,7 +261,7 @@ def test_jcbb_resolves_ambiguous_pair_that_nearest_neighbour_gets_wrong() -> Non
     nn, gated = nearest_neighbour(d2, gate)
     assert gated.all()
     assert nn.tolist() == [1, 0]  # the first point is nearest to the second landmark: both pairings wrong
-    assert jcbb(d2, innovations, covariance, observation_cov).tolist() == [0, 1]
+    assert jcbb_search(d2, innovations, covariance, observation_cov)[0].tolist() == [0, 1]
 
 
 def test_jcbb_drops_a_pairing_that_breaks_joint_compatibility() -> None:
@@ -272,7 +271,7 @@ def test_jcbb_drops_a_pairing_that_breaks_joint_compatibility() -> None:
     innovations[1] -= [0.0, 2.0, 0.0]
     S_inv = np.linalg.inv(np.stack([covariance[:3, :3], covariance[3:, 3:]]) + observation_cov)
     d2 = mahalanobis_squared(innovations, S_inv)
-    assignment = jcbb(d2, innovations, covariance, observation_cov)
+    assignment = jcbb_search(d2, innovations, covariance, observation_cov)[0]
     assert (assignment >= 0).sum() == 1
 
 

@@ -76,18 +76,6 @@ def nearest_neighbour(d2: FloatArray, gate: float) -> tuple[IntArray, npt.NDArra
     return assignment, gated
 
 
-def jcbb(
-    d2: FloatArray,
-    innovations: FloatArray,
-    covariance: FloatArray,
-    observation_cov: FloatArray,
-    probability: float = 0.99,
-    max_nodes: int = 10_000,
-) -> IntArray:
-    """Joint Compatibility Branch and Bound with a node budget only: :func:`jcbb_search`'s assignment."""
-    return jcbb_search(d2, innovations, covariance, observation_cov, probability, max_nodes)[0]
-
-
 def jcbb_search(
     d2: FloatArray,
     innovations: FloatArray,

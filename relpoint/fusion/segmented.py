@@ -88,6 +88,19 @@ class SegmentedRun:
     fixes: list[PositionFix]
 
 
+@dataclass(frozen=True)
+class RestartRule:
+    """When a local map ends (see the module): fewer than ``min_matches`` matched features, or a
+    modelled position error ``local_sigma + drift_fraction * travelled`` (m) above
+    ``max_position_error``. Local maps shorter than ``min_length`` iterations are dropped."""
+
+    min_matches: int = 5
+    min_length: int = 4
+    max_position_error: float = math.inf
+    local_sigma: float = 0.1
+    drift_fraction: float = 0.01
+
+
 class RestartingEstimator(Estimator[PointObservation]):
     """A local SLAM that starts a fresh estimator (a new local map) at every break; see the module.
 
@@ -99,22 +112,9 @@ class RestartingEstimator(Estimator[PointObservation]):
 
     name = "restarting"
 
-    def __init__(
-        self,
-        make_estimator: Callable[[], Estimator],
-        *,
-        min_matches: int = 5,
-        min_length: int = 4,
-        max_position_error: float = math.inf,
-        local_sigma: float = 0.1,
-        drift_fraction: float = 0.01,
-    ) -> None:
+    def __init__(self, make_estimator: Callable[[], Estimator], rule: RestartRule | None = None) -> None:
         self._make = make_estimator
-        self.min_matches = min_matches
-        self.min_length = min_length
-        self.max_position_error = max_position_error
-        self.local_sigma = local_sigma
-        self.drift_fraction = drift_fraction
+        self.rule = rule or RestartRule()
         self._estimator: Estimator | None = None
         self._odometry: OdometryMeasurement | None = None
         self._poses: list[Pose] = []
@@ -162,8 +162,8 @@ class RestartingEstimator(Estimator[PointObservation]):
             else:
                 pairs = len(observation) - max(estimator.map_size - size_before, 0)
             self._travelled += float(np.linalg.norm(np.subtract(pose.position, self._poses[-1].position)))
-            error = self.local_sigma + self.drift_fraction * self._travelled
-            restart = pairs < self.min_matches or error > self.max_position_error
+            error = self.rule.local_sigma + self.rule.drift_fraction * self._travelled
+            restart = pairs < self.rule.min_matches or error > self.rule.max_position_error
         if restart:
             # the breaking observation's new landmarks belong to the next map
             self._close(size_before, pose)
@@ -190,7 +190,7 @@ class RestartingEstimator(Estimator[PointObservation]):
         estimator = self._estimator
         if estimator is None:
             return
-        if self._length < self.min_length:
+        if self._length < self.rule.min_length:
             self._maps.append(LandmarkMap.empty())
             return
         own = self._poses[self._first :] + ([breaking] if breaking is not None else [])
@@ -221,7 +221,7 @@ class RestartingEstimator(Estimator[PointObservation]):
 
     def _kept_segments(self) -> IntArray:
         counts = np.bincount(np.asarray(self._labels, dtype=np.int64), minlength=len(self._maps))
-        return np.flatnonzero(counts >= self.min_length)
+        return np.flatnonzero(counts >= self.rule.min_length)
 
     def landmark_map(self) -> LandmarkMap:
         """Before :meth:`finish`, the current local map; after it, every kept one (local frames)."""
@@ -259,26 +259,17 @@ class RestartingEstimator(Estimator[PointObservation]):
 
 
 def run_segmented(
-    inputs: Iterable[object],
-    make_estimator: Callable[[], Estimator],
-    *,
-    min_matches: int = 5,
-    min_length: int = 4,
-    max_position_error: float = math.inf,
-    local_sigma: float = 0.1,
-    drift_fraction: float = 0.01,
+    inputs: Iterable[object], make_estimator: Callable[[], Estimator], **rule: float
 ) -> SegmentedRun:
     """Run a local SLAM over time-ordered ``inputs``, starting a new one at every break (see the module),
-    through the one drive loop, :func:`relpoint.pipeline.run`.
+    through the one drive loop, :func:`relpoint.pipeline.run`; ``rule`` holds :class:`RestartRule`'s
+    fields.
 
     Raises
     ------
     EstimatorError
         The input holds no observation.
     """
-    restarting = RestartingEstimator(
-        make_estimator, min_matches=min_matches, min_length=min_length, max_position_error=max_position_error,
-        local_sigma=local_sigma, drift_fraction=drift_fraction,
-    )  # fmt: skip
+    restarting = RestartingEstimator(make_estimator, RestartRule(**rule))  # type: ignore[arg-type]
     result = pipeline.run(inputs, restarting)  # type: ignore[arg-type]
     return restarting.segmented(result)

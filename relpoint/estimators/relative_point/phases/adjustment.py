@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 
 import numpy as np
 import numpy.typing as npt
@@ -10,12 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
-from relpoint.estimators.relative_point.dynamics import (
-    tail_bound,
-)
-from relpoint.estimators.relative_point.groups import (
-    ROOT,
-)
+from relpoint.estimators.relative_point.dynamics import tail_bound
+from relpoint.estimators.relative_point.groups import ROOT
 from relpoint.estimators.relative_point.lsf import _median
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.state import EstimatorState
@@ -35,10 +32,12 @@ RELOCATION_WINDOW = 10
 
 
 class FinalAdjustment(EstimatorState):
-    """The final adjustment when the log ends: the whole network solved jointly, every iteration located again on it, and kept only where it does not place the observations worse.
+    """The final adjustment when the log ends: the whole network solved jointly, every iteration located
+    again on it, and kept only where it does not place the observations worse.
 
-    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
-    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator` over
+    the state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`).
+    """
 
     def finish(self, trajectory: Trajectory) -> Trajectory:
         """Adjust the whole map by least squares and locate every iteration again on it.
@@ -83,17 +82,11 @@ class FinalAdjustment(EstimatorState):
         T_fit = T_before.copy()
         fitted = np.zeros(len(T_before), bool)
         seen = np.zeros((len(T_before), 3))
-        for k, support in enumerate(self._support):
-            if support is None:
-                continue
-            uids, observed = support
-            rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
-            usable = rows >= 0
-            usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
-            fit = self._fit_pose(observed[usable].astype(np.float64), rows[usable])
+        for k, observed, rows in self._supported_points(row_of):
+            fit = self._fit_pose(observed.astype(np.float64), rows)
             if fit is not None:
                 T_fit[k], fitted[k] = fit, True
-                seen[k] = observed[usable].mean(axis=0)
+                seen[k] = observed.mean(axis=0)
         # A fit on few or misplaced points moves its iteration unlike its neighbours: such an
         # iteration takes its neighbours' correction instead.
         outliers = inconsistent_relocations(
@@ -135,13 +128,13 @@ class FinalAdjustment(EstimatorState):
         orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
         return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
 
-    def _support_residual(self, T_world_sensor: FloatArray) -> float:
-        """Median over iterations of the RMS distance (m) of each one's kept observations, placed by its
-        pose (K, 4, 4), from their points' current global positions (static mapped points only)."""
+    def _supported_points(
+        self, row_of: dict[int, int]
+    ) -> Iterator[tuple[int, npt.NDArray[np.float32], IntArray]]:
+        """Per iteration that kept observations: ``(k, observed, rows)``, its kept sensor-frame
+        observations (M, 3) of static mapped points and their rows in the point store (``row_of``:
+        uid -> row)."""
         store = self.store
-        live = store.live_ids()
-        row_of = dict(zip(store.uid[live].tolist(), live.tolist(), strict=True))
-        per_iteration = []
         for k, support in enumerate(self._support):
             if support is None:
                 continue
@@ -149,11 +142,20 @@ class FinalAdjustment(EstimatorState):
             rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], np.int64)
             usable = rows >= 0
             usable[usable] = (store.pos_weight[rows[usable]] > 0) & ~store.dynamic[rows[usable]]
-            if np.count_nonzero(usable) < 3:
+            yield k, observed[usable], rows[usable]
+
+    def _support_residual(self, T_world_sensor: FloatArray) -> float:
+        """Median over iterations of the RMS distance (m) of each one's kept observations, placed by its
+        pose (K, 4, 4), from their points' current global positions (static mapped points only)."""
+        store = self.store
+        live = store.live_ids()
+        row_of = dict(zip(store.uid[live].tolist(), live.tolist(), strict=True))
+        per_iteration = []
+        for k, observed, rows in self._supported_points(row_of):
+            if len(rows) < 3:
                 continue
-            T = T_world_sensor[k]
-            placed = apply_transform(T, observed[usable].astype(np.float64))
-            per_iteration.append(np.sqrt(np.mean(np.sum((placed - store.positions(rows[usable])) ** 2, axis=1))))
+            placed = apply_transform(T_world_sensor[k], observed.astype(np.float64))
+            per_iteration.append(np.sqrt(np.mean(np.sum((placed - store.positions(rows)) ** 2, axis=1))))
         return float(np.median(per_iteration)) if per_iteration else float("nan")
 
     def _flag_disagreeing(self) -> IntArray:

@@ -31,10 +31,12 @@ def _finite_median(values: FloatArray) -> float:
 
 
 class DynamicSweep(EstimatorState):
-    """The dynamic sweep: which points move (against their group, over time, against references and in the world), which are reported, and duplicates merged back.
+    """The dynamic sweep: which points move (against their group, over time, against references and in the
+    world), which are reported, and duplicates merged back.
 
-    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
-    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator` over
+    the state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`).
+    """
 
     def _detect_dynamic(
         self, k: int, members: IntArray, observations: FloatArray, interval: int

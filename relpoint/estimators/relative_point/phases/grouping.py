@@ -16,9 +16,7 @@ from relpoint.estimators.relative_point.groups import (
     relative_coordinates,
 )
 from relpoint.estimators.relative_point.points import IntArray
-from relpoint.estimators.relative_point.registration import (
-    NO_MATCH,
-)
+from relpoint.estimators.relative_point.registration import NO_MATCH
 from relpoint.estimators.relative_point.state import EstimatorState
 from relpoint.geometry import FloatArray, apply_transform
 
@@ -26,10 +24,12 @@ logger = logging.getLogger(__name__)
 
 
 class Grouping(EstimatorState):
-    """New points and the groups over them: first groups, regrouping over intervals of co-visibility, and each group built on three basis points.
+    """New points and the groups over them: first groups, regrouping over intervals of co-visibility, and
+    each group built on three basis points.
 
-    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
-    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator` over
+    the state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`).
+    """
 
     def _add_points(self, points: FloatArray, ids: IntArray, k: int, gt_ids: IntArray | None) -> IntArray:
         """Create points for unmatched observations, then append every observation to its ring."""

@@ -10,11 +10,7 @@ import numpy.typing as npt
 
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
-from relpoint.estimators.relative_point.registration import (
-    NO_MATCH,
-    match_mutual,
-    match_nearest,
-)
+from relpoint.estimators.relative_point.registration import NO_MATCH, match_mutual, match_nearest
 from relpoint.estimators.relative_point.state import EstimatorState
 from relpoint.geometry import FloatArray, apply_transform, rigid_inverse
 
@@ -22,10 +18,12 @@ logger = logging.getLogger(__name__)
 
 
 class Localisation(EstimatorState):
-    """How each iteration is placed: local, far and global matching of the observed points, and the pose fitted to the mapped static points they matched (or coasted when too few).
+    """How each iteration is placed: local, far and global matching of the observed points, and the pose
+    fitted to the mapped static points they matched (or coasted when too few).
 
-    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
-    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator` over
+    the state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`).
+    """
 
     def _register(self, points: FloatArray, k: int) -> IntArray:
         """Local matching (paper II-A): ids (N,) of the recent points matched, ``NO_MATCH`` elsewhere."""

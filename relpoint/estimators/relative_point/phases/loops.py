@@ -8,10 +8,7 @@ import numpy as np
 
 from relpoint.estimators.relative_point.loops import drift_profile, vote_offset
 from relpoint.estimators.relative_point.points import IntArray
-from relpoint.estimators.relative_point.registration import (
-    NO_MATCH,
-    match_nearest,
-)
+from relpoint.estimators.relative_point.registration import NO_MATCH, match_nearest
 from relpoint.estimators.relative_point.state import EstimatorState
 from relpoint.geometry import FloatArray, apply_transform
 
@@ -23,10 +20,12 @@ _LOOP_YOUNG_MAX = 64
 
 
 class LoopClosing(EstimatorState):
-    """Loop closure beyond the global matching bound: the young points in view vote on an offset onto old mapped points, and the drift it shows is taken out of the groups and poses along the loop.
+    """Loop closure beyond the global matching bound: the young points in view vote on an offset onto old
+    mapped points, and the drift it shows is taken out of the groups and poses along the loop.
 
-    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`, over the
-    state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`)."""
+    A phase of :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator` over
+    the state it shares with the other phases (:class:`~relpoint.estimators.relative_point.state.EstimatorState`).
+    """
 
     def _close_loop(self, points: FloatArray, ids: IntArray, k: int) -> None:
         """Loop closure beyond the global matching bound (see :mod:`.loops`), in place on ``ids``.
