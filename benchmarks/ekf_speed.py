@@ -25,12 +25,17 @@ worker threads for these mid-sized products mostly wait for each other.
 from __future__ import annotations
 
 import argparse
+import atexit
 import copy
 import dataclasses
-import importlib.util
+import importlib
+import io
 import os
+import re
+import shutil
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -43,19 +48,25 @@ REFERENCE = "4db1a8e"
 
 
 def load_reference(revision: str) -> ModuleType:
-    """The EKF module as it was at git ``revision``, imported from a temporary file."""
-    source = subprocess.run(
-        ["git", "show", f"{revision}:relpoint/estimators/ekf.py"], cwd=REPO, check=True, capture_output=True, text=True
-    ).stdout
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "ekf_reference.py"
-        path.write_text(source)
-        spec = importlib.util.spec_from_file_location("ekf_reference", path)
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
-        spec.loader.exec_module(module)
-    return module
+    """The EKF module as it was at git ``revision``, with the whole core package of that revision beside it.
+
+    ``git archive`` writes the revision's ``relpoint/`` into a temporary folder as ``relpoint_reference``
+    (its own imports renamed), so the old filter runs on its own helpers however the current code has
+    moved them since. The folder is removed when the process ends.
+    """
+    folder = Path(tempfile.mkdtemp(prefix="relpoint-reference-"))
+    atexit.register(shutil.rmtree, folder, True)
+    archive = subprocess.run(["git", "archive", revision, "relpoint"], cwd=REPO, check=True, capture_output=True)
+    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
+        tar.extractall(folder, filter="data")
+    package = folder / "relpoint_reference"
+    (folder / "relpoint").rename(package)
+    for path in package.rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        text = re.sub(r"\b(from|import) relpoint(?=[.\s])", r"\1 relpoint_reference", text)
+        path.write_text(text, encoding="utf-8")
+    sys.path.insert(0, str(folder))
+    return importlib.import_module("relpoint_reference.estimators.ekf")
 
 
 def reference_copy(ekf: Any, reference_class: type) -> Any:
