@@ -25,22 +25,16 @@ worker threads for these mid-sized products mostly wait for each other.
 from __future__ import annotations
 
 import argparse
-import atexit
 import copy
 import dataclasses
-import importlib
-import io
 import os
-import re
-import shutil
-import subprocess
 import sys
-import tarfile
-import tempfile
 import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
+
+from _reference import load_module
 
 REPO = Path(__file__).resolve().parents[1]
 #: The EKF before the batched, symmetric update and the preallocated covariance.
@@ -48,25 +42,8 @@ REFERENCE = "4db1a8e"
 
 
 def load_reference(revision: str) -> ModuleType:
-    """The EKF module as it was at git ``revision``, with the whole core package of that revision beside it.
-
-    ``git archive`` writes the revision's ``relpoint/`` into a temporary folder as ``relpoint_reference``
-    (its own imports renamed), so the old filter runs on its own helpers however the current code has
-    moved them since. The folder is removed when the process ends.
-    """
-    folder = Path(tempfile.mkdtemp(prefix="relpoint-reference-"))
-    atexit.register(shutil.rmtree, folder, True)
-    archive = subprocess.run(["git", "archive", revision, "relpoint"], cwd=REPO, check=True, capture_output=True)
-    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    package = folder / "relpoint_reference"
-    (folder / "relpoint").rename(package)
-    for path in package.rglob("*.py"):
-        text = path.read_text(encoding="utf-8")
-        text = re.sub(r"\b(from|import) relpoint(?=[.\s])", r"\1 relpoint_reference", text)
-        path.write_text(text, encoding="utf-8")
-    sys.path.insert(0, str(folder))
-    return importlib.import_module("relpoint_reference.estimators.ekf")
+    """The EKF module as it was at git ``revision`` (:func:`_reference.load_module`)."""
+    return load_module(revision, "relpoint.estimators.ekf")
 
 
 def reference_copy(ekf: Any, reference_class: type) -> Any:

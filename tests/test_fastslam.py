@@ -146,12 +146,16 @@ def test_point_between_the_gates_is_discarded(variant: str) -> None:
 
 
 def test_fastslam2_figure_eight_run_stays_accurate() -> None:
-    result = _run(FastSlamConfig(particles=30), seed=0, iterations=300)
-    # Measured: 0.53 m position and 0.42 m landmark RMSE (0.5-1.1 m over rng seeds 0-3).
-    assert result["position_rmse"] < 1.0
-    assert result["landmark_rmse"] < 1.0
-    assert result["final_error"] < 1.5
-    assert result["landmarks"] <= result["distinct"] + 3
+    # The median over three rng seeds: one seed's figures scatter by 2x (over seeds 0-11 the position
+    # RMSE ran from 0.45 to 1.52 m, the final error from 0.58 to 3.25 m, before and after the
+    # association was compiled). Measured medians over seeds 0-2: 0.84 m position, 0.88 m landmark
+    # RMSE, 1.79 m final error (1.10, 1.06 and 2.02 m with the numpy association).
+    results = [_run(FastSlamConfig(particles=30), seed=seed, iterations=300) for seed in range(3)]
+    median = {key: float(np.median([r[key] for r in results])) for key in results[0]}
+    assert median["position_rmse"] < 1.2
+    assert median["landmark_rmse"] < 1.2
+    assert median["final_error"] < 2.5
+    assert all(r["landmarks"] <= r["distinct"] + 3 for r in results)
 
 
 def test_fastslam1_with_odometry_stays_accurate() -> None:
@@ -160,3 +164,136 @@ def test_fastslam1_with_odometry_stays_accurate() -> None:
     assert result["position_rmse"] < 1.0
     assert result["landmark_rmse"] < 1.5
     assert result["final_error"] < 2.5
+
+
+# ----------------------------------------------------------------- compiled association against numpy
+
+
+def _associate_numpy(points, radius, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal,
+                     log_new, log_start):  # fmt: skip
+    """The association in numpy, one point at a time, as FastSLAM ran it before its loops were compiled."""
+    from relpoint.geometry import skew, so3_exp
+
+    n, k = len(positions), len(points)
+    cap = int(counts.max())
+    predicted = np.einsum("pji,pmj->pmi", rotations, means[:, :cap] - positions[:, None, :])
+    valid = np.arange(cap)[None, :] < counts[:, None]
+    candidates_of = [
+        np.flatnonzero(((np.sum((predicted - z) ** 2, axis=2) < radius**2) & valid).any(axis=0)) for z in points
+    ]
+    assoc = np.full((n, k), -1, dtype=np.int64)
+    log_likelihood = np.zeros(n)
+    used = np.zeros((n, cap), dtype=bool)
+    rows = np.arange(n)
+    for i, candidates in enumerate(candidates_of):
+        c = len(candidates)
+        if c == 0:
+            log_likelihood += log_new
+            continue
+        Rt = np.swapaxes(rotations, 1, 2)
+        z_hat = np.einsum("pij,pcj->pci", Rt, means[:, candidates] - positions[:, None, :])
+        S_m = Rt[:, None] @ covs[:, candidates] @ rotations[:, None] + Q
+        H = np.zeros((n, c, 3, 12))
+        H[:, :, :, :3] = -Rt[:, None]
+        H[:, :, :, 3:6] = skew(z_hat)
+        L = S_m + H @ Sigma[:, None] @ np.swapaxes(H, 2, 3) if proposal else S_m
+        nu = points[i] - z_hat
+        L_inv = np.linalg.inv(L)
+        _, logdet = np.linalg.slogdet(L)
+        logl = -0.5 * (np.einsum("pci,pcij,pcj->pc", nu, L_inv, nu) + logdet + 3 * np.log(2 * np.pi))
+        logl = np.where((candidates[None, :] >= counts[:, None]) | used[:, candidates], -np.inf, logl)
+        best = np.argmax(logl, axis=1)
+        best_logl = logl[rows, best]
+        matched = best_logl >= log_new
+        slot = candidates[best]
+        assoc[matched, i] = slot[matched]
+        assoc[~matched & (best_logl >= log_start), i] = -2
+        used[rows[matched], slot[matched]] = True
+        log_likelihood += np.where(matched, best_logl, log_new)
+        if proposal and matched.any():
+            H_b = H[rows, best]
+            K = Sigma @ np.swapaxes(H_b, 1, 2) @ L_inv[rows, best]
+            delta = np.where(matched[:, None], np.einsum("pij,pj->pi", K, nu[rows, best]), 0.0)
+            positions = positions + delta[:, :3]
+            rotations = rotations @ so3_exp(delta[:, 3:6])
+            twists = twists + delta[:, 6:]
+            I_KH = np.eye(12) - K @ H_b
+            joseph = I_KH @ Sigma @ np.swapaxes(I_KH, 1, 2) + K @ S_m[rows, best] @ np.swapaxes(K, 1, 2)
+            Sigma = np.where(matched[:, None, None], joseph, Sigma)
+    return assoc, log_likelihood, Sigma, positions, rotations, twists
+
+
+@pytest.mark.parametrize("proposal", [True, False])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_association_equals_the_numpy_loop(proposal: bool, seed: int) -> None:
+    from relpoint.estimators import _fastslam_kernels
+    from relpoint.geometry import so3_exp
+
+    rng = np.random.default_rng(seed)
+    n, m, k, sigma = 7, 40, 25, 0.3
+    truth = rng.uniform(-10, 10, (m, 3))
+    positions = rng.normal(0, 0.3, (n, 3))
+    rotations = so3_exp(rng.normal(0, 0.05, (n, 3)))
+    twists = rng.normal(0, 0.1, (n, 6))
+    counts = rng.integers(m // 2, m + 1, n).astype(np.int64)
+    means = truth[None] + rng.normal(0, sigma, (n, m, 3))
+    A = rng.normal(0, sigma, (n, m, 3, 3))
+    covs = A @ np.swapaxes(A, 2, 3) + 0.01 * np.eye(3)
+    B = rng.normal(0, 0.05, (n, 12, 12))
+    Sigma = B @ np.swapaxes(B, 1, 2) + 1e-4 * np.eye(12)
+    seen = truth[rng.choice(m, k - 5, replace=False)]  # some points of no landmark (new ones)
+    points = np.concatenate([seen + rng.normal(0, sigma, seen.shape), rng.uniform(-10, 10, (5, 3))])
+    Q = np.eye(3) * sigma**2
+    log_new, log_start = -8.0, -14.0
+    expected = _associate_numpy(points, 2.0, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal,
+                                log_new, log_start)  # fmt: skip
+    offsets, slots = _fastslam_kernels.near_slots(points, positions, rotations, means, counts, 2.0)
+    got_positions, got_rotations, got_twists, got_Sigma = positions.copy(), rotations.copy(), twists.copy(), Sigma.copy()
+    assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
+        points, offsets, slots, got_positions, got_rotations, got_twists, means, covs, counts, Q, got_Sigma, proposal,
+        log_new, log_start,
+    )  # fmt: skip
+    np.testing.assert_array_equal(assoc, expected[0])
+    assert paired == int((assoc >= 0).sum()) > 0 and discarded == int((assoc == -2).sum())
+    np.testing.assert_allclose(log_likelihood, expected[1], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got_Sigma, expected[2], rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(got_positions, expected[3], atol=1e-12)
+    np.testing.assert_allclose(got_rotations, expected[4], atol=1e-12)
+    np.testing.assert_allclose(got_twists, expected[5], atol=1e-12)
+
+
+def test_compiled_landmark_update_equals_the_numpy_update() -> None:
+    from relpoint.estimators import _fastslam_kernels
+    from relpoint.geometry import so3_exp
+
+    rng = np.random.default_rng(5)
+    n, m, k = 4, 12, 6
+    positions = rng.normal(0, 1, (n, 3))
+    rotations = so3_exp(rng.normal(0, 0.5, (n, 3)))
+    means = rng.normal(0, 5, (n, m, 3))
+    A = rng.normal(0, 0.3, (n, m, 3, 3))
+    covs = A @ np.swapaxes(A, 2, 3) + 0.01 * np.eye(3)
+    Q = np.eye(3) * 0.09
+    points = rng.normal(0, 5, (k, 3))
+    assoc = np.full((n, k), -1, dtype=np.int64)
+    for p in range(n):  # each particle pairs a few points with distinct slots
+        chosen = rng.choice(k, 4, replace=False)
+        assoc[p, chosen] = rng.choice(m, 4, replace=False)
+    # numpy form: every pair at once
+    p, i = np.nonzero(assoc >= 0)
+    j = assoc[p, i]
+    R, cov = rotations[p], covs[p, j]
+    Rt = np.swapaxes(R, 1, 2)
+    z_hat = np.einsum("pij,pj->pi", Rt, means[p, j] - positions[p])
+    K = cov @ R @ np.linalg.inv(Rt @ cov @ R + Q)
+    expected_means = means.copy()
+    expected_means[p, j] += np.einsum("pij,pj->pi", K, points[i] - z_hat)
+    I_KH = np.eye(3) - K @ Rt
+    new_cov = I_KH @ cov @ np.swapaxes(I_KH, 1, 2) + K @ Q @ np.swapaxes(K, 1, 2)
+    expected_covs = covs.copy()
+    expected_covs[p, j] = 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
+    seen, last = np.zeros((n, m), dtype=np.int64), np.zeros((n, m), dtype=np.int64)
+    _fastslam_kernels.update_landmarks(points, assoc, positions, rotations, means, covs, Q, seen, last, 7)
+    np.testing.assert_allclose(means, expected_means, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(covs, expected_covs, rtol=1e-10, atol=1e-14)
+    assert seen.sum() == len(p) and set(last[p, j].tolist()) == {7} and last.sum() == 7 * len(p)

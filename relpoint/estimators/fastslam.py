@@ -44,6 +44,7 @@ import numpy.typing as npt
 from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
+from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._association import chi2_gate
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
@@ -51,7 +52,7 @@ from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
-from relpoint.geometry import FloatArray, apply_transform, skew, so3_exp, twist_step
+from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
 from relpoint.settings import Settings, setting
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -237,6 +238,11 @@ class FastSlam(Estimator[PointObservation]):
         self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
 
     # ------------------------------------------------------------------------------------ interface
+
+    @classmethod
+    def compile(cls) -> None:
+        """Compile or load the association's compiled loops (:mod:`relpoint.estimators._fastslam_kernels`)."""
+        _fastslam_kernels.prepare()
 
     @property
     def weights(self) -> FloatArray:
@@ -477,96 +483,50 @@ class FastSlam(Estimator[PointObservation]):
 
     # --------------------------------------------------------------------------------- association
 
-    def _candidates(self, points: FloatArray) -> list[np.ndarray]:
-        """Per point, the landmark slots within ``search_radius`` of it in at least one particle."""
-        cap = int(self.counts.max()) if self.counts.size else 0
-        if cap == 0 or len(points) == 0:
-            return [np.zeros(0, dtype=np.int64)] * len(points)
-        predicted = np.einsum("pji,pmj->pmi", self.rotations, self.means[:, :cap] - self.positions[:, None, :])
-        valid = np.arange(cap)[None, :] < self.counts[:, None]
-        near = np.zeros((len(points), cap), dtype=bool)
-        r2 = self._search_radius**2
-        for i, z in enumerate(points):
-            close = np.sum((predicted - z) ** 2, axis=2) < r2
-            near[i] = (close & valid).any(axis=0)
-        return [np.flatnonzero(row) for row in near]
-
     def _associate(
         self, points: FloatArray, Sigma: FloatArray, proposal: bool
     ) -> tuple[np.ndarray, FloatArray, FloatArray]:
         """Maximum-likelihood association of each point in each particle, one point at a time.
 
-        Returns the association (N, k) (landmark slot, -1 for a new landmark, -2 for a discarded
-        point), each particle's log-likelihood of the points (N,), and the proposal covariance after
-        the points (when ``proposal``, i.e. 2.0: each paired point refines the pose prior ``Sigma``).
+        The candidates of a point are the landmark slots within ``search_radius`` of it in at least one
+        particle (taken before the points move the proposal). Returns the association (N, k) (landmark
+        slot, -1 for a new landmark, -2 for a discarded point), each particle's log-likelihood of the
+        points (N,), and the proposal covariance after the points (when ``proposal``, i.e. 2.0: each
+        paired point refines the pose prior ``Sigma`` and moves the particle's pose). Compiled loops:
+        :func:`relpoint.estimators._fastslam_kernels.associate`.
         """
-        cfg = self.config
-        n = cfg.particles
-        k = len(points)
-        assoc = np.full((n, k), -1, dtype=np.int64)
-        log_likelihood = np.zeros(n)
-        used = np.zeros((n, max(int(self.counts.max()), 1)), dtype=bool)
-        rows = np.arange(n)
-        for i, candidates in enumerate(self._candidates(points)):
-            c = len(candidates)
-            if c == 0:
-                log_likelihood += self._log_new
-                continue
-            z = points[i]
-            Rt = np.swapaxes(self.rotations, 1, 2)  # (n, 3, 3)
-            z_hat = np.einsum("pij,pcj->pci", Rt, self.means[:, candidates] - self.positions[:, None, :])
-            S_m = Rt[:, None] @ self.covs[:, candidates] @ self.rotations[:, None] + self._Q  # (n, c, 3, 3)
-            H = np.zeros((n, c, 3, 12))
-            H[:, :, :, :3] = -Rt[:, None]
-            H[:, :, :, 3:6] = skew(z_hat)
-            L = S_m + H @ Sigma[:, None] @ np.swapaxes(H, 2, 3) if proposal else S_m
-            nu = z - z_hat
-            L_inv = np.linalg.inv(L)
-            _, logdet = np.linalg.slogdet(L)
-            logl = -0.5 * (np.einsum("pci,pcij,pcj->pc", nu, L_inv, nu) + logdet + 3 * _LOG_2PI)
-            invalid = (candidates[None, :] >= self.counts[:, None]) | used[:, candidates]
-            logl = np.where(invalid, -np.inf, logl)
-            best = np.argmax(logl, axis=1)
-            best_logl = logl[rows, best]
-            matched = best_logl >= self._log_new
-            slot = candidates[best]
-            assoc[matched, i] = slot[matched]
-            assoc[~matched & (best_logl >= self._log_start), i] = -2
-            used[rows[matched], slot[matched]] = True
-            log_likelihood += np.where(matched, best_logl, self._log_new)
-            if proposal and matched.any():
-                H_b = H[rows, best]  # (n, 3, 12)
-                K = Sigma @ np.swapaxes(H_b, 1, 2) @ L_inv[rows, best]  # (n, 12, 3)
-                self._inject(np.einsum("pij,pj->pi", K, nu[rows, best]), matched)
-                I_KH = np.eye(12) - K @ H_b
-                joseph = I_KH @ Sigma @ np.swapaxes(I_KH, 1, 2) + K @ S_m[rows, best] @ np.swapaxes(K, 1, 2)
-                Sigma = np.where(matched[:, None, None], joseph, Sigma)
-        self._stats["paired"] += int((assoc >= 0).sum())
-        self._stats["discarded"] += int((assoc == -2).sum())
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        counts = self.counts.astype(np.int64)
+        offsets, slots = _fastslam_kernels.near_slots(
+            points, self.positions, self.rotations, self.means, counts, float(self._search_radius)
+        )
+        positions = np.ascontiguousarray(self.positions, dtype=np.float64)
+        rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
+        twists = np.ascontiguousarray(self.twists, dtype=np.float64)
+        Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
+        assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
+            points, offsets, slots, positions, rotations, twists, self.means, self.covs, counts, self._Q, Sigma,
+            proposal, float(self._log_new), float(self._log_start),
+        )  # fmt: skip
+        self.positions, self.rotations, self.twists = positions, rotations, twists
+        self._stats["paired"] += int(paired)
+        self._stats["discarded"] += int(discarded)
         return assoc, log_likelihood, Sigma
 
     # ---------------------------------------------------------------------------------- landmarks
 
     def _update_landmarks(self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None) -> None:
-        """3x3 EKF update of every associated landmark with the particle's (sampled) pose, all at once."""
-        p, i = np.nonzero(assoc >= 0)
-        if len(p) == 0:
+        """3x3 EKF update of every associated landmark with the particle's (sampled) pose
+        (:func:`relpoint.estimators._fastslam_kernels.update_landmarks`)."""
+        if not (assoc >= 0).any():
             return
-        j = assoc[p, i]
-        R = self.rotations[p]
-        Rt = np.swapaxes(R, 1, 2)
-        cov = self.covs[p, j]
-        z_hat = np.einsum("pij,pj->pi", Rt, self.means[p, j] - self.positions[p])
-        S = Rt @ cov @ R + self._Q
-        K = cov @ R @ np.linalg.inv(S)  # dz/dm = R^T, so P H^T = cov R
-        self.means[p, j] += np.einsum("pij,pj->pi", K, points[i] - z_hat)
-        I_KH = np.eye(3) - K @ Rt
-        new_cov = I_KH @ cov @ np.swapaxes(I_KH, 1, 2) + K @ self._Q @ np.swapaxes(K, 1, 2)
-        self.covs[p, j] = 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
-        self._seen[p, j] += 1
-        self._last[p, j] = self._stats["iterations"]
+        _fastslam_kernels.update_landmarks(
+            np.ascontiguousarray(points, dtype=np.float64), assoc, self.positions, self.rotations, self.means,
+            self.covs, self._Q, self._seen, self._last, self._stats["iterations"],
+        )  # fmt: skip
         if ids is not None:
-            self._vote(p, j, np.asarray(ids)[i])
+            p, i = np.nonzero(assoc >= 0)
+            self._vote(p, assoc[p, i], np.asarray(ids)[i])
 
     def _vote(self, p: np.ndarray, j: np.ndarray, ids: np.ndarray) -> None:
         """Boyer-Moore majority vote of the ground-truth ids fused into each landmark (diagnosis only)."""
