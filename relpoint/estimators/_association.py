@@ -11,15 +11,15 @@ The SO(3) helpers of the filters' motion models live in :mod:`relpoint.geometry`
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 
 import numpy as np
 import numpy.typing as npt
-from scipy import linalg, stats
+from scipy import linalg
 
 from relpoint.geometry import FloatArray
+from relpoint.statistics import chi2_gate
 
 logger = logging.getLogger(__name__)
 
@@ -27,12 +27,6 @@ IntArray = npt.NDArray[np.int64]
 
 
 # ------------------------------------------------------------------------------------------- gating
-
-
-@functools.lru_cache(maxsize=4096)
-def chi2_gate(probability: float, dof: int) -> float:
-    """Chi-square quantile: squared Mahalanobis distance inside which ``probability`` of innovations fall."""
-    return float(stats.chi2.ppf(probability, dof))
 
 
 def mahalanobis_squared(innovations: FloatArray, S_inv: FloatArray) -> FloatArray:

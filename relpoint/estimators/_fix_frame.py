@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
 from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation
 from relpoint.lagrange import interpolate_fixes
+from relpoint.statistics import chi2_gate
 from relpoint.types import PositionFix
 
 logger = logging.getLogger(__name__)
@@ -215,7 +215,7 @@ class FixFrame:
             return False
         fixes = max(1, int(np.count_nonzero(np.asarray(self._fix_stamps) <= self._stamps[-1])))
         chi2 = float(np.einsum("na,nab,nb->", residual, W, residual)) * min(1.0, fixes / len(local))
-        return chi2 <= float(stats.chi2.ppf(AGREEMENT_PROBABILITY, 3 * min(fixes, len(local))))
+        return chi2 <= chi2_gate(AGREEMENT_PROBABILITY, 3 * min(fixes, len(local)))
 
     def _update_provisional(self) -> None:
         pairs = self._pairs()

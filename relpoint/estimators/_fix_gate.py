@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from relpoint.estimators._association import chi2_gate
+from relpoint.statistics import chi2_gate
 
 
 class FixGate:

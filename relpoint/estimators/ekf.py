@@ -43,7 +43,6 @@ from scipy.linalg import blas
 
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators._association import (
-    chi2_gate,
     jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
@@ -57,6 +56,7 @@ from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, rigid_consensus, skew, so3_exp, twist_step
 from relpoint.settings import Settings, setting
+from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)

@@ -45,7 +45,6 @@ from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
-from relpoint.estimators._association import chi2_gate
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._noise import SIMULATOR_SIGMA
@@ -54,6 +53,7 @@ from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
 from relpoint.settings import Settings, setting
+from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)

@@ -31,11 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.stats import chi2
 
 from relpoint.errors import EstimatorError
 from relpoint.fusion.bspline import PathSpline
 from relpoint.geometry import FloatArray, fit_rigid
+from relpoint.statistics import chi2_gate
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ def split_segment(
                 cache[a, b] = (math.nan, math.nan, 0)
             else:
                 value = rigid_fit_statistic(local[a:b], targets[a:b], target_cov[a:b], local_cov[a:b])
-                cache[a, b] = (value, float(chi2.ppf(1.0 - significance, dof)), dof)
+                cache[a, b] = (value, chi2_gate(1.0 - significance, dof), dof)
         return cache[a, b]
 
     def failing(a: int, b: int) -> bool:
