@@ -10,7 +10,6 @@ from __future__ import annotations
 import enum
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.evaluation.association import MatchedPoses
@@ -51,6 +50,8 @@ class PoseRelation(str, enum.Enum):
 
 def rotation_angles(rotations: FloatArray) -> FloatArray:
     """Rotation angles in radians (N,) of rotation matrices (N, 3, 3), as evo's ``so3_log_angle``."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
     if len(rotations) == 0:
         return np.zeros(0)
     return np.linalg.norm(Rotation.from_matrix(rotations).as_rotvec(), axis=1)

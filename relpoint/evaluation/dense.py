@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
 from relpoint.evaluation import EvaluationError
 from relpoint.geometry import FloatArray, check_points
@@ -103,6 +102,8 @@ def nearest_distances(
     """
     query = check_points(query, "query")
     # An unbalanced tree builds several times faster and queries as fast on scan-like clouds.
+    from scipy.spatial import cKDTree  # here, not at import: scipy costs start-up time
+
     tree = cKDTree(check_points(cloud, "cloud"), balanced_tree=False, compact_nodes=False)
     distances = np.empty(len(query))
     for start in range(0, len(query), QUERY_CHUNK):

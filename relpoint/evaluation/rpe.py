@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.evaluation import EvaluationError
@@ -125,6 +124,8 @@ def _pairs_by_angle(
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if all_pairs:
+        from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
         rots = Rotation.from_matrix(rotations)
         quats = rots.as_quat()
         first: list[int] = []
