@@ -38,6 +38,7 @@ import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -259,7 +260,7 @@ class RestartingEstimator(Estimator[PointObservation]):
 
 
 def run_segmented(
-    inputs: Iterable[object], make_estimator: Callable[[], Estimator], **rule: float
+    inputs: Iterable[object], make_estimator: Callable[[], Estimator], **rule: Any
 ) -> SegmentedRun:
     """Run a local SLAM over time-ordered ``inputs``, starting a new one at every break (see the module),
     through the one drive loop, :func:`relpoint.pipeline.run`; ``rule`` holds :class:`RestartRule`'s
@@ -270,6 +271,6 @@ def run_segmented(
     EstimatorError
         The input holds no observation.
     """
-    restarting = RestartingEstimator(make_estimator, RestartRule(**rule))  # type: ignore[arg-type]
+    restarting = RestartingEstimator(make_estimator, RestartRule(**rule))
     result = pipeline.run(inputs, restarting)  # type: ignore[arg-type]
     return restarting.segmented(result)
