@@ -130,8 +130,10 @@ def _rotate_by(R, w):  # pragma: no cover - compiled
         E[2, 0] = kz * kx * v - ky * s
         E[2, 1] = kz * ky * v + kx * s
         E[2, 2] = c + kz * kz * v
-    out = R @ E
-    R[:, :] = out
+    for a in range(3):
+        r0, r1, r2 = R[a, 0], R[a, 1], R[a, 2]
+        for b in range(3):
+            R[a, b] = r0 * E[0, b] + r1 * E[1, b] + r2 * E[2, b]
 
 
 @njit(cache=True)
