@@ -147,3 +147,19 @@ def test_fuse_post_step_places_the_continuous_relpoint_run_only_where_it_is_rigi
     # fixes alone 1.75 m; landmarks 4.4 / 0.60 m split, 20.9 / 27.3 m whole.
     assert _ate(truth, split) < min(_ate(truth, whole), _ate(truth, _fixes_alone(log, truth)))
     assert _landmark_rmse(split_map, simulation) < 0.5 * _landmark_rmse(whole_map, simulation)
+
+
+def test_fuse_restart_refuses_a_dense_run_with_one_line(local_run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    # --restart re-runs point estimators only: a run.json naming the dense estimator is refused before
+    # anything is read or written, with the way out.
+    log, local_dir, _ = local_run
+    dense_run = tmp_path / "dense-run"
+    dense_run.mkdir()
+    info = json.loads((local_dir / "run.json").read_text())
+    (dense_run / "run.json").write_text(json.dumps({**info, "estimator": "dense", "parameters": {}}))
+    out = tmp_path / "refused"
+    result = CliRunner().invoke(cli, ["fuse", str(dense_run), "--log", str(log), "--restart", "-o", str(out)])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) <= 2 and "point estimators" in lines[0] and "without --restart" in result.output
+    assert not out.exists()
