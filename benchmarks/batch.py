@@ -10,7 +10,10 @@ now, the speed-up of a pure-Python CPU burn on process pools of 1 and 2 workers.
 
 Usage::
 
-    python benchmarks/batch.py [--iterations 200] [--density 25] [--repeats 2]
+    python benchmarks/batch.py [--iterations 200] [--density 25] [--repeats 2] [--dask]
+
+With ``--dask`` the same plan runs on a Dask ``LocalCluster`` of one and of two worker processes
+(started once, before the timed runs) through ``relpoint batch --scheduler``.
 """
 
 from __future__ import annotations
@@ -42,9 +45,11 @@ align = "se3"
 """
 
 
-def run_batch(plan: Path, jobs: int, results: Path) -> tuple[float, float]:
-    """Wall seconds of one ``relpoint batch`` process and the CPU seconds its jobs report."""
-    command = [sys.executable, "-m", "relpoint_cli.main", "-q", "batch", str(plan), "--jobs", str(jobs),
+def run_batch(plan: Path, jobs: int, results: Path, scheduler: str | None = None) -> tuple[float, float]:
+    """Wall seconds of one ``relpoint batch`` process and the CPU seconds its jobs report; with
+    ``scheduler`` the jobs go to that Dask cluster instead of a local pool of ``jobs`` workers."""
+    where = ["--scheduler", scheduler] if scheduler is not None else ["--jobs", str(jobs)]
+    command = [sys.executable, "-m", "relpoint_cli.main", "-q", "batch", str(plan), *where,
                "--results", str(results)]  # fmt: skip
     start = time.perf_counter()
     completed = subprocess.run(command, capture_output=True, text=True, check=False)
@@ -80,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--density", type=float, default=25.0)
     parser.add_argument("--particles", type=int, default=20, help="FastSLAM particles")
     parser.add_argument("--repeats", type=int, default=2, help="timed runs per --jobs value")
+    parser.add_argument(
+        "--dask", action="store_true", help="run the plan on a Dask LocalCluster of 1 and of 2 workers instead"
+    )
     args = parser.parse_args(argv)
 
     from relpoint.simulation import SimulationConfig, simulate
@@ -95,16 +103,27 @@ def main(argv: list[str] | None = None) -> int:
         print(f"plan: 2 logs x {args.iterations} iterations (density {args.density:g}) x ekf, fastslam "
               f"({args.particles} particles) x 2 grid values = 8 jobs; {os.cpu_count()} cores")  # fmt: skip
         times: dict[int, list[float]] = {1: [], 2: []}
+        clusters = {}
+        if args.dask:  # started once, outside the timed runs, as a cluster would be
+            from distributed import LocalCluster
+
+            for workers in (1, 2):
+                clusters[workers] = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                 host="127.0.0.1", dashboard_address=None)  # fmt: skip
         for repeat in range(args.repeats):
             for jobs in (1, 2):
-                seconds, cpu = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}")
+                scheduler = clusters[jobs].scheduler_address if clusters else None
+                seconds, cpu = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}", scheduler)
                 times[jobs].append(seconds)
                 print(
-                    f"  --jobs {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
+                    f"  {'Dask workers' if clusters else '--jobs'} {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
                     f"   (load average {os.getloadavg()[0]:.1f})"
                 )
+        for cluster in clusters.values():
+            cluster.close()
         one, two = statistics.median(times[1]), statistics.median(times[2])
-        print(f"median wall time --jobs 1: {one:.2f} s, --jobs 2: {two:.2f} s, speed-up {one / two:.2f}x")
+        label = "Dask workers" if args.dask else "--jobs"
+        print(f"median wall time {label} 1: {one:.2f} s, {label} 2: {two:.2f} s, speed-up {one / two:.2f}x")
         print(f"yardstick: a pure-Python CPU burn runs {burn_speedup():.2f}x faster on 2 workers than on 1 just now")
     return 0
 
