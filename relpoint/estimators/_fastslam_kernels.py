@@ -149,9 +149,9 @@ def associate(
     log-likelihood reaches ``log_new``, the point is discarded (-2) when it reaches ``log_start`` only,
     and otherwise starts a landmark (-1). With ``proposal`` each pairing moves the particle's pose and
     twist by the EKF correction ``K nu``, ``K = Sigma H^T L^-1``, and updates ``Sigma`` by the Joseph
-    form ``(I - K H) Sigma (I - K H)^T + K S K^T``, expanded as
-    ``Sigma - K (H Sigma) - (K (H Sigma))^T + K L K^T`` (``Sigma`` symmetric; ``H`` is zero beyond its
-    first six columns, so only ``Sigma``'s first six rows enter ``H Sigma``). ``positions``,
+    form ``(I - K H) Sigma (I - K H)^T + K S K^T``, evaluated left to right as numpy does (``H`` is
+    zero beyond its first six columns, so only six of ``Sigma``'s rows and columns enter each product
+    with it). ``positions``,
     ``rotations``, ``twists`` and ``Sigma`` are updated in place.
 
     Returns ``(assoc (P, N), log_likelihood (P,), paired, discarded)``.
@@ -171,9 +171,12 @@ def associate(
     L = np.empty((3, 3))
     L_inv = np.empty((3, 3))
     best_S = np.empty((3, 3))
-    best_L = np.empty((3, 3))
     best_L_inv = np.empty((3, 3))
     best_HS = np.empty((3, 12))
+    best_A = np.empty((3, 6))
+    SHt = np.empty((12, 3))  # Sigma H^T
+    T = np.empty((12, 12))  # (I - K H) Sigma
+    THt = np.empty((12, 3))  # T H^T
     best_nu = np.empty(3)
     z_hat = np.empty(3)
     nu = np.empty(3)
@@ -243,36 +246,56 @@ def associate(
                         best_nu[a] = nu[a]
                         for b in range(3):
                             best_S[a, b] = S_m[a, b]
-                            best_L[a, b] = L[a, b]
                             best_L_inv[a, b] = L_inv[a, b]
                     if proposal:
                         for a in range(3):
                             for b in range(12):
                                 best_HS[a, b] = HS[a, b]
+                            for b in range(6):
+                                best_A[a, b] = A[a, b]
             if best_slot >= 0 and best >= log_new:
                 assoc[p, i] = best_slot
                 used[p, best_slot] = True
                 log_likelihood[p] += best
                 if proposal:
-                    for a in range(12):  # K = (H Sigma)^T L^-1
+                    for a in range(12):  # Sigma H^T (H is zero beyond its first six columns)
                         for b in range(3):
-                            K[a, b] = best_HS[0, a] * best_L_inv[0, b] + best_HS[1, a] * best_L_inv[1, b] \
-                                + best_HS[2, a] * best_L_inv[2, b]
+                            total = 0.0
+                            for e in range(6):
+                                total += Sg[a, e] * best_A[b, e]
+                            SHt[a, b] = total
+                    for a in range(12):  # K = Sigma H^T L^-1, the correction K nu
+                        for b in range(3):
+                            K[a, b] = SHt[a, 0] * best_L_inv[0, b] + SHt[a, 1] * best_L_inv[1, b] \
+                                + SHt[a, 2] * best_L_inv[2, b]
                         delta[a] = K[a, 0] * best_nu[0] + K[a, 1] * best_nu[1] + K[a, 2] * best_nu[2]
                     for a in range(3):
                         positions[p, a] += delta[a]
                     _rotate_by(rotations[p], delta[3:6])
                     for a in range(6):
                         twists[p, a] += delta[6 + a]
-                    for a in range(12):  # K L
-                        for b in range(3):
-                            KL[a, b] = K[a, 0] * best_L[0, b] + K[a, 1] * best_L[1, b] + K[a, 2] * best_L[2, b]
+                    # Joseph form, as (I - K H) Sigma (I - K H)^T + K S K^T is evaluated left to right:
+                    # T = Sigma - K (H Sigma), then T - (T H^T) K^T, then + K S K^T.
                     for a in range(12):
                         for b in range(12):
-                            khs_ab = K[a, 0] * best_HS[0, b] + K[a, 1] * best_HS[1, b] + K[a, 2] * best_HS[2, b]
-                            khs_ba = K[b, 0] * best_HS[0, a] + K[b, 1] * best_HS[1, a] + K[b, 2] * best_HS[2, a]
-                            klk = KL[a, 0] * K[b, 0] + KL[a, 1] * K[b, 1] + KL[a, 2] * K[b, 2]
-                            Sg[a, b] = Sg[a, b] - khs_ab - khs_ba + klk
+                            T[a, b] = Sg[a, b] - (K[a, 0] * best_HS[0, b] + K[a, 1] * best_HS[1, b]
+                                                  + K[a, 2] * best_HS[2, b])
+                    for a in range(12):
+                        for b in range(3):
+                            total = 0.0
+                            for e in range(6):
+                                total += T[a, e] * best_A[b, e]
+                            THt[a, b] = total
+                    for a in range(12):  # K S
+                        for b in range(3):
+                            KL[a, b] = K[a, 0] * best_S[0, b] + K[a, 1] * best_S[1, b] + K[a, 2] * best_S[2, b]
+                    for a in range(12):
+                        for b in range(12):
+                            Sg[a, b] = (
+                                T[a, b]
+                                - (THt[a, 0] * K[b, 0] + THt[a, 1] * K[b, 1] + THt[a, 2] * K[b, 2])
+                                + (KL[a, 0] * K[b, 0] + KL[a, 1] * K[b, 1] + KL[a, 2] * K[b, 2])
+                            )
             else:
                 if best_slot >= 0 and best >= log_start:
                     assoc[p, i] = -2
