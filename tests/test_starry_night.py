@@ -63,13 +63,14 @@ def load(prefix: int | None = PREFIX) -> StarryNight:
     return StarryNight(inputs, Trajectory.from_poses(poses), landmarks)
 
 
-def build(name: str) -> Any:
-    """The estimator ``name`` with the settings this test (and docs/results.md) uses on Starry Night."""
+def build(name: str, seed: int = 0) -> Any:
+    """The estimator ``name`` with the settings this test (and docs/results.md) uses on Starry Night;
+    ``seed`` draws FastSLAM's particles."""
     if name == "ekf":
         return EkfSlam(EkfConfig(observation_sigma=0.05))
     if name == "fastslam":
         return FastSlam(
-            FastSlamConfig(observation_sigma=0.05, search_radius=0.5, particles=20), np.random.default_rng(0)
+            FastSlamConfig(observation_sigma=0.05, search_radius=0.5, particles=20), np.random.default_rng(seed)
         )
     if name == "relpoint":
         return RelativePointEstimator(
@@ -81,9 +82,9 @@ def build(name: str) -> Any:
     raise ValueError(name)
 
 
-def evaluate(name: str, data: StarryNight) -> dict[str, float]:
+def evaluate(name: str, data: StarryNight, seed: int = 0) -> dict[str, float]:
     """Run estimator ``name`` over ``data``; ATE (SE(3)-aligned) and landmark figures."""
-    result = pipeline.run(data.inputs, build(name))
+    result = pipeline.run(data.inputs, build(name, seed))
     evaluation = evaluate_trajectory(
         data.reference, result.trajectory, EvaluationSettings(align="se3", rpe=False, kitti=False)
     )
@@ -107,7 +108,11 @@ def starry_night() -> StarryNight:
 # name: (ATE RMSE m, rotation RMSE deg, landmark RMSE m, smallest mapped fraction), about 1.5x the figures
 # measured over the first 400 observations (ATE, rotation, landmark RMSE, mapped fraction):
 #   ekf       0.117 m,  9.5 deg, 0.280 m, 0.95
-#   fastslam  0.155 m, 16.5 deg, 0.544 m, 1.00  (before its discard band: 0.192 m, 42.8 deg, 0.341 m)
+#   fastslam  0.155 m, 16.5 deg, 0.544 m, 1.00  (before its discard band: 0.192 m, 42.8 deg, 0.341 m);
+#             it is bounded by the median over particle seeds 0-2, since one seed is a coin toss: over
+#             seeds 0-5 the rotation RMSE ran 16.5-28.5 deg with the association in numpy and 11.2-28.4
+#             deg compiled (medians over seeds 0-2: 0.096 m, 19.4 deg, 0.365 m and 0.091 m, 13.9 deg,
+#             0.450 m)
 #   relpoint  0.545 m, 40.5 deg, 0.536 m, 0.90  (before the final adjustment: 0.557 m, 40.9 deg, 0.554 m;
 #             before the range-scaled second round of local matching:
 #             0.622 m, 45.5 deg, 0.555 m, 0.95; before coasting on raw-point motion: 0.642 m, 52.1 deg, 0.884 m)
@@ -120,7 +125,11 @@ BOUNDS = {
 
 @pytest.mark.parametrize("name", sorted(BOUNDS))
 def test_errors_stay_within_bounds(name: str, starry_night: StarryNight) -> None:
-    figures = evaluate(name, starry_night)
+    if name == "fastslam":
+        runs = [evaluate(name, starry_night, seed) for seed in range(3)]
+        figures = {key: float(np.median([run[key] for run in runs])) for key in runs[0]}
+    else:
+        figures = evaluate(name, starry_night)
     ate_bound, rotation_bound, lm_bound, fraction_bound = BOUNDS[name]
     assert figures["poses"] == PREFIX
     assert figures["ate_rmse"] < ate_bound, figures
