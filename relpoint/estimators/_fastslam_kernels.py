@@ -21,6 +21,28 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 
 @njit(cache=True)
+def _in_sensor_frame(R, position, mean, out):  # pragma: no cover - compiled
+    """``out = R^T (mean - position)``: a world point (3,) in the sensor frame of pose ``(R, position)``."""
+    d0 = mean[0] - position[0]
+    d1 = mean[1] - position[1]
+    d2 = mean[2] - position[2]
+    for a in range(3):
+        out[a] = R[0, a] * d0 + R[1, a] * d1 + R[2, a] * d2
+
+
+@njit(cache=True)
+def _measurement_covariance(R, C, Q, CR, S):  # pragma: no cover - compiled
+    """``S = R^T C R + Q``: a landmark's covariance ``C`` (world) seen from ``R``, plus the point noise
+    ``Q``; ``CR`` (3, 3) is scratch and holds ``C R`` afterwards."""
+    for a in range(3):
+        for b in range(3):
+            CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
+    for a in range(3):
+        for b in range(3):
+            S[a, b] = R[0, a] * CR[0, b] + R[1, a] * CR[1, b] + R[2, a] * CR[2, b] + Q[a, b]
+
+
+@njit(cache=True)
 def near_slots(points, positions, rotations, means, counts, radius):  # pragma: no cover - compiled
     """Per point, the landmark slots within ``radius`` of it (sensor frame) in at least one particle.
 
@@ -38,11 +60,7 @@ def near_slots(points, positions, rotations, means, counts, radius):  # pragma: 
     predicted = np.empty((n_particles, cap, 3))
     for p in range(n_particles):
         for j in range(counts[p]):
-            d0 = means[p, j, 0] - positions[p, 0]
-            d1 = means[p, j, 1] - positions[p, 1]
-            d2 = means[p, j, 2] - positions[p, 2]
-            for a in range(3):
-                predicted[p, j, a] = rotations[p, 0, a] * d0 + rotations[p, 1, a] * d1 + rotations[p, 2, a] * d2
+            _in_sensor_frame(rotations[p], positions[p], means[p, j], predicted[p, j])
     # Each slot's bounding box over the particles that hold it: a point farther than ``radius`` from
     # the box is farther than that from the slot in every particle, so only the others are tested.
     low = np.full((cap, 3), np.inf)
@@ -198,19 +216,10 @@ def associate(
                 j = slots[c]
                 if j >= counts[p] or used[p, j]:
                     continue
-                d0 = means[p, j, 0] - positions[p, 0]
-                d1 = means[p, j, 1] - positions[p, 1]
-                d2 = means[p, j, 2] - positions[p, 2]
+                _in_sensor_frame(R, positions[p], means[p, j], z_hat)
                 for a in range(3):
-                    z_hat[a] = R[0, a] * d0 + R[1, a] * d1 + R[2, a] * d2
                     nu[a] = points[i, a] - z_hat[a]
-                C = covs[p, j]
-                for a in range(3):  # C R
-                    for b in range(3):
-                        CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
-                for a in range(3):  # R^T C R + Q
-                    for b in range(3):
-                        S_m[a, b] = R[0, a] * CR[0, b] + R[1, a] * CR[1, b] + R[2, a] * CR[2, b] + Q[a, b]
+                _measurement_covariance(R, covs[p, j], Q, CR, S_m)
                 for a in range(3):
                     for b in range(3):
                         L[a, b] = S_m[a, b]
@@ -326,6 +335,7 @@ def update_landmarks(points, assoc, positions, rotations, means, covs, Q, seen, 
     I_KH = np.empty((3, 3))
     T = np.empty((3, 3))
     new = np.empty((3, 3))
+    z_hat = np.empty(3)
     nu = np.empty(3)
     for p in range(n_particles):
         R = rotations[p]
@@ -334,17 +344,10 @@ def update_landmarks(points, assoc, positions, rotations, means, covs, Q, seen, 
             if j < 0:
                 continue
             C = covs[p, j]
-            d0 = means[p, j, 0] - positions[p, 0]
-            d1 = means[p, j, 1] - positions[p, 1]
-            d2 = means[p, j, 2] - positions[p, 2]
+            _in_sensor_frame(R, positions[p], means[p, j], z_hat)
             for a in range(3):
-                nu[a] = points[i, a] - (R[0, a] * d0 + R[1, a] * d1 + R[2, a] * d2)
-            for a in range(3):  # C R
-                for b in range(3):
-                    CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
-            for a in range(3):  # R^T C R + Q
-                for b in range(3):
-                    S[a, b] = R[0, a] * CR[0, b] + R[1, a] * CR[1, b] + R[2, a] * CR[2, b] + Q[a, b]
+                nu[a] = points[i, a] - z_hat[a]
+            _measurement_covariance(R, C, Q, CR, S)
             _inverse_and_logdet3(S, S_inv)
             for a in range(3):  # K = C R S^-1
                 for b in range(3):
