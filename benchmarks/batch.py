@@ -13,7 +13,8 @@ Usage::
     python benchmarks/batch.py [--iterations 200] [--density 25] [--repeats 2] [--dask]
 
 With ``--dask`` the same plan runs on a Dask ``LocalCluster`` of one and of two worker processes
-(started once, before the timed runs) through ``relpoint batch --scheduler``.
+(started once, before the timed runs, each preloading :mod:`relpoint_app.worker_warmup` as
+``dask worker --preload relpoint_app.worker_warmup`` does) through ``relpoint batch --scheduler``.
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.batch_start import WARMUP_MODULE
     from relpoint_app.simulation import write_simulation
 
     with tempfile.TemporaryDirectory(prefix="relpoint-batch-bench-") as tmp:
@@ -109,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
 
             for workers in (1, 2):
                 clusters[workers] = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                 host="127.0.0.1", dashboard_address=None)  # fmt: skip
+                                                 host="127.0.0.1", dashboard_address=None,
+                                                 preload=[WARMUP_MODULE])  # fmt: skip
         for repeat in range(args.repeats):
             for jobs in (1, 2):
                 scheduler = clusters[jobs].scheduler_address if clusters else None

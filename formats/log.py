@@ -201,7 +201,7 @@ class LogReader:
         self.layout = detect_layout(self.path)
         check_storage(self.path, self.layout)
         self._scratch: tempfile.TemporaryDirectory[str] | None = None
-        # Opening parses every message definition; the channel pass hands its reader to the next pass.
+        # Opening parses every message definition: a pass hands its open reader to the next one.
         self._spare: AnyReader | None = None
         compressed = self.layout is Layout.ROSBAG2 and self.storage().compression_mode == "file"
         self._read_path = self._decompressed() if compressed else self.path
@@ -222,7 +222,11 @@ class LogReader:
     # -- summary ---------------------------------------------------------------------------------
 
     def _open(self) -> AnyReader:
-        """An open reader of the log; the next pass takes the one the channel pass left open."""
+        """An open reader of the log: the one the last finished pass left, else a new one.
+
+        The log is opened once for any number of passes made one after the other; a pass that starts
+        while another is under way gets a reader of its own (each reader reads from one file position).
+        """
         if self._spare is not None:
             reader, self._spare = self._spare, None
             return reader
@@ -232,6 +236,28 @@ class LogReader:
         except _READ_ERRORS as error:
             raise _corrupt(self.path, self.layout, error) from None
         return reader
+
+    def _release(self, reader: AnyReader) -> None:
+        """Keep a finished pass's reader for the next pass (close it when one is kept already)."""
+        if self._spare is None:
+            self._spare = reader
+        else:
+            reader.close()
+
+    def close(self) -> None:
+        """Close the open reader and remove a decompressed copy; later passes open the log again."""
+        if self._spare is not None:
+            reader, self._spare = self._spare, None
+            reader.close()
+        if self._scratch is not None:
+            self._scratch.cleanup()
+            self._scratch = None
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self.close()
 
     def storage(self) -> Storage:
         """Storage id, files, sizes and compression (what ``ros2 bag info`` shows above the topics)."""
@@ -342,9 +368,15 @@ class LogReader:
                 typename = ros2.normalise_typename(connection.msgtype)
                 yield connection.topic, typename, log_time, decode(raw, typename)
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, self.layout, error) from None
-        finally:
             reader.close()
+            raise _corrupt(self.path, self.layout, error) from None
+        except GeneratorExit:  # the caller stopped early: the reader is sound (every pass seeks to its start)
+            self._release(reader)
+            raise
+        except BaseException:
+            reader.close()
+            raise
+        self._release(reader)
 
     def records(self, roles: Iterable[str]) -> Iterator[Record]:
         """Decoded messages of ``roles`` in log-time order.
@@ -389,9 +421,15 @@ class LogReader:
                 previous[topic] = record.stamp_ns
                 yield record
         except _READ_ERRORS as error:
-            raise _corrupt(self.path, self.layout, error) from None
-        finally:
             reader.close()
+            raise _corrupt(self.path, self.layout, error) from None
+        except GeneratorExit:  # the caller stopped early: the reader is sound (every pass seeks to its start)
+            self._release(reader)
+            raise
+        except BaseException:
+            reader.close()
+            raise
+        self._release(reader)
 
     def _skip(self, kind: str, detail: str, count: int = 1) -> None:
         if kind not in self.skipped:

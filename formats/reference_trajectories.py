@@ -262,17 +262,26 @@ def mcap_trajectory(
     path: Path, topic: str | None = None, parent: str | None = None, child: str | None = None
 ) -> Trajectory:
     """A trajectory from an MCAP file: a pose topic, a TF chain, or the first of :data:`DEFAULT_POSE_TOPICS`."""
-    reader = LogReader(path)
+    with LogReader(path) as reader:
+        return log_trajectory(reader, topic, parent, child)
+
+
+def log_trajectory(
+    reader: LogReader, topic: str | None = None, parent: str | None = None, child: str | None = None
+) -> Trajectory:
+    """:func:`mcap_trajectory` from a log already open."""
     if parent is not None or child is not None:
         if parent is None or child is None:
-            raise InputError(f"{path}: a TF chain needs both --parent and --child")
+            raise InputError(f"{reader.path}: a TF chain needs both --parent and --child")
         return tf_chain_trajectory(reader, parent, child, topic or TF_TOPIC)
     if topic is None:
         topic = next(
             (t for t in DEFAULT_POSE_TOPICS if reader.topic_infos.get(t) and reader.topic_infos[t].count), None
         )
         if topic is None:
-            raise InputError(f"{path}: no /ground_truth/pose or /relpoint/pose; name a topic", _topics_hint(reader))
+            raise InputError(
+                f"{reader.path}: no /ground_truth/pose or /relpoint/pose; name a topic", _topics_hint(reader)
+            )
     return pose_topic_trajectory(reader, topic)
 
 
@@ -384,7 +393,12 @@ def load_ground_truth_landmarks(path: str | os.PathLike[str]) -> GroundTruthLand
     path = Path(path)
     if not is_log(path):
         return None
-    reader = LogReader(path)
+    with LogReader(path) as reader:
+        return ground_truth_landmarks(reader)
+
+
+def ground_truth_landmarks(reader: LogReader) -> GroundTruthLandmarks | None:
+    """The last ground-truth landmarks message of an open log, or None when it has none."""
     if not reader.role_present("ground_truth_landmarks"):
         return None
     last = None

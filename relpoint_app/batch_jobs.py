@@ -21,7 +21,6 @@ import io
 import ipaddress
 import json
 import logging
-import multiprocessing
 import os
 import re
 import signal
@@ -38,13 +37,14 @@ from typing import Any
 from formats.atomic import atomic_directory, remove_temporaries, write_text
 from formats.log import LogReader, Topics, metadata_json
 from formats.outputs import RUN_FILES
-from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
+from formats.reference_trajectories import ground_truth_landmarks, load_landmark_map, load_trajectory, log_trajectory
 from relpoint import pipeline
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
 from relpoint.simulation import simulate
 from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
+from relpoint_app.batch_start import pool_context
 from relpoint_app.evaluator import evaluation_json
 from relpoint_app.runner import execute_run
 from relpoint_app.simulation import write_simulation
@@ -216,14 +216,10 @@ def _empty_row(job: Job) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def _run(job: Job, out_dir: Path) -> tuple[pipeline.RunResult, bool]:
-    """``relpoint run``: the estimator over the log, written to ``out_dir`` (which it replaces).
-
-    Returns the result and whether the log has ground-truth poses to evaluate against.
-    """
+def _run(job: Job, reader: LogReader, out_dir: Path) -> pipeline.RunResult:
+    """``relpoint run``: the estimator over the log, written to ``out_dir`` (which it replaces)."""
     spec = ESTIMATORS[job.estimator]
     config = spec.build_config(dict(job.parameters))
-    reader = LogReader(job.log, Topics(**dict(job.topics)))
     log.info("running %s over %s", spec.name, job.log)
     result = execute_run(
         reader, spec, config, out_dir, seed=job.seed, use_odometry=job.use_odometry, use_fixes=job.use_fixes,
@@ -234,22 +230,25 @@ def _run(job: Job, out_dir: Path) -> tuple[pipeline.RunResult, bool]:
         "%d iterations, %d landmarks, %.3f ms median per iteration",
         timing["iterations"], len(result.landmarks), timing["seconds_median"] * 1e3,
     )  # fmt: skip
-    return result, reader.role_present("ground_truth_pose")
+    return result
 
 
-def _evaluate(job: Job, out_dir: Path, has_ground_truth: bool) -> dict[str, float]:
-    """``relpoint evaluate OUT --reference LOG --json OUT/evaluation.json``; empty without ground truth."""
+def _evaluate(job: Job, reader: LogReader, out_dir: Path) -> dict[str, float]:
+    """``relpoint evaluate OUT --reference LOG --json OUT/evaluation.json``; empty without ground truth.
+
+    The reference comes from the job's open log (``reader``), the estimate from what the run wrote.
+    """
     topics = Topics(**dict(job.topics))
     inputs = {"estimate": str(job.output), "reference": str(job.log), "reference_topic": None,
               "estimate_topic": None, "parent": None, "child": None}  # fmt: skip
     summary: dict[str, float] = {}
-    if has_ground_truth:
+    if reader.role_present("ground_truth_pose"):
         inputs["reference_topic"] = topics.ground_truth_pose
-        reference = load_trajectory(job.log, topic=topics.ground_truth_pose)
+        reference = log_trajectory(reader, topic=topics.ground_truth_pose)
         result = evaluate_trajectory(reference, load_trajectory(out_dir), job.evaluation)
         summary = dict(result.summary)
         landmarks = load_landmark_map(out_dir)
-        truth = load_ground_truth_landmarks(job.log)
+        truth = ground_truth_landmarks(reader)
         if landmarks is not None and truth is not None:
             alignment = result.alignment if job.evaluation.align is not AlignMode.NONE else None
             summary |= landmark_metrics(landmarks, truth, alignment=alignment).summary
@@ -284,9 +283,10 @@ def run_job(job: Job) -> dict[str, Any]:
     )
     with _captured_log() as stream, _single_threaded():
         try:
-            with atomic_directory(job.output) as tmp:
-                result, has_ground_truth = _run(job, tmp)
-                summary = _evaluate(job, tmp, has_ground_truth)
+            # The log is opened once: the run and the evaluation's reference read it through one reader.
+            with LogReader(job.log, Topics(**dict(job.topics))) as reader, atomic_directory(job.output) as tmp:
+                result = _run(job, reader, tmp)
+                summary = _evaluate(job, reader, tmp)
                 timing = result.timing_summary()
                 row.update(
                     status="ok",
@@ -404,9 +404,8 @@ def _signals_ignored() -> Iterator[None]:
 class LocalPool(Executor):
     """A ``ProcessPoolExecutor`` of ``workers`` processes (``--jobs N``).
 
-    Workers come from a fork server that has imported this module once (spawned where there is none),
-    never forked from the parent, which may hold threads (progress bar, logging, a test runner): each
-    starts as a clean interpreter, as a cluster worker does, without paying the imports again.
+    Workers are forked from a fork server that has imported the job modules and loaded the estimators'
+    kernels once (:func:`relpoint_app.batch_start.pool_context`), so none pays for them in its jobs.
 
     Workers ignore SIGINT; :meth:`stop` cancels the queued items and sends the workers SIGTERM, on
     which a running job unwinds (an atomic job directory removes its temporary) and the worker exits;
@@ -417,11 +416,7 @@ class LocalPool(Executor):
     STOP_GRACE_S = 1.0
 
     def __init__(self, workers: int) -> None:
-        if "forkserver" in multiprocessing.get_all_start_methods():
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload([__name__])
-        else:  # pragma: no cover - Windows
-            context = multiprocessing.get_context("spawn")
+        context = pool_context()
         self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=workers, mp_context=context, initializer=_init_worker
         )

@@ -41,6 +41,7 @@ from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import EvaluationSettings
 from relpoint.settings import Settings, setting
 from relpoint.simulation import SimulationConfig
+from relpoint_app.batch_start import MAX_JOBS
 
 #: Top-level keys of a plan.
 PLAN_KEYS = ("results", "logs", "simulate", "estimators", "evaluation", "topics")
@@ -65,9 +66,6 @@ RESULT_COLUMNS = (
 TIMING_COLUMNS = ("seconds_per_iteration", "wall_seconds", "cpu_seconds")
 #: Job outcomes.
 STATUSES = ("ok", "failed", "cancelled")
-
-#: Most jobs a plan may make unless ``relpoint batch --max-jobs N`` allows more.
-MAX_JOBS = 10_000
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._=+-]+")
 _MAX_NAME = 80

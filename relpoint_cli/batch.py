@@ -8,29 +8,20 @@ The plan is parsed by :mod:`relpoint_app.batch_plan`; the jobs and executors are
 from __future__ import annotations
 
 import math
-import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from relpoint.errors import Interrupted, UsageError
-from relpoint_app.batch_jobs import (
-    BatchOutcome,
-    DaskExecutor,
-    Executor,
-    JobFailed,
-    LocalPool,
-    TlsFiles,
-    parse_scheduler,
-    remove_plan_temporaries,
-    run_plan,
-    scheduler_security,
-)
-from relpoint_app.batch_plan import MAX_JOBS, BatchPlan, check_outputs, load_plan, write_results
+from relpoint_app.batch_start import MAX_JOBS, default_workers, start_fork_server
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.progress import progress_bar
+
+if TYPE_CHECKING:
+    from relpoint_app.batch_jobs import BatchOutcome
+    from relpoint_app.batch_plan import BatchPlan
 
 EXAMPLES = """\b
 Examples:
@@ -48,14 +39,6 @@ Only connect to schedulers you trust: a Dask scheduler can run code in this proc
 Exit codes: 0 every job ok, 2 a bad plan or options, 3 no scheduler, 4 a job failed, 130 interrupted.
 See docs/batch.md for the plan format.
 """
-
-
-def default_workers() -> int:
-    """Cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def _number(value: Any, scale: float = 1.0, digits: int = 4) -> str:
@@ -145,6 +128,21 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
     """
     if scheduler is not None and jobs is not None:
         raise UsageError("--jobs sets the local pool's size; the Dask cluster's workers decide with --scheduler")
+    if scheduler is None:
+        start_fork_server()  # first: the workers' warm-up runs while this process reads the plan
+    from relpoint_app.batch_jobs import (
+        DaskExecutor,
+        Executor,
+        JobFailed,
+        LocalPool,
+        TlsFiles,
+        parse_scheduler,
+        remove_plan_temporaries,
+        run_plan,
+        scheduler_security,
+    )
+    from relpoint_app.batch_plan import check_outputs, load_plan, write_results
+
     tls = TlsFiles(tls_ca_file, tls_cert, tls_key) if (tls_ca_file or tls_cert or tls_key) else None
     if scheduler is None:
         if tls is not None:

@@ -232,3 +232,42 @@ def test_fail_fast_stops_at_the_first_failure(
     # One worker holds at most two queued jobs when the first failure arrives; the rest never start.
     assert statuses.count("cancelled") >= 4 and statuses.count("ok") <= 2
     assert all(not (tmp_path / "results" / r["job"]).exists() for r in rows if r["status"] == "cancelled")
+
+
+def _warm_modules() -> list[str]:
+    """In a pool worker: which warm-up modules and kernels the worker had before its first job."""
+    import sys
+
+    from relpoint.estimators import _fastslam_kernels
+
+    loaded = [name for name in ("relpoint_app.worker_warmup", "relpoint.estimators.fastslam") if name in sys.modules]
+    if _fastslam_kernels.associate.signatures:
+        loaded.append("fastslam kernels")
+    return loaded
+
+
+def test_pool_workers_start_warm() -> None:
+    from relpoint_app.batch_jobs import LocalPool
+
+    with LocalPool(1) as pool:
+        [(_, loaded)] = list(pool.map_unordered(lambda_free_call, [_warm_modules]))
+    assert loaded == ["relpoint_app.worker_warmup", "relpoint.estimators.fastslam", "fastslam kernels"]
+
+
+def lambda_free_call(function: Any) -> Any:
+    """Call ``function`` in the worker (the pool pickles both by name)."""
+    return function()
+
+
+def test_a_job_opens_its_log_once(plan_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import formats.log as log_module
+    from relpoint_app.batch_jobs import run_job, run_simulation
+
+    plan = load_plan(plan_file, results=tmp_path / "results")
+    assert run_simulation(plan.simulations[0])["status"] == "ok"
+    opened: list[Path] = []
+    real = log_module.open_reader
+    monkeypatch.setattr(log_module, "open_reader", lambda path: opened.append(path) or real(path))
+    row = run_job(plan.jobs[0])
+    assert row["status"] == "ok" and row["ate_rmse"] is not None and row["landmark_rmse"] is not None
+    assert opened == [plan.jobs[0].log]

@@ -215,3 +215,43 @@ def test_reads_a_real_rosbag2_recording() -> None:
     assert len(odometry) == 2639
     assert all(np.isfinite(o.linear).all() for o in odometry)
     assert max(abs(o.linear[0]) for o in odometry) > 0.05  # the robot drives
+
+
+def _count_opens(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Patch the log reader's opener to record every path it opens."""
+    import formats.log as log_module
+
+    opened: list[Path] = []
+    real = log_module.open_reader
+
+    def counting(path: Path):  # type: ignore[no-untyped-def]
+        opened.append(path)
+        return real(path)
+
+    monkeypatch.setattr(log_module, "open_reader", counting)
+    return opened
+
+
+def test_passes_one_after_another_share_one_open_reader(small_log: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    opened = _count_opens(monkeypatch)
+    with LogReader(small_log) as reader:
+        points = [r.stamp_ns for r in reader.records(["points"])]
+        poses = [r.stamp_ns for r in reader.records(["ground_truth_pose"])]
+        first = next(iter(reader.records(["points"])))  # stopped early: the reader is kept, not spoiled
+        again = [r.stamp_ns for r in reader.records(["points"])]
+        raw = [stamp for _, _, stamp, _ in reader.messages(["/points"])]
+    assert len(opened) == 1
+    assert points and poses and len(raw) == len(points)
+    assert first.stamp_ns == points[0] and again == points
+
+
+def test_passes_at_the_same_time_read_independently(small_log: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    opened = _count_opens(monkeypatch)
+    with LogReader(small_log) as reader:
+        alone = [r.stamp_ns for r in reader.records(["points"])]
+        together = [
+            (a.stamp_ns, b.stamp_ns)
+            for a, b in zip(reader.records(["points"]), reader.records(["points"]), strict=True)
+        ]
+    assert [a for a, _ in together] == alone and [b for _, b in together] == alone
+    assert len(opened) == 2  # the second pass, started while the first ran, had a reader of its own

@@ -1,0 +1,48 @@
+"""What ``relpoint batch`` needs before it reads a plan: the job limit, the worker count, and the
+local pool's fork server.
+
+This module imports nothing heavy, so that the command can start the fork server first: the server
+then imports and warms up what every job needs (:mod:`relpoint_app.worker_warmup`) on another core
+while the command reads the plan, and every worker forked from it starts its first job warm.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.context
+import multiprocessing.forkserver
+import os
+
+#: Most jobs a plan may expand to (``relpoint batch --max-jobs``).
+MAX_JOBS = 10_000
+
+#: The module the fork server (and a Dask worker, with ``--preload``) imports before the first job.
+WARMUP_MODULE = "relpoint_app.worker_warmup"
+
+
+def default_workers() -> int:
+    """Cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def pool_context() -> multiprocessing.context.BaseContext:
+    """How local pool workers start: forked from a fork server that has run :data:`WARMUP_MODULE`
+    (spawned where there is no fork server, e.g. on Windows).
+
+    Never forked from the command itself, which may hold threads (progress bar, logging, a test
+    runner): each worker starts as a clean interpreter, as a cluster worker does.
+    """
+    if "forkserver" not in multiprocessing.get_all_start_methods():  # pragma: no cover - Windows
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([WARMUP_MODULE])
+    return context
+
+
+def start_fork_server() -> None:
+    """Start the fork server now (it warms up in the background; idempotent; a no-op without one)."""
+    if pool_context().get_start_method() == "forkserver":
+        multiprocessing.forkserver.ensure_running()
