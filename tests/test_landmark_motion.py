@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from relpoint.estimators._landmark_motion import MIN_PAIRED, MIN_SEEN, MotionTest, hand_over, median_by_group
+from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
 from relpoint.simulation import SimulationConfig, simulate
 
@@ -28,7 +29,7 @@ def _smooth_over(test: MotionTest, innovations: np.ndarray, sigma: float) -> np.
     Q = np.eye(3)[None] * sigma**2
     drift, moving, flags = np.zeros((1, 3)), np.zeros(1, dtype=bool), []
     for k, v in enumerate(innovations):
-        drift, moving = test.classify(v[None], Q, Q / (k + 1), drift, moving, np.array([k + 1]))
+        drift, moving = test.classify(v[None], Q, Q / (k + 1), drift, moving, np.array([k + 1]), np.array([True]))
         flags.append(bool(moving[0]))
     return np.array(flags)
 
@@ -36,7 +37,7 @@ def _smooth_over(test: MotionTest, innovations: np.ndarray, sigma: float) -> np.
 def test_static_landmarks_are_rarely_taken_for_movers_and_steady_motion_is_caught() -> None:
     rng = np.random.default_rng(0)
     sigma = 0.3
-    test = MotionTest(0.999, search_radius=5.0)
+    test = MotionTest(0.999, reach=5.0)
     # White innovations of a static landmark, covariance Q + C with C = Q / pairings: hardly ever flagged.
     scale = sigma * np.sqrt(1.0 + 1.0 / np.arange(1, 101))[:, None]
     static = [_smooth_over(test, rng.normal(size=(100, 3)) * scale, sigma).mean() for _ in range(50)]
@@ -47,11 +48,11 @@ def test_static_landmarks_are_rarely_taken_for_movers_and_steady_motion_is_caugh
 
 
 def test_a_moving_landmark_that_stops_is_released() -> None:
-    test = MotionTest(0.999, search_radius=5.0)
+    test = MotionTest(0.999, reach=5.0)
     Q = np.eye(3)[None] * 0.09
     drift, moving = np.array([[1.0, 0.0, 0.0]]), np.array([True])
     for _ in range(20):  # innovations of a landmark placed on its last point, now still: 2Q noise around 0
-        drift, moving = test.classify(np.zeros((1, 3)), Q, Q, drift, moving, np.array([50]))
+        drift, moving = test.classify(np.zeros((1, 3)), Q, Q, drift, moving, np.array([50]), np.array([True]))
     assert not moving[0]
 
 
@@ -85,15 +86,18 @@ def test_hand_over_pairs_a_new_point_with_the_landmark_that_moved_from_it() -> N
     assert len(hand_over(drifted, *args[1:], radius=1.5)[0]) == 0
 
 
-def _duplicates(follow_movers: bool, seed: int) -> tuple[float, float]:
-    """(duplicate map entries in % of the map, precision of the dynamic flags) on an indoor scene with
-    20 % of its landmarks moving along lines at 0.05 m an iteration (noise 0.03 m)."""
+def _duplicates(name: str, follow_movers: bool, seed: int) -> tuple[float, float]:
+    """(duplicate map entries in % of the map, precision of the dynamic flags) of estimator ``name`` on
+    an indoor scene with 20 % of its landmarks moving along lines at 0.05 m an iteration (noise 0.03 m)."""
     config = SimulationConfig(iterations=150, seed=seed, noise=0.03, scale=0.1, dynamic=0.2, mover_motion="line",
                               mover_speed=0.05)  # fmt: skip
     simulation = simulate(config)
-    estimator = FastSlam(
-        FastSlamConfig(observation_sigma=0.03, follow_movers=follow_movers), np.random.default_rng(seed)
-    )
+    if name == "fastslam":
+        estimator: FastSlam | EkfSlam = FastSlam(
+            FastSlamConfig(observation_sigma=0.03, follow_movers=follow_movers), np.random.default_rng(seed)
+        )
+    else:
+        estimator = EkfSlam(EkfConfig(observation_sigma=0.03, follow_movers=follow_movers))
     for step in simulation.steps():
         estimator.step(step.observation)
     landmarks = estimator.landmark_map()
@@ -105,10 +109,24 @@ def _duplicates(follow_movers: bool, seed: int) -> tuple[float, float]:
     return duplicates, precision
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_fastslam_follows_movers_instead_of_mapping_their_trails(seed: int) -> None:
-    duplicates, precision = _duplicates(True, seed)
-    without, _ = _duplicates(False, seed)
+@pytest.mark.parametrize(("name", "seed"), [("fastslam", 0), ("fastslam", 1), ("ekf", 0), ("ekf", 1)])
+def test_filters_follow_movers_instead_of_mapping_their_trails(name: str, seed: int) -> None:
+    duplicates, precision = _duplicates(name, True, seed)
+    without, _ = _duplicates(name, False, seed)
     assert without > 20.0  # the trails the test is about
     assert duplicates < 0.15 * without and duplicates < 5.0
     assert precision >= 0.8
+
+
+def test_static_scene_has_no_movers_and_is_unchanged_for_the_ekf() -> None:
+    """Without movers the EKF's run is the same with and without the test (nothing is flagged or handed over)."""
+    simulation = simulate(SimulationConfig(iterations=150, seed=2))
+    runs = []
+    for follow in (True, False):
+        estimator = EkfSlam(EkfConfig(follow_movers=follow))
+        poses = [estimator.step(step.observation).position for step in simulation.steps()]
+        runs.append((np.array(poses), estimator.landmark_map()))
+    (with_test, map_with), (without_test, map_without) = runs
+    assert not map_with.dynamic.any()
+    np.testing.assert_array_equal(with_test, without_test)
+    np.testing.assert_array_equal(map_with.positions, map_without.positions)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, skew
 from relpoint.statistics import chi2_gate
 
 #: Weight of the newest innovation in the smoothed one.
@@ -37,6 +37,13 @@ SMOOTHING = 0.3
 MIN_SEEN = 3
 #: Chi-square probability of the gate under which a moving landmark is static again.
 RELEASE_PROBABILITY = 0.5
+#: How far a moving landmark may get from its next point, in observation sigmas (5 m at the
+#: simulator's 0.3 m): the EKF's hand-over radius, and twice the widening of a moving landmark
+#: (FastSLAM uses its search radius, whose default is the same).
+REACH_SIGMAS = 5.0 / 0.3
+#: Iterations a landmark that is no longer paired stays a candidate for a hand-over (a mover's points
+#: may fall between the association gate and the new-landmark gate for a few iterations first).
+HAND_OVER_MEMORY = 3
 #: A particle hands landmarks over only while it pairs at least this many points in the iteration,
 #: and more than the landmarks it saw the iteration before and does not pair now (else its pose has
 #: drifted, every landmark seems to move, and new landmarks are what lets it recover).
@@ -71,20 +78,24 @@ def hand_over(
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """The landmarks that moved out of their gate, and the points they moved to: ``(p, i, j)``.
 
-    A point ``i`` that particle ``p`` would start a landmark from (``assoc[p, i] == -1``), within
-    ``radius`` (m, ``world``) of a landmark ``j`` of the particle that was paired the iteration before
-    (``last_seen[p, j] == iteration - 1``) and is not paired now, is that landmark having moved: a
-    static landmark is paired whenever it is seen. Each landmark and each point is handed over once
-    (nearest pairs first), and only in particles that pair at least :data:`MIN_PAIRED` points and
-    more than they miss of the landmarks seen the iteration before.
+    A point ``i`` that particle ``p`` would start a landmark from (``assoc[p, i] == -1``), within ``radius`` (m, ``world``) of a landmark ``j`` of the
+    particle that was paired in the last :data:`HAND_OVER_MEMORY` iterations but not in this one
+    (``last_seen[p, j]``, with this iteration's pairs already marked ``iteration``), is that landmark
+    having moved: a static landmark is paired whenever it is seen. Points discarded between the
+    gates (-2) are not handed over: on real data with its noise underestimated a static landmark's
+    points land there often, several in a row (Starry Night: 7 % of the points), and the landmark
+    would be taken for a mover. Each landmark and each point is
+    handed over once (nearest pairs first; a point or landmark whose nearest pair conflicts is left
+    alone), and only in particles that pair at least :data:`MIN_PAIRED` points and more than they
+    miss of the landmarks seen lately.
 
     ``near`` is the association's candidates (CSR ``offsets, slots`` per point); ``positions`` (P, 3),
     ``rotations`` (P, 3, 3) ``R_world_sensor``; ``points`` (N, 3) sensor frame; ``means`` (P, M, 3).
     """
     empty = np.zeros(0, dtype=np.int64)
     paired = (assoc >= 0).sum(axis=1)
-    missed = (last_seen == iteration - 1).sum(axis=1)  # the paired ones were marked with this iteration
-    steady = (paired >= MIN_PAIRED) & (paired > missed)
+    lately = (last_seen >= iteration - HAND_OVER_MEMORY) & (last_seen < iteration)
+    steady = (paired >= MIN_PAIRED) & (paired > lately.sum(axis=1))
     p, i = np.nonzero((assoc == -1) & steady[:, None])
     offsets, slots = near
     per_point = offsets[i + 1] - offsets[i]
@@ -96,7 +107,7 @@ def hand_over(
     p, i = np.repeat(p, per_point), np.repeat(i, per_point)
     live = j < counts[p]
     p, i, j = p[live], i[live], j[live]
-    recent = last_seen[p, j] == iteration - 1
+    recent = lately[p, j]
     p, i, j = p[recent], i[recent], j[recent]
     world = positions[p] + np.einsum("kab,kb->ka", rotations[p], points[i])
     distance = np.linalg.norm(world - means[p, j], axis=1)
@@ -111,20 +122,54 @@ def hand_over(
     return p[keep], i[keep], j[keep]
 
 
+def shared_motion_removed(
+    group: npt.NDArray[np.int64], innovations: FloatArray, offsets: FloatArray, groups: int
+) -> FloatArray:
+    """``innovations`` (k, 3) less the small rigid motion each group's pairs share (its pose error).
+
+    A pose error ``(t, w)`` (translation, small rotation) moves a landmark at ``offsets`` (k, 3, m, the
+    landmark less the sensor position, ``world``) by ``t + w x offset``: fitted per group by least
+    squares, first from every pair, then again without the pairs whose residual is over three times
+    the group's median residual (the movers, mostly). Groups of fewer than 3 pairs lose only their
+    median translation (:func:`median_by_group`).
+    """
+    centred = innovations - median_by_group(group, innovations, groups)
+    design = np.zeros((len(group), 3, 6))
+    design[:, :, :3] = np.eye(3)
+    design[:, :, 3:] = -skew(offsets)  # w x r = -[r]x w
+    weights = np.ones(len(group))
+    residual = centred
+    for _ in range(2):
+        normal = np.zeros((groups, 6, 6))
+        right = np.zeros((groups, 6))
+        np.add.at(normal, group, weights[:, None, None] * np.einsum("kai,kaj->kij", design, design))
+        np.add.at(right, group, weights[:, None] * np.einsum("kai,ka->ki", design, centred))
+        enough = np.bincount(group, weights=weights, minlength=groups) >= 3
+        normal[~enough] = np.eye(6)
+        right[~enough] = 0.0
+        shared = np.linalg.solve(normal + 1e-9 * np.eye(6), right[:, :, None])[:, :, 0]
+        residual = centred - np.einsum("kai,ki->ka", design, shared[group])
+        size = np.linalg.norm(residual, axis=1)
+        typical = median_by_group(group, size[:, None], groups)[:, 0]
+        weights = (size <= 3.0 * typical).astype(np.float64)
+    return residual
+
+
 class MotionTest:
     """The moving-landmark test and what follows from it, over arrays of paired landmarks.
 
     Parameters
     ----------
     gate_probability: chi-square probability of the gate on the smoothed innovation (3 dof).
-    search_radius: the association's search radius (m); a moving landmark's covariance is widened by
-        ``(search_radius / 2)^2`` per axis before each association.
+    reach: how far (m) a moving landmark may be from its next point (the association's search
+        radius); its covariance is widened by ``(reach / 2)^2`` per axis before each association.
     """
 
-    def __init__(self, gate_probability: float, search_radius: float) -> None:
+    def __init__(self, gate_probability: float, reach: float) -> None:
         self.gate = chi2_gate(gate_probability, 3)
         self.release = chi2_gate(RELEASE_PROBABILITY, 3)
-        self.widening = (search_radius / 2.0) ** 2
+        self.reach = reach
+        self.widening = (reach / 2.0) ** 2
 
     def classify(
         self,
@@ -134,20 +179,22 @@ class MotionTest:
         drift: FloatArray,
         moving: npt.NDArray[np.bool_],
         seen: npt.NDArray[np.int64],
+        decidable: npt.NDArray[np.bool_],
     ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
         """The new smoothed innovations (k, 3) and moving flags (k,) of k paired landmarks.
 
         ``innovations`` (k, 3, m, ``world``) with the pose's shared error already taken out;
         ``point_covariances`` ``R Q R^T`` (k, 3, 3) and ``landmark_covariances`` (k, 3, 3);
         ``drift``, ``moving`` and ``seen`` the landmarks' smoothed innovations, flags and pairing
-        counts so far.
+        counts so far; ``decidable`` (k,) whether the pair's iteration (particle) paired enough points
+        (:data:`MIN_PAIRED`) to tell one landmark's motion from the pose's: only those start a flag.
         """
         a = SMOOTHING
         drift = (1.0 - a) * drift + a * innovations
         # A moving landmark sits on its last point: its innovation is the motion plus two points' noise.
         S = np.where(moving[:, None, None], 2.0 * point_covariances, point_covariances + landmark_covariances)
         nis = np.einsum("ki,kij,kj->k", drift, np.linalg.inv(S * (a / (2.0 - a))), drift)
-        started = (seen >= MIN_SEEN) & (nis > self.gate)
+        started = decidable & (seen >= MIN_SEEN) & (nis > self.gate)
         return drift, np.where(moving, nis > self.release, started)
 
     def widen(self, covariances: FloatArray, moving: npt.NDArray[np.bool_]) -> None:

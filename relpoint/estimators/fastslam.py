@@ -52,7 +52,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
-from relpoint.estimators._landmark_motion import MotionTest, hand_over, median_by_group
+from relpoint.estimators._landmark_motion import MIN_PAIRED, MotionTest, hand_over, shared_motion_removed
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
@@ -241,7 +241,7 @@ class FastSlam(Estimator[PointObservation]):
         self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
         self._drift = np.zeros((n, self._capacity, 3))  # smoothed innovation of each landmark (world, m)
         self._moving = np.zeros((n, self._capacity), dtype=bool)
-        self._motion = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
+        self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
         self._stamp_ns: int | None = None
         self._moved = False
         self._twist_unknown = False
@@ -281,8 +281,8 @@ class FastSlam(Estimator[PointObservation]):
             self._apply_sample(Sigma)
             Sigma = np.zeros_like(Sigma)
         points = np.asarray(observation.points)
-        if self._motion is not None:
-            self._motion.widen(self.covs, self._moving)
+        if self._mover_test is not None:
+            self._mover_test.widen(self.covs, self._moving)
         assoc, log_likelihood, Sigma, near = self._associate(points, Sigma, proposal)
         if proposal:
             self._apply_sample(Sigma)
@@ -299,10 +299,10 @@ class FastSlam(Estimator[PointObservation]):
         self._step_stamp_ns = observation.stamp_ns
         self.log_weights = self.log_weights + log_likelihood
         self.log_weights -= logsumexp(self.log_weights)
-        if self._motion is not None:
+        if self._mover_test is not None:
             self._classify_motion(points, assoc)
         self._update_landmarks(points, assoc, observation.ids)
-        if self._motion is not None:
+        if self._mover_test is not None:
             self._hand_over(points, assoc, near, observation.ids)
         self._add_landmarks(points, assoc, observation.ids)
         self._resample_if_degenerate()
@@ -556,17 +556,18 @@ class FastSlam(Estimator[PointObservation]):
     def _classify_motion(self, points: FloatArray, assoc: np.ndarray) -> None:
         """Smooth the innovation of every paired landmark and flag the moving ones
         (:mod:`relpoint.estimators._landmark_motion`), before the pairs update the landmarks."""
-        assert self._motion is not None
+        assert self._mover_test is not None
         p, i = np.nonzero(assoc >= 0)
         if len(p) == 0:
             return
         j = assoc[p, i]
         R = self.rotations[p]
-        innovations = self.positions[p] + np.einsum("pij,pj->pi", R, points[i]) - self.means[p, j]
-        innovations -= median_by_group(p, innovations, self.config.particles)  # the pose's shared error
-        self._drift[p, j], self._moving[p, j] = self._motion.classify(
+        offsets = np.einsum("pij,pj->pi", R, points[i])
+        innovations = self.positions[p] + offsets - self.means[p, j]
+        innovations = shared_motion_removed(p, innovations, offsets, self.config.particles)  # the pose's error
+        self._drift[p, j], self._moving[p, j] = self._mover_test.classify(
             innovations, R @ self._Q @ np.swapaxes(R, 1, 2), self.covs[p, j], self._drift[p, j],
-            self._moving[p, j], self._seen[p, j],
+            self._moving[p, j], self._seen[p, j], (np.bincount(p, minlength=self.config.particles) >= MIN_PAIRED)[p],
         )  # fmt: skip
 
     def _hand_over(
@@ -574,7 +575,7 @@ class FastSlam(Estimator[PointObservation]):
     ) -> None:
         """Pair a point that would start a landmark with a landmark of the same particle that moved out
         of its gate (:func:`relpoint.estimators._landmark_motion.hand_over`); the landmark is moving."""
-        assert self._motion is not None
+        assert self._mover_test is not None
         iteration = self._stats["iterations"]
         p, i, j = hand_over(
             assoc, near, self.counts, self._last, iteration, self.positions, self.rotations, points, self.means,
