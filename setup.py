@@ -97,11 +97,10 @@ class BuildKernels(build_ext):
             objects, _ = compiler._compile_object_files(str(build_temp))
             ext.extra_objects = objects
             super().build_extension(ext)
-        except Exception as error:  # an optional speed-up: report and go on
-            print(
-                f"relpoint: {ext.name} not compiled ahead of time ({error}); its kernels compile on first use",
-                file=sys.stderr,
-            )
+        except Exception as error:  # an optional speed-up: report (on one line) and go on
+            reason = " ".join(str(error).split())
+            message = f"relpoint: {ext.name} not compiled ahead of time ({reason}); its kernels compile on first use"
+            print(message, file=sys.stderr)
 
 
 setup(
