@@ -258,7 +258,8 @@ class FastSlam(Estimator[PointObservation]):
 
     @classmethod
     def compile(cls) -> None:
-        """Compile or load the association's compiled loops (:mod:`relpoint.estimators._fastslam_kernels`)."""
+        """Compile or load the association's compiled loops (:mod:`relpoint.estimators._fastslam_kernels`);
+        nothing to do when they were built ahead of time at install."""
         _fastslam_kernels.prepare()
 
     @property
@@ -522,12 +523,12 @@ class FastSlam(Estimator[PointObservation]):
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         counts = self.counts.astype(np.int64)
-        offsets, slots = _fastslam_kernels.near_slots(
-            points, self.positions, self.rotations, self.means, counts, float(self._search_radius)
-        )
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
         rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
         twists = np.ascontiguousarray(self.twists, dtype=np.float64)
+        offsets, slots = _fastslam_kernels.near_slots(
+            points, positions, rotations, self.means, counts, float(self._search_radius)
+        )
         Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
         assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
             points, offsets, slots, positions, rotations, twists, self.means, self.covs, counts, self._Q, Sigma,
