@@ -24,13 +24,19 @@ def test_median_by_group_is_each_groups_median() -> None:
         )
 
 
-def _smooth_over(test: MotionTest, innovations: np.ndarray, sigma: float) -> np.ndarray:
-    """Moving flags of one landmark after each of ``innovations`` (T, 3)."""
-    Q = np.eye(3)[None] * sigma**2
-    drift, moving, flags = np.zeros((1, 3)), np.zeros(1, dtype=bool), []
-    for k, v in enumerate(innovations):
-        drift, moving = test.classify(v[None], Q, Q / (k + 1), drift, moving, np.array([k + 1]), np.array([True]))
-        flags.append(bool(moving[0]))
+def _flags_over(test: MotionTest, innovations: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Moving flags of one landmark after each of its ``innovations`` (T, 3), paired beside
+    ``MIN_PAIRED`` static landmarks (white innovations, covariance Q + C with C = Q / pairings), as
+    the filters classify them (one group)."""
+    k = MIN_PAIRED + 1
+    Q = np.broadcast_to(np.eye(3) * sigma**2, (k, 3, 3))
+    group = np.zeros(k, dtype=np.int64)
+    drift, moving, flags = np.zeros((k, 3)), np.zeros(k, dtype=bool), []
+    for t, v in enumerate(innovations):
+        seen = np.full(k, t + 1)
+        static = rng.normal(size=(k - 1, 3)) * sigma * np.sqrt(1.0 + 1.0 / (t + 1))
+        drift, moving = test.classify(group, 1, np.vstack([v, static]), Q, Q / (t + 1), drift, moving, seen)
+        flags.append(moving.copy())
     return np.array(flags)
 
 
@@ -38,21 +44,39 @@ def test_static_landmarks_are_rarely_taken_for_movers_and_steady_motion_is_caugh
     rng = np.random.default_rng(0)
     sigma = 0.3
     test = MotionTest(0.999, reach=5.0)
-    # White innovations of a static landmark, covariance Q + C with C = Q / pairings: hardly ever flagged.
-    scale = sigma * np.sqrt(1.0 + 1.0 / np.arange(1, 101))[:, None]
-    static = [_smooth_over(test, rng.normal(size=(100, 3)) * scale, sigma).mean() for _ in range(50)]
-    assert np.mean(static) < 0.01
-    # A landmark that runs ahead of its mean by 2 sigma an iteration is flagged within a few pairings...
-    moving = _smooth_over(test, np.tile([2 * sigma, 0.0, 0.0], (30, 1)) + rng.normal(scale=sigma, size=(30, 3)), sigma)
+    # The static landmarks beside the tested one are hardly ever flagged...
+    static = np.concatenate([_flags_over(test, np.zeros((100, 3)), sigma, rng)[:, 1:] for _ in range(10)])
+    assert static.mean() < 0.01
+    # ...while one that runs ahead of its mean by 2 sigma an iteration is flagged within a few pairings.
+    ahead = np.tile([2 * sigma, 0.0, 0.0], (30, 1)) + rng.normal(scale=sigma, size=(30, 3))
+    moving = _flags_over(test, ahead, sigma, rng)[:, 0]
     assert not moving[: MIN_SEEN - 1].any() and moving[MIN_SEEN + 3 :].all()
 
 
-def test_a_moving_landmark_that_stops_is_released() -> None:
+def test_with_too_few_pairs_nothing_is_flagged() -> None:
     test = MotionTest(0.999, reach=5.0)
     Q = np.eye(3)[None] * 0.09
-    drift, moving = np.array([[1.0, 0.0, 0.0]]), np.array([True])
-    for _ in range(20):  # innovations of a landmark placed on its last point, now still: 2Q noise around 0
-        drift, moving = test.classify(np.zeros((1, 3)), Q, Q, drift, moving, np.array([50]), np.array([True]))
+    drift, moving = np.zeros((1, 3)), np.zeros(1, dtype=bool)
+    for _ in range(10):
+        drift, moving = test.classify(np.zeros(1, dtype=np.int64), 1, np.array([[3.0, 0, 0]]), Q, Q, drift, moving,
+                                      np.array([50]))  # fmt: skip
+    assert not moving[0]
+
+
+def test_a_moving_landmark_that_stops_is_released() -> None:
+    rng = np.random.default_rng(1)
+    test = MotionTest(0.999, reach=5.0)
+    k = MIN_PAIRED + 1
+    Q = np.broadcast_to(np.eye(3) * 0.09, (k, 3, 3))
+    drift = np.zeros((k, 3))
+    drift[0] = [1.0, 0.0, 0.0]
+    moving = np.zeros(k, dtype=bool)
+    moving[0] = True
+    for _ in range(20):  # a landmark placed on its last point, now still: 2Q noise around 0
+        innovations = rng.normal(size=(k, 3)) * 0.3
+        innovations[0] = 0.0
+        drift, moving = test.classify(np.zeros(k, dtype=np.int64), 1, innovations, Q, Q / 50, drift, moving,
+                                      np.full(k, 50))  # fmt: skip
     assert not moving[0]
 
 

@@ -35,6 +35,8 @@ SMOOTHING = 0.3
 #: Pairings a landmark needs before it can be taken for a mover (a new landmark's first innovations
 #: are mostly its own initial error).
 MIN_SEEN = 3
+#: Median of the chi-square distribution with 3 degrees of freedom.
+CHI2_MEDIAN_3 = chi2_gate(0.5, 3)
 #: Chi-square probability of the gate under which a moving landmark is static again.
 RELEASE_PROBABILITY = 0.5
 #: How far a moving landmark may get from its next point, in observation sigmas (5 m at the
@@ -173,27 +175,39 @@ class MotionTest:
 
     def classify(
         self,
+        group: npt.NDArray[np.int64],
+        groups: int,
         innovations: FloatArray,
         point_covariances: FloatArray,
         landmark_covariances: FloatArray,
         drift: FloatArray,
         moving: npt.NDArray[np.bool_],
         seen: npt.NDArray[np.int64],
-        decidable: npt.NDArray[np.bool_],
     ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
         """The new smoothed innovations (k, 3) and moving flags (k,) of k paired landmarks.
 
+        ``group`` (k,) the particle of each pair (ids in ``[0, groups)``, ascending; all 0 for an EKF);
         ``innovations`` (k, 3, m, ``world``) with the pose's shared error already taken out;
         ``point_covariances`` ``R Q R^T`` (k, 3, 3) and ``landmark_covariances`` (k, 3, 3);
         ``drift``, ``moving`` and ``seen`` the landmarks' smoothed innovations, flags and pairing
-        counts so far; ``decidable`` (k,) whether the pair's iteration (particle) paired enough points
-        (:data:`MIN_PAIRED`) to tell one landmark's motion from the pose's: only those start a flag.
+        counts so far.
+
+        Two things come from the data rather than the noise model. Only groups that pair at least
+        :data:`MIN_PAIRED` points start a flag (with fewer, one landmark's motion cannot be told from
+        the pose's). And the gates scale with the group's own innovations: by the median of their
+        normalised squares over its chi-square median, when that is above 1 (real sensors' noise
+        grows with range and is often larger than the ``observation_sigma`` the filter is given;
+        without this a static real scene has a fifth of its landmarks flagged).
         """
         a = SMOOTHING
         drift = (1.0 - a) * drift + a * innovations
         # A moving landmark sits on its last point: its innovation is the motion plus two points' noise.
         S = np.where(moving[:, None, None], 2.0 * point_covariances, point_covariances + landmark_covariances)
-        nis = np.einsum("ki,kij,kj->k", drift, np.linalg.inv(S * (a / (2.0 - a))), drift)
+        S_inv = np.linalg.inv(S)
+        squared = np.einsum("ki,kij,kj->k", innovations, S_inv, innovations)
+        scale = np.maximum(median_by_group(group, squared[:, None], groups)[:, 0] / CHI2_MEDIAN_3, 1.0)
+        nis = np.einsum("ki,kij,kj->k", drift, S_inv, drift) * ((2.0 - a) / a) / scale
+        decidable = (np.bincount(group, minlength=groups) >= MIN_PAIRED)[group]
         started = decidable & (seen >= MIN_SEEN) & (nis > self.gate)
         return drift, np.where(moving, nis > self.release, started)
 

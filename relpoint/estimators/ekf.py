@@ -51,7 +51,6 @@ from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._landmark_motion import (
     HAND_OVER_MEMORY,
-    MIN_PAIRED,
     REACH_SIGMAS,
     MotionTest,
     hand_over,
@@ -128,6 +127,9 @@ class EkfConfig(Settings):
     Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
     mover_gate_probability: float = setting(0.999, above=0, below=1)
     """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
+    hand_over_movers: bool = setting(True)
+    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
+    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     mover_radius_sigmas: float = setting(0.0, low=0, high=1e6)
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a
@@ -286,7 +288,7 @@ class EkfSlam(Estimator[PointObservation]):
                 if self._movers is not None:  # a pair the consensus leaves out may be a landmark that moved
                     may_start |= (assignment >= 0) & (kept < 0)
                 assignment = kept
-            if self._mover_test is not None:
+            if self._mover_test is not None and self.config.hand_over_movers:
                 self._hand_over(points, assignment, may_start)
             paired = np.flatnonzero(assignment >= 0)
             if len(paired):
@@ -627,8 +629,8 @@ class EkfSlam(Estimator[PointObservation]):
         point_covariance = np.broadcast_to(R @ self._R_obs @ R.T, landmark_covariances.shape)
         seen = np.array(self._observations, dtype=np.int64)[landmarks]
         self._drift[landmarks], self._moving[landmarks] = self._mover_test.classify(
-            innovations, point_covariance, landmark_covariances, self._drift[landmarks], self._moving[landmarks], seen,
-            np.full(len(rows), len(rows) >= MIN_PAIRED),
+            np.zeros(len(rows), dtype=np.int64), 1, innovations, point_covariance, landmark_covariances,
+            self._drift[landmarks], self._moving[landmarks], seen,
         )  # fmt: skip
 
     def _hand_over(self, points: FloatArray, assignment: np.ndarray, may_start: np.ndarray) -> None:

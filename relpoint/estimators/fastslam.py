@@ -52,7 +52,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
-from relpoint.estimators._landmark_motion import MIN_PAIRED, MotionTest, hand_over, shared_motion_removed
+from relpoint.estimators._landmark_motion import MotionTest, hand_over, shared_motion_removed
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
@@ -143,6 +143,9 @@ class FastSlamConfig(Settings):
     Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
     mover_gate_probability: float = setting(0.999, above=0, below=1)
     """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
+    hand_over_movers: bool = setting(True)
+    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
+    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     search_radius: float | None = setting(None, low=1e-6, high=1e6)
     """Landmarks farther than this from a point (in every particle) are not considered for it (m).
     Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
@@ -303,7 +306,7 @@ class FastSlam(Estimator[PointObservation]):
         if self._mover_test is not None:
             self._classify_motion(points, assoc)
         self._update_landmarks(points, assoc, observation.ids)
-        if self._mover_test is not None:
+        if self._mover_test is not None and self.config.hand_over_movers:
             self._hand_over(points, assoc, near, observation.ids)
         self._add_landmarks(points, assoc, observation.ids)
         self._resample_if_degenerate()
@@ -567,8 +570,8 @@ class FastSlam(Estimator[PointObservation]):
         innovations = self.positions[p] + offsets - self.means[p, j]
         innovations = shared_motion_removed(p, innovations, offsets, self.config.particles)  # the pose's error
         self._drift[p, j], self._moving[p, j] = self._mover_test.classify(
-            innovations, R @ self._Q @ np.swapaxes(R, 1, 2), self.covs[p, j], self._drift[p, j],
-            self._moving[p, j], self._seen[p, j], (np.bincount(p, minlength=self.config.particles) >= MIN_PAIRED)[p],
+            p, self.config.particles, innovations, R @ self._Q @ np.swapaxes(R, 1, 2), self.covs[p, j],
+            self._drift[p, j], self._moving[p, j], self._seen[p, j],
         )  # fmt: skip
 
     def _hand_over(
