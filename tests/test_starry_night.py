@@ -109,10 +109,12 @@ def starry_night() -> StarryNight:
 # measured over the first 400 observations (ATE, rotation, landmark RMSE, mapped fraction):
 #   ekf       0.117 m,  9.5 deg, 0.280 m, 0.95
 #   fastslam  0.155 m, 16.5 deg, 0.544 m, 1.00  (before its discard band: 0.192 m, 42.8 deg, 0.341 m);
-#             it is bounded by the median over particle seeds 0-2, since one seed is a coin toss: over
+#             it is bounded by the median over particle seeds 0-4, since one seed is a coin toss: over
 #             seeds 0-5 the rotation RMSE ran 16.5-28.5 deg with the association in numpy and 11.2-28.4
 #             deg compiled (medians over seeds 0-2: 0.096 m, 19.4 deg, 0.365 m and 0.091 m, 13.9 deg,
-#             0.450 m)
+#             0.450 m); following moving landmarks (issue 17) 13.6-32.5 deg, two seeds of six above
+#             25 deg (medians over seeds 0-4: 0.116 m, 15.8 deg, 0.414 m; 0.103 m, 14.9 deg, 0.412 m
+#             without)
 #   relpoint  0.545 m, 40.5 deg, 0.536 m, 0.90  (before the final adjustment: 0.557 m, 40.9 deg, 0.554 m;
 #             before the range-scaled second round of local matching:
 #             0.622 m, 45.5 deg, 0.555 m, 0.95; before coasting on raw-point motion: 0.642 m, 52.1 deg, 0.884 m)
@@ -126,7 +128,7 @@ BOUNDS = {
 @pytest.mark.parametrize("name", sorted(BOUNDS))
 def test_errors_stay_within_bounds(name: str, starry_night: StarryNight) -> None:
     if name == "fastslam":
-        runs = [evaluate(name, starry_night, seed) for seed in range(3)]
+        runs = [evaluate(name, starry_night, seed) for seed in range(5)]
         figures = {key: float(np.median([run[key] for run in runs])) for key in runs[0]}
     else:
         figures = evaluate(name, starry_night)
