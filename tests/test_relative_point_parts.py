@@ -939,3 +939,73 @@ def test_sweep_kernels_equal_numpy(block: int) -> None:
         kernel = _kernels.block_mean_scatter(tracks, valid, poses, block)
         assert np.allclose(kernel, expected, rtol=1e-12, atol=1e-12, equal_nan=True)
         assert np.isnan(kernel[0])
+
+
+def numpy_match_recent(reference, age, points, T_curr_prev, bound, angle, predict):  # type: ignore[no-untyped-def]
+    """Local matching step by step in numpy (the kernel ``match_recent``'s meaning)."""
+
+    def motion(row):  # type: ignore[no-untyped-def]
+        pairs = np.flatnonzero((row >= 0) & (age[np.maximum(row, 0)] == 1))
+        fit = fit_transform(reference[row[pairs]], points[pairs], trim=0.0, collinear_tolerance=0.05)
+        return None if fit is None else fit.T
+
+    predicted = _kernels.transform_by_age(T_curr_prev, reference, age) if predict else reference
+    row = match_nearest(predicted, points, bound)[0]
+    T = T_curr_prev
+    T_new = motion(row)
+    measured = T_new is not None
+    if measured:
+        T = T_new
+        D = T_new @ np.linalg.inv(T_curr_prev)
+        angle_change = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+        shift = np.linalg.norm(D[:3, 3]) + angle_change * np.sqrt(np.max(np.sum(reference**2, axis=1)))
+        if predict and shift > bound / 2:
+            predicted = _kernels.transform_by_age(T, reference, age)
+            row = match_nearest(predicted, points, bound)[0]
+    far = 0
+    if predict and angle > 0:
+        free_points = np.flatnonzero(row == NO_MATCH)
+        free_refs = np.setdiff1d(np.arange(len(reference)), row)
+        if len(free_points) and len(free_refs):
+            bounds = bound + angle * np.linalg.norm(predicted[free_refs], axis=1)
+            found = match_mutual(predicted[free_refs], points[free_points], bounds)
+            row[free_points[found >= 0]] = free_refs[found[found >= 0]]
+            far = int(np.count_nonzero(found >= 0))
+            if far:
+                T_far = motion(row)
+                if T_far is not None:
+                    T, measured = T_far, True
+    return row, T, measured, far
+
+
+def test_local_matching_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(21)
+    for trial in range(300):
+        m = int(rng.integers(1, 60))
+        reference = rng.uniform(-20, 20, (m, 3))
+        age = rng.integers(1, 4, m)
+        T_true = random_pose(rng, 0.8)
+        T_true[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
+        carried = _kernels.transform_by_age(T_true, reference, age)
+        keep = rng.random(m) < 0.8
+        points = np.concatenate([carried[keep] + rng.normal(0, 0.1, (int(keep.sum()), 3)), rng.uniform(-20, 20, (5, 3))])
+        points = points[rng.permutation(len(points))]
+        T_guess = np.eye(4) if trial % 3 == 0 else T_true @ random_pose(rng, 0.3) if trial % 3 == 1 else T_true
+        bound, angle, predict = float(rng.uniform(0.5, 2.0)), float(rng.choice([0.0, 0.05])), bool(trial % 5)
+        row, T, measured, far = _kernels.match_recent(reference, age, points, T_guess, bound, angle, predict, 0.05)
+        row_ref, T_ref, measured_ref, far_ref = numpy_match_recent(reference, age, points, T_guess, bound, angle, predict)
+        assert np.array_equal(row, row_ref) and measured == measured_ref and far == far_ref
+        assert np.allclose(T, T_ref, atol=1e-12)
+
+
+def test_stable_argsort_and_prediction_shift_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(22)
+    for n in (0, 1, 2, 7, 64, 65, 200):
+        values = np.round(rng.normal(0, 3, n))  # rounded: ties
+        assert np.array_equal(_kernels._stable_argsort(values), np.argsort(values, kind="stable"))
+    for _ in range(50):
+        T_new, T_before, reference = random_pose(rng, 2.0), random_pose(rng, 2.0), rng.normal(0, 10, (20, 3))
+        D = T_new @ np.linalg.inv(T_before)
+        angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+        expected = np.linalg.norm(D[:3, 3]) + angle * np.sqrt(np.max(np.sum(reference**2, axis=1)))
+        assert np.isclose(_kernels._prediction_shift(T_new, T_before, reference), expected, rtol=1e-12)

@@ -937,3 +937,207 @@ def block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray,
             total += (means[u, 0] - cx) ** 2 + (means[u, 1] - cy) ** 2 + (means[u, 2] - cz) ** 2
         scatter[i] = math.sqrt(total / (used - 1))
     return scatter
+
+
+# -- Local matching of one iteration, whole (section II-A) ------------------------------------------
+
+
+@kernel("f8[::1]")
+def _stable_argsort(values: np.ndarray) -> np.ndarray:
+    """numpy: ``argsort(values, kind="stable")`` (bottom-up merge sort; NaN-free input)."""
+    n = values.shape[0]
+    order = np.arange(n)
+    spare = np.empty(n, np.int64)
+    width = 1
+    while width < n:
+        for low in range(0, n, 2 * width):
+            middle, high = min(low + width, n), min(low + 2 * width, n)
+            i, j = low, middle
+            for out in range(low, high):
+                if i < middle and (j >= high or values[order[i]] <= values[order[j]]):
+                    spare[out] = order[i]
+                    i += 1
+                else:
+                    spare[out] = order[j]
+                    j += 1
+        order, spare = spare, order
+        width *= 2
+    return order
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8")
+def _nearest_one_to_one(reference: np.ndarray, query: np.ndarray, bound: float) -> np.ndarray:
+    """Row of ``reference`` (M, 3) each query (N, 3) takes one-to-one within ``bound`` (m), -1 if none.
+
+    numpy: ``claim_one_to_one(*nearest_two(reference, argsort(reference[:, 0]), query, bound), M)[0]``
+    (:func:`~relpoint.estimators.relative_point.registration.match_nearest`; ``nearest_two`` breaks
+    distance ties by row, so the order among equal x does not matter).
+    """
+    m = reference.shape[0]
+    xs = np.empty(m)
+    for r in range(m):
+        xs[r] = reference[r, 0]
+    j, d = nearest_two(reference, _stable_argsort(xs), query, bound)
+    return claim_one_to_one(j, d, m)[0]
+
+
+@kernel("f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8")
+def _motion_from_pairs(
+    previous: np.ndarray, current: np.ndarray, row: np.ndarray, age: np.ndarray, collinear_tolerance: float
+) -> tuple[np.ndarray, bool]:
+    """Inter-iteration motion ``T_curr_prev`` (4, 4) from the pairs matched to points seen one iteration ago.
+
+    ``previous`` (R, 3) are the references' latest observations, ``current`` (N, 3) this
+    iteration's points, ``row`` (N,) the reference each point matched (-1 none), ``age`` (R,)
+    iterations since each reference was seen. numpy, with ``pairs = flatnonzero((row >= 0) & (age[row] == 1))``::
+
+        fit_transform(previous[row[pairs]], current[pairs], trim=0, collinear_tolerance=collinear_tolerance)
+
+    (:meth:`~relpoint.estimators.relative_point.registration.MotionModel.update`): the plain fit, and
+    False where there are fewer than three pairs or their sources are collinear.
+    """
+    count = 0
+    for q in range(row.shape[0]):
+        if row[q] >= 0 and age[row[q]] == 1:
+            count += 1
+    T = np.eye(4)
+    if count < 3:
+        return T, False
+    source = np.empty((count, 3))
+    target = np.empty((count, 3))
+    p = 0
+    for q in range(row.shape[0]):
+        if row[q] >= 0 and age[row[q]] == 1:
+            for a in range(3):
+                source[p, a] = previous[row[q], a]
+                target[p, a] = current[q, a]
+            p += 1
+    T, spread = rigid_fit(source, target, np.ones(count), np.ones(count, np.bool_))
+    return T, spread > collinear_tolerance
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8[:, ::1]")
+def _prediction_shift(T_new: np.ndarray, T_before: np.ndarray, reference: np.ndarray) -> float:
+    """Largest change (m) of the predicted references (R, 3) when the motion goes from ``T_before`` to ``T_new``.
+
+    numpy: with ``D = T_new @ rigid_inverse(T_before)``,
+    ``norm(D[:3, 3]) + arccos(clip((trace(D[:3, :3]) - 1) / 2, -1, 1)) * sqrt(max(sum(reference**2, 1)))``:
+    translation plus angle times range.
+    """
+    inverse_t = np.empty(3)
+    for a in range(3):
+        inverse_t[a] = -(T_before[0, a] * T_before[0, 3] + T_before[1, a] * T_before[1, 3] + T_before[2, a] * T_before[2, 3])
+    trace = 0.0
+    squared = 0.0
+    for a in range(3):
+        trace += T_new[a, 0] * T_before[a, 0] + T_new[a, 1] * T_before[a, 1] + T_new[a, 2] * T_before[a, 2]
+        moved = T_new[a, 0] * inverse_t[0] + T_new[a, 1] * inverse_t[1] + T_new[a, 2] * inverse_t[2] + T_new[a, 3]
+        squared += moved * moved
+    angle = math.acos(min(1.0, max(-1.0, (trace - 1.0) / 2.0)))
+    reach2 = 0.0
+    for r in range(reference.shape[0]):
+        x, y, z = reference[r, 0], reference[r, 1], reference[r, 2]
+        reach2 = max(reach2, x * x + y * y + z * z)
+    return math.sqrt(squared) + angle * math.sqrt(reach2)
+
+
+@kernel("f8[:, ::1], f8[:, ::1], i8[::1], f8, f8")
+def _match_far(predicted: np.ndarray, points: np.ndarray, row: np.ndarray, match_bound: float, match_angle: float) -> int:
+    """Second round of local matching, in place on ``row`` (N,): returns the number of new pairs.
+
+    The points nobody matched (``row == -1``) and the references (R, 3, predicted into the current
+    frame) no point took are paired as mutual nearest neighbours within
+    ``match_bound + match_angle * norm(predicted)`` (:func:`mutual_nearest`). numpy::
+
+        free_points = flatnonzero(row == -1);  free_refs = setdiff1d(arange(R), row)
+        bounds = match_bound + match_angle * sqrt(einsum("ij,ij->i", predicted[free_refs], predicted[free_refs]))
+        found = mutual_nearest(predicted[free_refs], points[free_points], bounds)
+        row[free_points[found >= 0]] = free_refs[found[found >= 0]]
+    """
+    n_points, n_refs = row.shape[0], predicted.shape[0]
+    taken = np.zeros(n_refs, np.bool_)
+    free_count, taken_count = 0, 0
+    for q in range(n_points):
+        if row[q] < 0:
+            free_count += 1
+        elif not taken[row[q]]:
+            taken[row[q]] = True
+            taken_count += 1
+    free_points = np.empty(free_count, np.int64)
+    f = 0
+    for q in range(n_points):
+        if row[q] < 0:
+            free_points[f] = q
+            f += 1
+    free_refs = np.empty(n_refs - taken_count, np.int64)
+    f = 0
+    for r in range(n_refs):
+        if not taken[r]:
+            free_refs[f] = r
+            f += 1
+    if free_points.shape[0] == 0 or free_refs.shape[0] == 0:
+        return 0
+    references = np.empty((free_refs.shape[0], 3))
+    bounds = np.empty(free_refs.shape[0])
+    for f in range(free_refs.shape[0]):
+        x, y, z = predicted[free_refs[f], 0], predicted[free_refs[f], 1], predicted[free_refs[f], 2]
+        references[f, 0], references[f, 1], references[f, 2] = x, y, z
+        bounds[f] = match_bound + match_angle * math.sqrt(x * x + y * y + z * z)
+    queries = np.empty((free_points.shape[0], 3))
+    for f in range(free_points.shape[0]):
+        for a in range(3):
+            queries[f, a] = points[free_points[f], a]
+    found = mutual_nearest(references, queries, bounds)
+    matched = 0
+    for f in range(found.shape[0]):
+        if found[f] >= 0:
+            row[free_points[f]] = free_refs[found[f]]
+            matched += 1
+    return matched
+
+
+@kernel("f8[:, ::1], i8[::1], f8[:, ::1], f8[:, ::1], f8, f8, b1, f8")
+def match_recent(
+    reference: np.ndarray,
+    age: np.ndarray,
+    points: np.ndarray,
+    T_curr_prev: np.ndarray,
+    match_bound: float,
+    match_angle: float,
+    predict_motion: bool,
+    collinear_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """Local matching of one iteration's points (N, 3) against the recent points' latest observations.
+
+    ``reference`` (R, 3) are those observations (each in the sensor frame of its iteration), ``age``
+    (R,) iterations since each, ``T_curr_prev`` (4, 4) the motion between the last two iterations.
+    Returns ``row`` (N,), the reference each point matched (-1 none), the refreshed motion (4, 4),
+    whether this iteration's pairs measured it, and the number of pairs the second round added.
+    numpy, as :meth:`~relpoint.estimators.relative_point.phases.localisation.Localisation._register`
+    did it step by step::
+
+        predicted = transform_by_age(T_curr_prev, reference, age) if predict_motion else reference
+        row = match_nearest(predicted, points, match_bound)[0]
+        T, measured = _motion_from_pairs(reference, points, row, age)      # T_curr_prev if not measured
+        if predict_motion and measured and _prediction_shift(T, T_curr_prev, reference) > match_bound / 2:
+            predicted = transform_by_age(T, reference, age)                    # a turn began: match again
+            row = match_nearest(predicted, points, match_bound)[0]
+        if predict_motion and match_angle > 0 and (far := _match_far(predicted, points, row, ...)):
+            T, measured = _motion_from_pairs(...) if measured again else (T, measured)
+    """
+    predicted = transform_by_age(T_curr_prev, reference, age) if predict_motion else reference
+    row = _nearest_one_to_one(predicted, points, match_bound)
+    T, measured = _motion_from_pairs(reference, points, row, age, collinear_tolerance)
+    if not measured:
+        T = T_curr_prev.copy()
+    if predict_motion and measured and _prediction_shift(T, T_curr_prev, reference) > 0.5 * match_bound:
+        predicted = transform_by_age(T, reference, age)
+        row = _nearest_one_to_one(predicted, points, match_bound)
+    far = 0
+    if predict_motion and match_angle > 0:
+        far = _match_far(predicted, points, row, match_bound, match_angle)
+        if far > 0:
+            T_far, measured_far = _motion_from_pairs(reference, points, row, age, collinear_tolerance)
+            if measured_far:
+                T, measured = T_far, True
+    return row, T, measured, far

@@ -20,11 +20,18 @@ leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import claim_one_to_one, mutual_nearest, nearest_two, transform_by_age
+from relpoint.estimators.relative_point._kernels import (
+    claim_one_to_one,
+    match_recent,
+    mutual_nearest,
+    nearest_two,
+    transform_by_age,
+)
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.geometry import FloatArray
 
@@ -95,11 +102,53 @@ class MotionModel:
 
         Pairs come from one-to-one matching within the bound, so a plain fit suffices.
         """
-        fit = fit_transform(previous, current, trim=0.0, floor=floor)
+        fit = fit_transform(previous, current, trim=0.0, floor=floor, collinear_tolerance=MOTION_COLLINEAR_TOLERANCE)
         if fit is not None:
             self.T_curr_prev = fit.T
             return fit.T
         return None
+
+    def match(
+        self, reference: FloatArray, age: IntArray, points: FloatArray, bound: float, angle: float, predict: bool
+    ) -> LocalMatches:
+        """Local matching of one iteration's points (N, 3) against recent points, refreshing the motion.
+
+        ``reference`` (R, 3) are the recent points' latest observations (each in the sensor frame of
+        its iteration), ``age`` (R,) iterations since each was observed. A first round matches
+        :func:`match_nearest` within ``bound`` (m), against the references carried into the current
+        frame by the motion when ``predict``; its pairs with references seen one iteration ago refresh
+        the motion, and when that moves the prediction by more than half the bound (a turn began) the
+        round is repeated from the refreshed motion. With ``predict`` and ``angle`` > 0, the points
+        and references left over are paired by :func:`match_mutual` within ``bound + angle * range``
+        (the predicted range, m; the motion's rotation error grows with it), and new pairs refresh
+        the motion again. One compiled call (:func:`~._kernels.match_recent`).
+        """
+        row, T_curr_prev, measured, far = match_recent(
+            np.ascontiguousarray(reference, dtype=np.float64),
+            np.ascontiguousarray(age, dtype=np.int64),
+            np.ascontiguousarray(points, dtype=np.float64),
+            self.T_curr_prev,
+            float(bound),
+            float(angle),
+            bool(predict),
+            MOTION_COLLINEAR_TOLERANCE,
+        )
+        self.T_curr_prev = T_curr_prev
+        return LocalMatches(row, bool(measured), int(far))
+
+
+class LocalMatches(NamedTuple):
+    """What :meth:`MotionModel.match` found: ``row`` (N,), the reference each point matched
+    (``NO_MATCH`` if none); whether the motion was measured from this iteration's pairs; and how
+    many pairs the second, range-dependent round added."""
+
+    row: IntArray
+    motion_measured: bool
+    far_matches: int
+
+
+MOTION_COLLINEAR_TOLERANCE = 0.05
+"""RMS distance (m) off their best line below which matched points give no motion (collinear)."""
 
 
 _KEY_SCALE = 1 << 21
