@@ -1141,3 +1141,105 @@ def match_recent(
             if measured_far:
                 T, measured = T_far, True
     return row, T, measured, far
+
+
+# -- RltGroup (section II-B): a group's anchors for its fit into the world ---------------------------
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8")
+def _point_spread(pos_sum: np.ndarray, pos_weight: np.ndarray, pos_sq: np.ndarray, i: int) -> float:
+    """RMS disagreement (m) between the global positions point ``i``'s groups give it: :func:`gather_spread` of one point."""
+    w = max(pos_weight[i], 1e-12)
+    m0, m1, m2 = pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w
+    return math.sqrt(max(pos_sq[i] / w - (m0 * m0 + m1 * m1 + m2 * m2), 0.0))
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], b1[::1], i8[::1], i8[::1], f8[:, ::1], f8[:, ::1], f8, b1, f8, f8")
+def group_anchors(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    pos_sq: np.ndarray,
+    dynamic: np.ndarray,
+    verified: np.ndarray,
+    members: np.ndarray,
+    relative: np.ndarray,
+    placed: np.ndarray,
+    own_weight: float,
+    weighted: bool,
+    spread_floor_squared: float,
+    unverified_weight: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs a group's fit into ``world`` uses: its static members that other groups placed.
+
+    ``members`` (M,) are the group's points, ``relative`` (M, 3) their relative map (basis frame,
+    m), ``placed`` (M, 3) the group's own contribution with weight ``own_weight`` (0: none yet, and
+    ``placed`` is not read). Returns the anchors' relative positions (A, 3), their global positions
+    without the group's own contribution (A, 3, ``world``) and their weights (A,). numpy::
+
+        other = pos_weight[members] - own_weight
+        anchors = ~dynamic[members] & (other > 1e-9)
+        own = own_weight * placed[anchors] if own_weight > 0 else 0.0
+        target = (pos_sum[members[anchors]] - own) / other[anchors, None]
+        weights = other[anchors] / (gather_spread(..., members[anchors]) ** 2 + spread_floor_squared)
+        weights *= where(verified[members[anchors]] >= 0, 1.0, unverified_weight)   # if weighted, else ones
+
+    Inverse-variance weights: an anchor's global position is as good as the iterations averaged
+    into it and as bad as its groups disagree about it.
+    """
+    m = members.shape[0]
+    count = 0
+    for r in range(m):
+        i = members[r]
+        if not dynamic[i] and pos_weight[i] - own_weight > 1e-9:
+            count += 1
+    source = np.empty((count, 3))
+    target = np.empty((count, 3))
+    weights = np.ones(count)
+    a = 0
+    for r in range(m):
+        i = members[r]
+        other = pos_weight[i] - own_weight
+        if dynamic[i] or not other > 1e-9:
+            continue
+        for c in range(3):
+            source[a, c] = relative[r, c]
+            own = own_weight * placed[r, c] if own_weight > 0.0 else 0.0
+            target[a, c] = (pos_sum[i, c] - own) / other
+        if weighted:
+            spread = _point_spread(pos_sum, pos_weight, pos_sq, i)
+            weights[a] = other / (spread * spread + spread_floor_squared)
+            weights[a] *= 1.0 if verified[i] >= 0 else unverified_weight
+        a += 1
+    return source, target, weights
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8[::1], i8[::1], f8, f8")
+def pose_anchors(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    pos_sq: np.ndarray,
+    verified: np.ndarray,
+    ids: np.ndarray,
+    spread_floor_squared: float,
+    unverified_weight: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Global positions (N, 3, ``world``, m) of mapped points ``ids`` (N,) and their weights (N,) in the pose fit.
+
+    numpy::
+
+        positions = gather_positions(pos_sum, pos_weight, ids)
+        weights = 1.0 / (gather_spread(pos_sum, pos_weight, pos_sq, ids) ** 2 + spread_floor_squared)
+        weights *= where(verified[ids] >= 0, 1.0, unverified_weight)
+
+    Points whose groups disagree about their position (slow movers) and points not yet verified
+    static count for less.
+    """
+    n = ids.shape[0]
+    positions = gather_positions(pos_sum, pos_weight, ids)
+    weights = np.empty(n)
+    for r in range(n):
+        i = ids[r]
+        spread = _point_spread(pos_sum, pos_weight, pos_sq, i)
+        weights[r] = 1.0 / (spread * spread + spread_floor_squared)
+        weights[r] *= 1.0 if verified[i] >= 0 else unverified_weight
+    return positions, weights

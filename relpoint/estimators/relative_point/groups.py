@@ -28,7 +28,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import basis_coordinates, replace_contribution, spread_basis
+from relpoint.estimators.relative_point._kernels import (
+    basis_coordinates,
+    group_anchors,
+    replace_contribution,
+    spread_basis,
+)
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.geometry import FloatArray, apply_transform
@@ -218,26 +223,16 @@ class GroupMap:
         store = self.store
         members = group.members
         relative = group.relative_map
-        static = ~store.dynamic[members]
-        weights = None
         if group.anchor_targets is not None:
-            anchors = static
-            target = group.anchor_targets[anchors]
+            static = ~store.dynamic[members]
+            source, target, weights = relative[static], group.anchor_targets[static], None
         else:
-            other_weight = store.pos_weight[members] - group.weight
-            anchors = static & (other_weight > 1e-9)
-            verified = store.verified[members[anchors]] >= 0
-            own = group.weight * group.placed[anchors] if group.weight > 0 else 0.0
-            target = (store.pos_sum[members[anchors]] - own) / other_weight[anchors, None]
-            # Inverse-variance weights: an anchor's global position is as good as the iterations
-            # averaged into it, and as bad as its groups disagree about it (a slowly moving point).
-            # Points not yet verified static by dynamic detection count for less.
-            if self.weighted:
-                spread = store.spread(members[anchors])
-                weights = other_weight[anchors] / (spread**2 + self.spread_floor**2)
-                weights *= np.where(verified, 1.0, self.unverified_weight)
+            source, target, weights = group_anchors(
+                store.pos_sum, store.pos_weight, store.pos_sq, store.dynamic, store.verified, members, relative,
+                group.placed, float(group.weight), self.weighted, float(self.spread_floor) ** 2, float(self.unverified_weight),
+            )  # fmt: skip
         fit = fit_transform(
-            relative[anchors],
+            source,
             target,
             trim=self.trim,
             floor=self.floor,

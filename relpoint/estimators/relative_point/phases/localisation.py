@@ -7,6 +7,7 @@ import logging
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import pose_anchors
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -102,9 +103,11 @@ class Localisation(EstimatorState):
         static count for less; gross outliers are trimmed. ``None`` if the fit is degenerate.
         """
         store, config = self.store, self.config
-        weights = 1.0 / (store.spread(ids) ** 2 + config.spread_floor**2)
-        weights *= np.where(store.verified[ids] >= 0, 1.0, config.unverified_weight)
-        return self._fit_sensor(points, store.positions(ids), weights)
+        positions, weights = pose_anchors(
+            store.pos_sum, store.pos_weight, store.pos_sq, store.verified, ids, float(config.spread_floor) ** 2,
+            float(config.unverified_weight),
+        )  # fmt: skip
+        return self._fit_sensor(points, positions, weights)
 
     def _fit_sensor(self, points: FloatArray, targets: FloatArray, weights: FloatArray | None) -> FloatArray | None:
         """``T_world_sensor`` by the trimmed least-squares fit of ``points`` (sensor) onto ``targets`` (world)."""
