@@ -1243,3 +1243,166 @@ def pose_anchors(
         weights[r] = 1.0 / (spread * spread + spread_floor_squared)
         weights[r] *= 1.0 if verified[i] >= 0 else unverified_weight
     return positions, weights
+
+
+# -- RltLSF (section II-B): the whole fit but the consensus ----------------------------------------
+
+FIT_DEGENERATE = 0
+"""Outcome of :func:`robust_fit`: fewer than three pairs or a collinear source, no fit."""
+FIT_DONE = 1
+"""Outcome of :func:`robust_fit`: the fit, trimmed."""
+FIT_WANTS_CONSENSUS = 2
+"""Outcome of :func:`robust_fit`: enough pairs lie beyond the consensus bound that the caller re-seeds the fit."""
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8[::1], f8, f8, f8, i8, f8, f8")
+def robust_fit(
+    source: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    trim: float,
+    floor: float,
+    collinear_tolerance: float,
+    rounds: int,
+    consensus: float,
+    consensus_share: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`~relpoint.estimators.relative_point.lsf.fit_transform` up to its consensus step: ``T`` (4, 4), inliers (N,), outcome.
+
+    numpy, for N pairs ``source`` -> ``target`` (N, 3) with ``weights`` (N,)::
+
+        if N < 3: FIT_DEGENERATE
+        T, spread = rigid_fit(source, target, weights, ones(N, bool))
+        if spread <= collinear_tolerance: FIT_DEGENERATE
+        if consensus > 0 and N > 4 and count_nonzero(pair_residuals(source, target, T) > consensus)
+                >= max(2, consensus_share * N): FIT_WANTS_CONSENSUS, with T and all pairs
+        if trim > 0 and N > 4: T, inliers = trimmed_fit(source, target, weights, T, ones(N, bool), ...)
+        FIT_DONE
+    """
+    n = source.shape[0]
+    inliers = np.ones(n, np.bool_)
+    if n < 3:
+        return np.eye(4), inliers, FIT_DEGENERATE
+    T, spread = rigid_fit(source, target, weights, inliers)
+    if spread <= collinear_tolerance:
+        return T, inliers, FIT_DEGENERATE
+    if consensus > 0 and n > 4:
+        residual = pair_residuals(source, target, T)
+        beyond = 0
+        for i in range(n):
+            if residual[i] > consensus:
+                beyond += 1
+        if beyond >= max(2.0, consensus_share * n):
+            return T, inliers, FIT_WANTS_CONSENSUS
+    if trim > 0 and n > 4:
+        T, inliers = trimmed_fit(source, target, weights, T, inliers, trim, floor, rounds, collinear_tolerance)
+    return T, inliers, FIT_DONE
+
+
+# -- The global index (section II-D): cells and the points whose cell may have changed -----------------
+
+
+@kernel("f8[:, ::1], f8, i8, i8")
+def cell_keys(positions: np.ndarray, cell: float, limit: int, scale: int) -> np.ndarray:
+    """Packed keys (N,) of the grid cells (``cell`` m on a side) holding positions (N, 3) m.
+
+    numpy: ``c = clip(floor(positions / cell), -limit, limit).astype(int64); (c[:, 0] * scale + c[:, 1]) * scale + c[:, 2]``
+    (:meth:`~relpoint.estimators.relative_point.registration.GlobalIndex.keys`; finite positions).
+    """
+    n = positions.shape[0]
+    keys = np.empty(n, np.int64)
+    for r in range(n):
+        x = int(min(max(math.floor(positions[r, 0] / cell), -limit), limit))
+        y = int(min(max(math.floor(positions[r, 1] / cell), -limit), limit))
+        z = int(min(max(math.floor(positions[r, 2] / cell), -limit), limit))
+        keys[r] = (x * scale + y) * scale + z
+    return keys
+
+
+@kernel("i8[::1]")
+def distinct_ascending(ids: np.ndarray) -> np.ndarray:
+    """numpy: ``unique(ids)`` for non-negative ids (marked in a table as long as the largest, then collected)."""
+    largest = -1
+    for r in range(ids.shape[0]):
+        largest = max(largest, ids[r])
+    marked = np.zeros(largest + 1, np.bool_)
+    count = 0
+    for r in range(ids.shape[0]):
+        if not marked[ids[r]]:
+            marked[ids[r]] = True
+            count += 1
+    out = np.empty(count, np.int64)
+    c = 0
+    for i in range(largest + 1):
+        if marked[i]:
+            out[c] = i
+            c += 1
+    return out
+
+
+@kernel("i8[::1], b1[::1], f8[::1], b1[::1]")
+def split_indexable(ids: np.ndarray, alive: np.ndarray, pos_weight: np.ndarray, dynamic: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The live points of ``ids`` (N,) that belong in the global index (mapped, static), and the others.
+
+    numpy: ``live = ids[alive[ids]]; keep = (pos_weight[live] > 0) & ~dynamic[live]; live[keep], live[~keep]``.
+    """
+    n_keep, n_drop = 0, 0
+    for r in range(ids.shape[0]):
+        i = ids[r]
+        if alive[i]:
+            if pos_weight[i] > 0 and not dynamic[i]:
+                n_keep += 1
+            else:
+                n_drop += 1
+    keep = np.empty(n_keep, np.int64)
+    drop = np.empty(n_drop, np.int64)
+    k, d = 0, 0
+    for r in range(ids.shape[0]):
+        i = ids[r]
+        if alive[i]:
+            if pos_weight[i] > 0 and not dynamic[i]:
+                keep[k] = i
+                k += 1
+            else:
+                drop[d] = i
+                d += 1
+    return keep, drop
+
+
+# -- Merging (section II-D): flagged points a newly mapped point may take over ---------------------------
+
+
+@kernel("f8[:, ::1], i8[::1], b1[::1], b1[::1], i8[::1], i8, f8[:, ::1], i8[::1], f8")
+def flagged_within(
+    world_sum: np.ndarray,
+    n_obs: np.ndarray,
+    alive: np.ndarray,
+    dynamic: np.ndarray,
+    uid: np.ndarray,
+    high_water: int,
+    positions: np.ndarray,
+    position_uid: np.ndarray,
+    bound_squared: float,
+) -> bool:
+    """Whether a live flagged point older than one of ``positions`` (N, 3, ``world``, m) lies within the bound of it.
+
+    A flagged point sits at its mean observed position ``world_sum / n_obs``; ``position_uid`` (N,)
+    are the uids of the points at ``positions``. numpy::
+
+        flagged = flatnonzero(alive[:high_water] & dynamic[:high_water])
+        at = world_sum[flagged] / maximum(n_obs[flagged], 1)[:, None]
+        d2 = sum((positions[:, None, :] - at[None, :, :]) ** 2, axis=2)
+        any((d2 <= bound_squared) & (uid[flagged][None, :] < position_uid[:, None]))
+    """
+    for i in range(high_water):
+        if not (alive[i] and dynamic[i]):
+            continue
+        count = float(max(n_obs[i], 1))
+        x, y, z = world_sum[i, 0] / count, world_sum[i, 1] / count, world_sum[i, 2] / count
+        for r in range(positions.shape[0]):
+            if uid[i] >= position_uid[r]:
+                continue
+            dx, dy, dz = positions[r, 0] - x, positions[r, 1] - y, positions[r, 2] - z
+            if dx * dx + dy * dy + dz * dz <= bound_squared:
+                return True
+    return False

@@ -30,6 +30,7 @@ import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
     basis_coordinates,
+    distinct_ascending,
     group_anchors,
     replace_contribution,
     spread_basis,
@@ -367,7 +368,4 @@ class GroupMap:
             return np.zeros(0, np.int64)
         changed = np.concatenate(self._changed)
         self._changed = []
-        # Mark and collect: ids are row numbers, so this is np.unique in linear time.
-        marked = np.zeros(int(changed.max()) + 1, bool)
-        marked[changed] = True
-        return np.flatnonzero(marked)
+        return distinct_ascending(changed)  # ids are row numbers: np.unique in linear time

@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
+    cell_keys,
     claim_one_to_one,
     match_recent,
     mutual_nearest,
@@ -186,11 +187,7 @@ class GlobalIndex:
 
     def keys(self, positions: FloatArray) -> IntArray:
         """Cell keys (N,) of positions (N, 3) m."""
-        cell = np.floor(positions / self.cell)
-        np.maximum(cell, -_KEY_LIMIT, out=cell)
-        np.minimum(cell, _KEY_LIMIT, out=cell)
-        cell = cell.astype(np.int64)
-        return (cell[:, 0] * _KEY_SCALE + cell[:, 1]) * _KEY_SCALE + cell[:, 2]
+        return cell_keys(np.ascontiguousarray(positions, dtype=np.float64), self.cell, _KEY_LIMIT, _KEY_SCALE)
 
     def _reserve(self, largest_id: int) -> None:
         if largest_id < len(self._indexed):
@@ -225,6 +222,8 @@ class GlobalIndex:
     def remove(self, ids: npt.ArrayLike) -> None:
         """Drop points from the index (unknown ids are ignored)."""
         ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        if len(ids) == 0:
+            return
         ids = ids[ids < len(self._indexed)]
         ids = ids[self._indexed[ids]]
         if len(ids) == 0:

@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators.relative_point._kernels import distinct_ascending, flagged_within, split_indexable
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
@@ -222,10 +223,10 @@ class DynamicSweep(EstimatorState):
             self._newly_mapped = []
             return ids
         store = self.store
-        newly = np.unique(np.concatenate(self._newly_mapped))
+        newly = distinct_ascending(np.concatenate(self._newly_mapped))
         self._newly_mapped = []
         self._refresh_index()
-        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
+        newly = split_indexable(newly, store.alive, store.pos_weight, store.dynamic)[0]
         bound2 = self.config.merge_bound**2
         for newer in newly.tolist():
             if not store.alive[newer]:
@@ -257,19 +258,22 @@ class DynamicSweep(EstimatorState):
         mapped static at its old mean position, and if it is, it would otherwise sit in the map twice.
         """
         store = self.store
-        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
+        newly = split_indexable(newly, store.alive, store.pos_weight, store.dynamic)[0]
         if len(newly) == 0:
             return
-        n = store.high_water
-        flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
-        if len(flagged) == 0:
-            return
-        flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
         positions = store.positions(newly)
+        bound2 = self.config.merge_bound**2
+        n = store.high_water
+        if not flagged_within(
+            store.world_sum, store.n_obs, store.alive, store.dynamic, store.uid, n, positions, store.uid[newly],
+            float(bound2),
+        ):  # fmt: skip
+            return  # the usual case, found in one pass: nothing to take over
+        flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
+        flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
         d2 = np.sum((positions[:, None, :] - flagged_at[None, :, :]) ** 2, axis=2)
         older_than = store.uid[flagged][None, :] < store.uid[newly][:, None]
         d2 = np.where(older_than, d2, np.inf)
-        bound2 = self.config.merge_bound**2
         taken: set[int] = set()
         nearest = d2.min(axis=1)
         for row in np.argsort(nearest).tolist():

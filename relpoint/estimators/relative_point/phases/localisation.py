@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import pose_anchors
+from relpoint.estimators.relative_point._kernels import pose_anchors, split_indexable
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -150,7 +150,6 @@ class Localisation(EstimatorState):
         if len(changed) == 0:
             return
         store = self.store
-        alive = changed[store.alive[changed]]
-        indexable = (store.pos_weight[alive] > 0) & ~store.dynamic[alive]
-        self.index.update(alive[indexable], store.positions(alive[indexable]))
-        self.index.remove(alive[~indexable])
+        indexable, unindexable = split_indexable(changed, store.alive, store.pos_weight, store.dynamic)
+        self.index.update(indexable, store.positions(indexable))
+        self.index.remove(unindexable)
