@@ -1406,3 +1406,107 @@ def flagged_within(
             if dx * dx + dy * dy + dz * dz <= bound_squared:
                 return True
     return False
+
+
+# -- RltMapper (section II-C): a new group's members, from the points charted in its interval --------
+
+SELECTION_NO_CREATION = 0
+"""Outcome of :func:`group_selection`: the creation point is not among the usable candidates."""
+SELECTION_NONE = 1
+"""Outcome of :func:`group_selection`: too few grouped candidates overlap the creation point."""
+SELECTION_MADE = 2
+"""Outcome of :func:`group_selection`: members and interval chosen."""
+
+
+@kernel("i8[:, ::1], b1[::1], b1[::1], f8[::1], i8[::1], i8, i8, i8, i8, b1")
+def group_selection(
+    obs_iter: np.ndarray,
+    alive: np.ndarray,
+    dynamic: np.ndarray,
+    pos_weight: np.ndarray,
+    candidates: np.ndarray,
+    creation: int,
+    first: int,
+    last: int,
+    seeds: int,
+    everyone_grouped: bool,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Members (point ids, creation point first) and interval mask (L,) of a new group over ``[first, last]``.
+
+    ``candidates`` (N,) are the points charted in the interval, ``creation`` the creation point's
+    id. Dead and flagged candidates are left out; the rest are ranked by how many iterations of the
+    interval they were observed in, and :func:`interval_members` picks among them, with the mapped
+    ones (``pos_weight > 0``; every one when ``everyone_grouped``) as the grouped candidates. numpy::
+
+        usable = candidates[alive[candidates] & ~dynamic[candidates]]
+        presence = ring_presence(obs_iter, usable, first, last)
+        grouped = ones(len(usable), bool) if everyone_grouped else pos_weight[usable] > 0
+        order = argsort(-presence.sum(axis=1), kind="stable")
+        rows, interval = interval_members(presence, grouped, order, flatnonzero(usable == creation)[0], seeds)
+        usable[rows], interval
+
+    The outcome says whether the creation point was usable and a selection was made.
+    """
+    count = 0
+    creation_row = -1
+    for r in range(candidates.shape[0]):
+        i = candidates[r]
+        if alive[i] and not dynamic[i]:
+            if i == creation:
+                creation_row = count
+            count += 1
+    if creation_row < 0:
+        return candidates[:0].copy(), np.zeros(0, np.bool_), SELECTION_NO_CREATION
+    usable = np.empty(count, np.int64)
+    grouped = np.empty(count, np.bool_)
+    u = 0
+    for r in range(candidates.shape[0]):
+        i = candidates[r]
+        if alive[i] and not dynamic[i]:
+            usable[u] = i
+            grouped[u] = everyone_grouped or pos_weight[i] > 0
+            u += 1
+    presence = ring_presence(obs_iter, usable, first, last)
+    fewer_observed = np.empty(count)
+    for u in range(count):
+        observed = 0
+        for t in range(presence.shape[1]):
+            observed += presence[u, t]
+        fewer_observed[u] = -observed
+    rows, interval = interval_members(presence, grouped, _stable_argsort(fewer_observed), creation_row, seeds)
+    if rows.shape[0] == 0:
+        return candidates[:0].copy(), interval, SELECTION_NONE
+    members = np.empty(rows.shape[0], np.int64)
+    for r in range(rows.shape[0]):
+        members[r] = usable[rows[r]]
+    return members, interval, SELECTION_MADE
+
+
+@kernel("f8[:, ::1], i8[::1], i8[::1], f8")
+def basis_preferring_verified(points: np.ndarray, members: np.ndarray, verified: np.ndarray, min_spread: float) -> tuple[int, int, int]:
+    """Basis rows of ``points`` (M, 3) by :func:`spread_basis`, among the members verified static when they allow one.
+
+    ``members`` (M,) are the points' ids, ``verified`` the store's last verification per point (-1
+    never). numpy, with ``trusted = flatnonzero(verified[members] >= 0)``: ``trusted[spread_basis(points[trusted])]``
+    when there are three or more trusted points and they give a basis, else ``spread_basis(points)``
+    (-1s when neither does).
+    """
+    m = members.shape[0]
+    trusted_count = 0
+    for r in range(m):
+        if verified[members[r]] >= 0:
+            trusted_count += 1
+    if trusted_count >= 3:
+        trusted = np.empty(trusted_count, np.int64)
+        trusted_points = np.empty((trusted_count, 3))
+        t = 0
+        for r in range(m):
+            if verified[members[r]] >= 0:
+                trusted[t] = r
+                for a in range(3):
+                    trusted_points[t, a] = points[r, a]
+                t += 1
+        i0, i1, i2 = spread_basis(trusted_points, min_spread)
+        if i0 >= 0:
+            return trusted[i0], trusted[i1], trusted[i2]
+    return spread_basis(points, min_spread)

@@ -23,6 +23,7 @@ the squared disagreement between their groups) and gross outliers are trimmed.
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -193,7 +194,7 @@ class GroupMap:
         self.consensus = consensus
         self.spread_floor = spread_floor
         self.groups: dict[int, RelativeGroup] = {}
-        self.refs: dict[int, list[int]] = {}
+        self.refs: defaultdict[int, list[int]] = defaultdict(list)  # read with get: no empty lists
         self.open: list[int] = []
         self._next_gid = 0
         self._changed: list[IntArray] = []
@@ -282,11 +283,7 @@ class GroupMap:
         self.groups[gid] = group
         refs = self.refs
         for point in group.members.tolist():
-            listed = refs.get(point)
-            if listed is None:
-                refs[point] = [gid]
-            else:
-                listed.append(gid)
+            refs[point].append(gid)
         self.store.n_groups[group.members] += 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] += 1

@@ -5,14 +5,20 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import numpy.typing as npt
 
-from relpoint.estimators.relative_point.grouping import select_members
+from relpoint.estimators.relative_point._kernels import (
+    SELECTION_MADE,
+    SELECTION_NO_CREATION,
+    SELECTION_NONE,
+    basis_preferring_verified,
+    group_selection,
+)
 from relpoint.estimators.relative_point.groups import (
     FIRST,
     LATER,
     ROOT,
     RelativeGroup,
-    choose_basis,
     relative_coordinates,
 )
 from relpoint.estimators.relative_point.points import IntArray
@@ -115,21 +121,16 @@ class Grouping(EstimatorState):
         """Build, check and place one group with ``creation`` as creation point over ``[first, last]``."""
         config, store = self.config, self.store
         candidates = self.charting.enumerate(first, last)
-        candidates = candidates[store.alive[candidates] & ~store.dynamic[candidates]]
-        where = np.flatnonzero(candidates == creation)
-        if len(where) == 0:
+        members, interval, outcome = self._select_members(candidates, creation, first, last, everyone_grouped=False)
+        if outcome == SELECTION_NO_CREATION:
             return False
-        presence = store.presence(candidates, first, last)
-        selection = select_members(presence, store.mapped(candidates), int(where[0]), config.seed_points)
         root = False
-        if selection is None and kind == FIRST and self._no_anchor_in_view(candidates):
+        if outcome == SELECTION_NONE and kind == FIRST and self._no_anchor_in_view(candidates):
             # Nothing mapped in view (the start, or the map was lost): anchor to observations + pose.
-            selection = select_members(presence, np.ones(len(candidates), bool), int(where[0]), config.seed_points)
+            members, interval, outcome = self._select_members(candidates, creation, first, last, everyone_grouped=True)
             root = True
-        if selection is None:
+        if outcome != SELECTION_MADE:
             return False
-        rows, interval = selection
-        members = candidates[rows]
         iterations = first + np.flatnonzero(interval)
         observations, _ = store.observations(members, iterations)
         moving, beyond, verified = self._detect_dynamic(k, members, observations, len(iterations))
@@ -174,14 +175,25 @@ class Grouping(EstimatorState):
         return True
 
     def _choose_basis(self, members: IntArray, points: FloatArray) -> tuple[int, int, int] | None:
-        """Basis rows of ``members``: among points verified static when they allow one, else among all."""
-        spread = self.config.min_basis_spread
-        trusted = np.flatnonzero(self.store.verified[members] >= 0)
-        if len(trusted) >= 3:
-            basis = choose_basis(points[trusted], spread)
-            if basis is not None:
-                return int(trusted[basis[0]]), int(trusted[basis[1]]), int(trusted[basis[2]])
-        return choose_basis(points, spread)
+        """Basis rows of ``members`` (M,) from their points (M, 3, one iteration's sensor frame): among
+        points verified static when they allow one, else among all (:func:`~.groups.choose_basis`'s rule)."""
+        i0, i1, i2 = basis_preferring_verified(
+            np.ascontiguousarray(points, dtype=np.float64), members, self.store.verified,
+            float(self.config.min_basis_spread),
+        )  # fmt: skip
+        return None if i0 < 0 else (int(i0), int(i1), int(i2))
+
+    def _select_members(
+        self, candidates: IntArray, creation: int, first: int, last: int, *, everyone_grouped: bool
+    ) -> tuple[IntArray, npt.NDArray[np.bool_], int]:
+        """Members (ids) of a group over ``[first, last]`` among ``candidates`` (the points charted in it),
+        its interval mask and the outcome (:func:`~._kernels.group_selection`; the heuristic of
+        :func:`~relpoint.estimators.relative_point.grouping.select_members` over the live static candidates)."""
+        store = self.store
+        return group_selection(
+            store.obs_iter, store.alive, store.dynamic, store.pos_weight, candidates, int(creation), int(first),
+            int(last), int(self.config.seed_points), everyone_grouped,
+        )  # fmt: skip
 
     def _no_anchor_in_view(self, candidates: IntArray) -> bool:
         return int(np.count_nonzero(self.store.mapped(candidates) & ~self.store.dynamic[candidates])) < 3
