@@ -1510,3 +1510,120 @@ def basis_preferring_verified(points: np.ndarray, members: np.ndarray, verified:
         if i0 >= 0:
             return trusted[i0], trusted[i1], trusted[i2]
     return spread_basis(points, min_spread)
+
+
+@kernel("f8[:, :, ::1], i8, i8, i8, f8")
+def relative_map_sum(
+    observations: np.ndarray, i0: int, i1: int, i2: int, min_spread: float
+) -> tuple[np.ndarray, int, int]:
+    """A new group's relative map: members' basis-frame coordinates summed over the iterations with a usable basis.
+
+    ``observations`` (M, L, 3) are the members' untransformed observations (sensor frame of each
+    iteration), rows ``i0, i1, i2`` the basis. Returns the sum (M, 3, basis frame, m), the number of
+    iterations summed and the first of them (-1 if none). numpy::
+
+        relative, valid = basis_coordinates(observations, i0, i1, i2, min_spread)
+        relative[:, valid].sum(axis=1), count_nonzero(valid), (flatnonzero(valid)[:1] or [-1])[0]
+
+    (numpy adds the iterations one after another from zero, as here).
+    """
+    relative, valid = basis_coordinates(observations, i0, i1, i2, min_spread)
+    m, length = relative.shape[0], relative.shape[1]
+    count, first_valid = 0, -1
+    for t in range(length):
+        if valid[t]:
+            count += 1
+            if first_valid < 0:
+                first_valid = t
+    total = np.zeros((m, 3))
+    for r in range(m):
+        for t in range(length):
+            if valid[t]:
+                for a in range(3):
+                    total[r, a] += relative[r, t, a]
+    return total, count, first_valid
+
+
+# -- RltPoint (section II-A): one iteration's observations into the rings -----------------------------
+
+
+@kernel("f8[:, :, ::1], i8[:, ::1], i8[::1], i8[::1], i8[::1], i8[::1], i8[::1], f8[:, ::1], i8")
+def record_observations(
+    obs: np.ndarray,
+    obs_iter: np.ndarray,
+    first_iter: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    n_obs: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+    iteration: int,
+) -> None:
+    """Append one iteration's untransformed points (N, 3) to the rings of the distinct points ``ids`` (N,), in place.
+
+    numpy, with ``slot = iteration % R`` for rings of R slots::
+
+        obs[ids, slot] = points;  obs_iter[ids, slot] = iteration
+        first = first_iter[ids] < 0;  first_iter[ids[first]] = iteration
+        run_start[ids[first | (last_iter[ids] != iteration - 1)]] = iteration   # a new unbroken run
+        last_iter[ids] = iteration;  n_obs[ids] += 1
+    """
+    slot = iteration % obs_iter.shape[1]
+    for r in range(ids.shape[0]):
+        i = ids[r]
+        for a in range(3):
+            obs[i, slot, a] = points[r, a]
+        obs_iter[i, slot] = iteration
+        first = first_iter[i] < 0
+        if first:
+            first_iter[i] = iteration
+        if first or last_iter[i] != iteration - 1:
+            run_start[i] = iteration
+        last_iter[i] = iteration
+        n_obs[i] += 1
+
+
+# -- RltUngroupedList (section II-C): which listed points are due for a first grouping ----------------
+
+
+@kernel("i8[::1], b1[::1], f8[::1], b1[::1], i8[::1], i8[::1], i8, i8, i8")
+def creation_triage(
+    listed: np.ndarray,
+    alive: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    iteration: int,
+    stale_after: int,
+    creation_delay: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sort the ungrouped list ``listed`` (N,) at ``iteration``: stale points, points to unlist, points due.
+
+    numpy::
+
+        done = ~alive[listed] | (pos_weight[listed] > 0) | dynamic[listed]          # gone, grouped or flagged
+        stale = alive[listed] & ~done & (iteration - last_iter[listed] > stale_after)   # not seen for long
+        due = ~done & ~stale & (last_iter[listed] == iteration)
+              & (iteration - run_start[listed] >= creation_delay)                      # seen long enough
+        listed[stale], listed[done | stale], listed[due]
+    """
+    n = listed.shape[0]
+    stale = np.empty(n, np.int64)
+    unlisted = np.empty(n, np.int64)
+    due = np.empty(n, np.int64)
+    n_stale, n_unlisted, n_due = 0, 0, 0
+    for r in range(n):
+        i = listed[r]
+        if not alive[i] or pos_weight[i] > 0 or dynamic[i]:
+            unlisted[n_unlisted] = i
+            n_unlisted += 1
+        elif iteration - last_iter[i] > stale_after:
+            stale[n_stale] = i
+            n_stale += 1
+            unlisted[n_unlisted] = i
+            n_unlisted += 1
+        elif last_iter[i] == iteration and iteration - run_start[i] >= creation_delay:
+            due[n_due] = i
+            n_due += 1
+    return stale[:n_stale].copy(), unlisted[:n_unlisted].copy(), due[:n_due].copy()

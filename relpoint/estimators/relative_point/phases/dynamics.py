@@ -209,6 +209,8 @@ class DynamicSweep(EstimatorState):
         ``moving`` (one per id, default all) says which are reported as dynamic landmarks, the
         others being left out of the map as unreliable (see ``dynamic_tail_sigmas``).
         """
+        if len(ids) == 0:
+            return
         fresh_mask = ~self.store.dynamic[ids]
         fresh = ids[fresh_mask]
         self.store.dynamic[fresh] = True

@@ -12,14 +12,15 @@ from relpoint.estimators.relative_point._kernels import (
     SELECTION_NO_CREATION,
     SELECTION_NONE,
     basis_preferring_verified,
+    creation_triage,
     group_selection,
+    relative_map_sum,
 )
 from relpoint.estimators.relative_point.groups import (
     FIRST,
     LATER,
     ROOT,
     RelativeGroup,
-    relative_coordinates,
 )
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -60,19 +61,19 @@ class Grouping(EstimatorState):
         listed = self.ungrouped.ids()
         if len(listed) == 0:
             return
-        alive = store.alive[listed]
-        done = ~alive | store.mapped(listed) | store.dynamic[listed]
-        stale = alive & ~done & (k - store.last_iter[listed] > config.stale_after)
-        if stale.any():
-            self._drop_points(listed[stale])
-        if (done | stale).any():
-            self.ungrouped.discard(listed[done | stale])
-        due = ~done & ~stale & (store.last_iter[listed] == k) & (k - store.run_start[listed] >= config.creation_delay)
+        stale, unlisted, due = creation_triage(
+            listed, store.alive, store.pos_weight, store.dynamic, store.last_iter, store.run_start, k,
+            int(config.stale_after), int(config.creation_delay),
+        )  # fmt: skip
+        if len(stale):
+            self._drop_points(stale)
+        if len(unlisted):
+            self.ungrouped.discard(unlisted)
         attempts = 0
-        for creation in listed[due].tolist():
+        for creation in due.tolist():
             if attempts >= config.max_creations_per_iteration:
                 break
-            if store.mapped(np.array([creation]))[0] or self._next_creation_try.get(creation, -1) > k:
+            if store.pos_weight[creation] > 0 or self._next_creation_try.get(creation, -1) > k:
                 continue
             attempts += 1
             first = max(int(store.run_start[creation]), k - config.ring_size + 1)
@@ -142,21 +143,23 @@ class Grouping(EstimatorState):
         basis = self._choose_basis(members, observations[:, 0])
         if basis is None:
             return False
-        relative, valid = relative_coordinates(observations, basis, config.min_basis_spread)
-        if not valid.any():
+        rel_sum, count, first_valid = relative_map_sum(
+            np.ascontiguousarray(observations, dtype=np.float64), *basis, float(config.min_basis_spread)
+        )
+        if count == 0:
             return False
         anchor_targets = None
         if root:
-            t0 = int(iterations[valid][0])
+            t0 = int(iterations[first_valid])
             T0 = self._poses[t0 % config.ring_size] if t0 < k else self._T_world_sensor
-            anchor_targets = apply_transform(T0, observations[:, int(np.flatnonzero(valid)[0])])
+            anchor_targets = apply_transform(T0, observations[:, first_valid])
         group = RelativeGroup(
             gid=self.groups.new_gid(),
             kind=ROOT if root else kind,
             members=members,
             basis=basis,
-            rel_sum=relative[:, valid].sum(axis=1),
-            count=int(valid.sum()),
+            rel_sum=rel_sum,
+            count=int(count),
             last_iteration=int(iterations[-1]),
             is_open=bool(iterations[-1] == k),
             anchor_targets=anchor_targets,
@@ -165,7 +168,8 @@ class Grouping(EstimatorState):
         if not self.groups.add(group):
             return False
         self._flag_dynamic(moving, "grouping", beyond)
-        store.verified[verified] = k
+        if len(verified):
+            store.verified[verified] = k
         self._newly_mapped.append(newly_mapped)
         if group.kind == FIRST:
             self._first_groups.append(group.gid)
