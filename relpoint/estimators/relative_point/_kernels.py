@@ -1627,3 +1627,74 @@ def creation_triage(
             due[n_due] = i
             n_due += 1
     return stale[:n_stale].copy(), unlisted[:n_unlisted].copy(), due[:n_due].copy()
+
+
+@kernel("f8[:, ::1], f8, i8, i8, i8[::1], i8[::1], b1[::1]")
+def cell_changes(
+    positions: np.ndarray, cell: float, limit: int, scale: int, ids: np.ndarray, key: np.ndarray, indexed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points ``ids`` (N,) at ``positions`` (N, 3, m) that enter the global index or change cell.
+
+    ``key`` and ``indexed`` are the index's cell key and membership per point id. Returns those
+    points' ids, their new keys (:func:`cell_keys`) and, among them, the ones indexed before (to
+    take out of their old cells). numpy::
+
+        keys = cell_keys(positions, cell, limit, scale)
+        moved = ~indexed[ids] | (keys != key[ids])
+        ids[moved], keys[moved], ids[moved & indexed[ids]]
+    """
+    keys = cell_keys(positions, cell, limit, scale)
+    n = ids.shape[0]
+    moved_ids = np.empty(n, np.int64)
+    moved_keys = np.empty(n, np.int64)
+    relocated = np.empty(n, np.int64)
+    n_moved, n_relocated = 0, 0
+    for r in range(n):
+        i = ids[r]
+        if indexed[i] and keys[r] == key[i]:
+            continue
+        moved_ids[n_moved] = i
+        moved_keys[n_moved] = keys[r]
+        n_moved += 1
+        if indexed[i]:
+            relocated[n_relocated] = i
+            n_relocated += 1
+    return moved_ids[:n_moved].copy(), moved_keys[:n_moved].copy(), relocated[:n_relocated].copy()
+
+
+@kernel("f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1], i8[::1], f8")
+def older_within(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    uid: np.ndarray,
+    points: np.ndarray,
+    candidates: np.ndarray,
+    offsets: np.ndarray,
+    bound_squared: float,
+) -> bool:
+    """Whether any of the mapped ``points`` (N,) has an older mapped candidate within the bound (``world``).
+
+    The candidates of ``points[r]`` are ``candidates[offsets[r]:offsets[r + 1]]`` (ids; the point
+    itself may be among them); positions are :func:`gather_positions`', and a candidate without one
+    counts as within. numpy::
+
+        def near(p, c):  # c: the candidates of point p
+            d2 = sum((gather_positions(pos_sum, pos_weight, c) - gather_positions(pos_sum, pos_weight, [p])) ** 2, axis=1)
+            return any((c != p) & (uid[c] < uid[p]) & ((d2 <= bound_squared) | (pos_weight[c] <= 0)))
+        any(near(p, c)
+            for p, c in zip(points, split(candidates, offsets[1:-1])))
+    """
+    for r in range(points.shape[0]):
+        p = points[r]
+        w = max(pos_weight[p], 1e-300)
+        x, y, z = pos_sum[p, 0] / w, pos_sum[p, 1] / w, pos_sum[p, 2] / w
+        for c in candidates[offsets[r] : offsets[r + 1]]:
+            if c == p or uid[c] >= uid[p]:
+                continue
+            if pos_weight[c] <= 0.0:
+                return True  # no position (not in an index refreshed since): the caller looks closer
+            v = max(pos_weight[c], 1e-300)
+            dx, dy, dz = pos_sum[c, 0] / v - x, pos_sum[c, 1] / v - y, pos_sum[c, 2] / v - z
+            if dx * dx + dy * dy + dz * dz <= bound_squared:
+                return True
+    return False

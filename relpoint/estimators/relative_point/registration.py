@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
+    cell_changes,
     cell_keys,
     claim_one_to_one,
     match_recent,
@@ -201,14 +202,14 @@ class GlobalIndex:
         if len(ids) == 0:
             return
         self._reserve(int(ids.max()))
-        keys = self.keys(positions)
-        indexed = self._indexed[ids]
-        moved = ~indexed | (keys != self._key[ids])
-        if not moved.any():
+        ids, keys, relocated = cell_changes(
+            np.ascontiguousarray(positions, dtype=np.float64), self.cell, _KEY_LIMIT, _KEY_SCALE,
+            np.ascontiguousarray(ids, dtype=np.int64), self._key, self._indexed,
+        )  # fmt: skip
+        if len(ids) == 0:
             return
-        self.remove(ids[moved & indexed])
+        self.remove(relocated)
         cells = self._cells
-        ids, keys = ids[moved], keys[moved]
         for i, key in zip(ids.tolist(), keys.tolist(), strict=True):
             members = cells.get(key)
             if members is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 
@@ -9,7 +10,12 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
-from relpoint.estimators.relative_point._kernels import distinct_ascending, flagged_within, split_indexable
+from relpoint.estimators.relative_point._kernels import (
+    distinct_ascending,
+    flagged_within,
+    older_within,
+    split_indexable,
+)
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
@@ -230,6 +236,8 @@ class DynamicSweep(EstimatorState):
         self._refresh_index()
         newly = split_indexable(newly, store.alive, store.pos_weight, store.dynamic)[0]
         bound2 = self.config.merge_bound**2
+        if not self._older_point_within(newly, bound2):
+            newly = newly[:0]  # the usual case, found in one pass: nothing to merge
         for newer in newly.tolist():
             if not store.alive[newer]:
                 continue
@@ -249,6 +257,21 @@ class DynamicSweep(EstimatorState):
                     break
         self._reabsorb_flagged(newly, ids, k)
         return ids
+
+    def _older_point_within(self, newly: IntArray, bound2: float) -> bool:
+        """Whether any of the mapped points ``newly`` has an older indexed point within ``sqrt(bound2)`` m.
+
+        One pass over every point's index neighbours (:func:`~._kernels.older_within`); when it finds
+        none, the merging loop of :meth:`_merge_duplicates` would merge nothing.
+        """
+        if len(newly) == 0:
+            return False
+        store = self.store
+        neighbours = [self.index.candidates_at(key) for key in self.index.keys(store.positions(newly)).tolist()]
+        offsets = np.zeros(len(neighbours) + 1, np.int64)
+        np.cumsum([len(found) for found in neighbours], out=offsets[1:])
+        candidates = np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(offsets[-1]))
+        return bool(older_within(store.pos_sum, store.pos_weight, store.uid, newly, candidates, offsets, float(bound2)))
 
     def _reabsorb_flagged(self, newly: IntArray, ids: IntArray, k: int) -> None:
         """Merge newly mapped static points onto older points flagged dynamic at the same place.
