@@ -1698,3 +1698,52 @@ def older_within(
             if dx * dx + dy * dy + dz * dz <= bound_squared:
                 return True
     return False
+
+
+# -- RltMapper (section II-C): points due for regrouping ------------------------------------------------
+
+
+@kernel("i8[::1], i8[::1], b1[::1], i8[::1], i8[::1], i8[::1], f8[::1], b1[::1], i8[::1], i8, i8, i8")
+def regroup_due(
+    previous: np.ndarray,
+    current: np.ndarray,
+    alive: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    n_later_groups: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    regroup_attempt: np.ndarray,
+    iteration: int,
+    min_iterations: int,
+    every: int,
+) -> np.ndarray:
+    """Points due for a regrouping at ``iteration``: runs that just ended, then runs that grew long.
+
+    ``previous`` and ``current`` are the points charted in the last and this iteration. A point
+    whose run of at least ``min_iterations`` ended last iteration, or whose current run reached
+    ``every`` iterations, is due when it is mapped, static, has no later grouping yet and was not
+    tried in the last ``every`` iterations. numpy::
+
+        live = previous[alive[previous]]
+        left = live[(last_iter[live] == iteration - 1) & (iteration - run_start[live] >= min_iterations)]
+        long_run = current[iteration - run_start[current] + 1 >= every]
+        due = concatenate([left, long_run])
+        due[(n_later_groups[due] == 0) & (pos_weight[due] > 0) & ~dynamic[due]
+            & (iteration - regroup_attempt[due] >= every)]
+    """
+    due = np.empty(previous.shape[0] + current.shape[0], np.int64)
+    n = 0
+    for r in range(previous.shape[0] + current.shape[0]):
+        if r < previous.shape[0]:
+            i = previous[r]
+            if not (alive[i] and last_iter[i] == iteration - 1 and iteration - run_start[i] >= min_iterations):
+                continue
+        else:
+            i = current[r - previous.shape[0]]
+            if iteration - run_start[i] + 1 < every:
+                continue
+        if n_later_groups[i] == 0 and pos_weight[i] > 0 and not dynamic[i] and iteration - regroup_attempt[i] >= every:
+            due[n] = i
+            n += 1
+    return due[:n].copy()

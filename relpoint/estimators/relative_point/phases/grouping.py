@@ -14,6 +14,7 @@ from relpoint.estimators.relative_point._kernels import (
     basis_preferring_verified,
     creation_triage,
     group_selection,
+    regroup_due,
     relative_map_sum,
 )
 from relpoint.estimators.relative_point.groups import (
@@ -88,21 +89,13 @@ class Grouping(EstimatorState):
             return
         previous = self.charting.seen(k - 1)
         if len(previous):
-            previous = previous[store.alive[previous]]
-            left = previous[store.last_iter[previous] == k - 1]
-            left = left[(k - store.run_start[left] >= config.regroup_min_iterations)]
-            current = self.charting.seen(k)
-            long_run = current[k - store.run_start[current] + 1 >= config.regroup_after]
-            due = np.concatenate([left, long_run])
-            due = due[
-                (store.n_later_groups[due] == 0)
-                & (store.pos_weight[due] > 0)
-                & ~store.dynamic[due]
-                & (k - store.regroup_attempt[due] >= config.regroup_after)
-            ]
-            for point in due.tolist():
-                store.regroup_attempt[point] = k
-                self._regroup_queue.append(point)
+            due = regroup_due(
+                previous, self.charting.seen(k), store.alive, store.last_iter, store.run_start, store.n_later_groups,
+                store.pos_weight, store.dynamic, store.regroup_attempt, k, int(config.regroup_min_iterations),
+                int(config.regroup_after),
+            )  # fmt: skip
+            store.regroup_attempt[due] = k
+            self._regroup_queue.extend(due.tolist())
         done = 0
         while self._regroup_queue and done < config.max_regroups_per_iteration:
             point = self._regroup_queue.popleft()
