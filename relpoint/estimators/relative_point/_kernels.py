@@ -1747,3 +1747,37 @@ def regroup_due(
             due[n] = i
             n += 1
     return due[:n].copy()
+
+
+@kernel("i8[::1], i8[::1], i8, i8[::1], f8[:, :, ::1]")
+def recent_references(
+    seen: np.ndarray, offsets: np.ndarray, first_iteration: int, last_iter: np.ndarray, obs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each recently seen point once, with its latest untransformed observation and its age.
+
+    ``seen[offsets[s]:offsets[s + 1]]`` are the points charted in iteration ``first_iteration + s``
+    (W iterations, up to the current one, ``first_iteration + W``, excluded). A point is taken from
+    the iteration it was last seen in. Returns the ids (R,), their latest observations (R, 3, sensor
+    frame of that iteration) and their ages (R,, iterations). numpy::
+
+        refs = concatenate([seen_t[last_iter[seen_t] == t] for each iteration t and its seen_t])
+        refs, obs[refs, last_iter[refs] % obs.shape[1]], first_iteration + W - last_iter[refs]
+    """
+    window = offsets.shape[0] - 1
+    ring = obs.shape[1]
+    refs = np.empty(seen.shape[0], np.int64)
+    n = 0
+    for s in range(window):
+        for r in range(offsets[s], offsets[s + 1]):
+            if last_iter[seen[r]] == first_iteration + s:
+                refs[n] = seen[r]
+                n += 1
+    reference = np.empty((n, 3))
+    age = np.empty(n, np.int64)
+    for r in range(n):
+        i = refs[r]
+        slot = last_iter[i] % ring
+        for a in range(3):
+            reference[r, a] = obs[i, slot, a]
+        age[r] = first_iteration + window - last_iter[i]
+    return refs[:n].copy(), reference, age

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import pose_anchors, split_indexable
+from relpoint.estimators.relative_point._kernels import pose_anchors, recent_references, split_indexable
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -30,17 +30,14 @@ class Localisation(EstimatorState):
         config, store = self.config, self.store
         ids = np.full(len(points), NO_MATCH, np.int64)
         # Each recently seen point, once: from the charting of the iteration it was last seen in.
-        recent = []
-        for t in range(k - config.match_window, k):
-            seen = self.charting.seen(t)
-            recent.append(seen[store.last_iter[seen] == t])
-        refs = np.concatenate(recent)
+        first = k - config.match_window
+        seen = [self.charting.seen(t) for t in range(first, k)]
+        offsets = np.zeros(len(seen) + 1, np.int64)
+        np.cumsum([len(ids_t) for ids_t in seen], out=offsets[1:])
+        refs, reference, age = recent_references(np.concatenate(seen), offsets, first, store.last_iter, store.obs)
         if len(refs) == 0:
             return ids
-        reference = store.latest(refs)
-        local = self.motion.match(
-            reference, k - store.last_iter[refs], points, config.match_bound, config.match_angle, config.predict_motion
-        )
+        local = self.motion.match(reference, age, points, config.match_bound, config.match_angle, config.predict_motion)
         self._motion_measured = local.motion_measured
         matched = local.row != NO_MATCH
         ids[matched] = refs[local.row[matched]]
