@@ -1302,6 +1302,15 @@ def robust_fit(
 # -- The global index (section II-D): cells and the points whose cell may have changed -----------------
 
 
+@kernel("f8, f8, f8, f8, i8, i8")
+def _cell_key(x: float, y: float, z: float, cell: float, limit: int, scale: int) -> int:
+    """Packed key of the grid cell (``cell`` m on a side) holding the point ``(x, y, z)`` m: :func:`cell_keys` of one point."""
+    cx = int(min(max(math.floor(x / cell), -limit), limit))
+    cy = int(min(max(math.floor(y / cell), -limit), limit))
+    cz = int(min(max(math.floor(z / cell), -limit), limit))
+    return (cx * scale + cy) * scale + cz
+
+
 @kernel("f8[:, ::1], f8, i8, i8")
 def cell_keys(positions: np.ndarray, cell: float, limit: int, scale: int) -> np.ndarray:
     """Packed keys (N,) of the grid cells (``cell`` m on a side) holding positions (N, 3) m.
@@ -1312,10 +1321,7 @@ def cell_keys(positions: np.ndarray, cell: float, limit: int, scale: int) -> np.
     n = positions.shape[0]
     keys = np.empty(n, np.int64)
     for r in range(n):
-        x = int(min(max(math.floor(positions[r, 0] / cell), -limit), limit))
-        y = int(min(max(math.floor(positions[r, 1] / cell), -limit), limit))
-        z = int(min(max(math.floor(positions[r, 2] / cell), -limit), limit))
-        keys[r] = (x * scale + y) * scale + z
+        keys[r] = _cell_key(positions[r, 0], positions[r, 1], positions[r, 2], cell, limit, scale)
     return keys
 
 
@@ -1340,39 +1346,10 @@ def distinct_ascending(ids: np.ndarray) -> np.ndarray:
     return out
 
 
-@kernel("i8[::1], b1[::1], f8[::1], b1[::1]")
-def split_indexable(ids: np.ndarray, alive: np.ndarray, pos_weight: np.ndarray, dynamic: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The live points of ``ids`` (N,) that belong in the global index (mapped, static), and the others.
-
-    numpy: ``live = ids[alive[ids]]; keep = (pos_weight[live] > 0) & ~dynamic[live]; live[keep], live[~keep]``.
-    """
-    n_keep, n_drop = 0, 0
-    for r in range(ids.shape[0]):
-        i = ids[r]
-        if alive[i]:
-            if pos_weight[i] > 0 and not dynamic[i]:
-                n_keep += 1
-            else:
-                n_drop += 1
-    keep = np.empty(n_keep, np.int64)
-    drop = np.empty(n_drop, np.int64)
-    k, d = 0, 0
-    for r in range(ids.shape[0]):
-        i = ids[r]
-        if alive[i]:
-            if pos_weight[i] > 0 and not dynamic[i]:
-                keep[k] = i
-                k += 1
-            else:
-                drop[d] = i
-                d += 1
-    return keep, drop
-
-
 # -- Merging (section II-D): flagged points a newly mapped point may take over ---------------------------
 
 
-@kernel("f8[:, ::1], i8[::1], b1[::1], b1[::1], i8[::1], i8, f8[:, ::1], i8[::1], f8")
+@kernel("f8[:, ::1], i8[::1], b1[::1], b1[::1], i8[::1], i8, f8[:, ::1], f8[::1], i8[::1], f8")
 def flagged_within(
     world_sum: np.ndarray,
     n_obs: np.ndarray,
@@ -1380,27 +1357,44 @@ def flagged_within(
     dynamic: np.ndarray,
     uid: np.ndarray,
     high_water: int,
-    positions: np.ndarray,
-    position_uid: np.ndarray,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    ids: np.ndarray,
     bound_squared: float,
 ) -> bool:
-    """Whether a live flagged point older than one of ``positions`` (N, 3, ``world``, m) lies within the bound of it.
+    """Whether a live flagged point lies within the bound of a younger live, mapped, static point of ``ids``.
 
-    A flagged point sits at its mean observed position ``world_sum / n_obs``; ``position_uid`` (N,)
-    are the uids of the points at ``positions``. numpy::
+    A flagged point sits at its mean observed position ``world_sum / n_obs``, a mapped point at its
+    global position (:func:`gather_positions`, ``world``, m); only flagged points older (smaller
+    ``uid``) than the mapped point count. numpy::
 
+        mapped = ids[alive[ids] & (pos_weight[ids] > 0) & ~dynamic[ids]]
         flagged = flatnonzero(alive[:high_water] & dynamic[:high_water])
         at = world_sum[flagged] / maximum(n_obs[flagged], 1)[:, None]
-        d2 = sum((positions[:, None, :] - at[None, :, :]) ** 2, axis=2)
-        any((d2 <= bound_squared) & (uid[flagged][None, :] < position_uid[:, None]))
+        d2 = sum((gather_positions(pos_sum, pos_weight, mapped)[:, None, :] - at[None, :, :]) ** 2, axis=2)
+        any((d2 <= bound_squared) & (uid[flagged][None, :] < uid[mapped][:, None]))
     """
+    n = ids.shape[0]
+    positions = np.empty((n, 3))
+    mapped = np.empty(n, np.int64)
+    m = 0
+    for r in range(n):
+        p = ids[r]
+        if alive[p] and pos_weight[p] > 0 and not dynamic[p]:
+            w = max(pos_weight[p], 1e-300)
+            for a in range(3):
+                positions[m, a] = pos_sum[p, a] / w
+            mapped[m] = p
+            m += 1
+    if m == 0:
+        return False
     for i in range(high_water):
         if not (alive[i] and dynamic[i]):
             continue
         count = float(max(n_obs[i], 1))
         x, y, z = world_sum[i, 0] / count, world_sum[i, 1] / count, world_sum[i, 2] / count
-        for r in range(positions.shape[0]):
-            if uid[i] >= position_uid[r]:
+        for r in range(m):
+            if uid[i] >= uid[mapped[r]]:
                 continue
             dx, dy, dz = positions[r, 0] - x, positions[r, 1] - y, positions[r, 2] - z
             if dx * dx + dy * dy + dz * dz <= bound_squared:
@@ -1781,3 +1775,93 @@ def recent_references(
             reference[r, a] = obs[i, slot, a]
         age[r] = first_iteration + window - last_iter[i]
     return refs[:n].copy(), reference, age
+
+
+@kernel("i8[::1], b1[::1], f8[:, ::1], f8[::1], b1[::1], f8, i8, i8, i8[::1], b1[::1]")
+def index_refresh(
+    changed: np.ndarray,
+    alive: np.ndarray,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    cell: float,
+    limit: int,
+    scale: int,
+    key: np.ndarray,
+    indexed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the global index must change for the points ``changed`` (ids, repeats allowed) of a point store.
+
+    A live point with a global position (``pos_sum / pos_weight``, ``world``, m) that is not
+    flagged ``dynamic`` belongs in the cell :func:`cell_keys` gives it; any other live point does
+    not belong in the index. ``key`` and ``indexed`` are the index's cell and membership per id.
+    Returns, in ascending id order: the indexed points that change cell, every point that enters
+    a cell (those and the new ones) with that cell's key, and the indexed points that leave. numpy::
+
+        ids = unique(changed);  live = ids[alive[ids]]
+        keep = (pos_weight[live] > 0) & ~dynamic[live];  stay, drop = live[keep], live[~keep]
+        moving_ids, keys, relocated = cell_changes(gather_positions(pos_sum, pos_weight, stay), cell, limit, scale,
+                                                   stay, key, indexed)
+        relocated, moving_ids, keys, drop[indexed[drop]]
+    """
+    ids = distinct_ascending(changed)
+    n = ids.shape[0]
+    relocated = np.empty(n, np.int64)
+    moving = np.empty(n, np.int64)
+    keys = np.empty(n, np.int64)
+    leaving = np.empty(n, np.int64)
+    n_relocated, n_moving, n_leaving = 0, 0, 0
+    for r in range(n):
+        i = ids[r]
+        if not alive[i]:
+            continue
+        if pos_weight[i] > 0 and not dynamic[i]:
+            w = max(pos_weight[i], 1e-300)
+            k = _cell_key(pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w, cell, limit, scale)
+            if indexed[i] and k == key[i]:
+                continue
+            moving[n_moving] = i
+            keys[n_moving] = k
+            n_moving += 1
+            if indexed[i]:
+                relocated[n_relocated] = i
+                n_relocated += 1
+        elif indexed[i]:
+            leaving[n_leaving] = i
+            n_leaving += 1
+    return (
+        relocated[:n_relocated].copy(),
+        moving[:n_moving].copy(),
+        keys[:n_moving].copy(),
+        leaving[:n_leaving].copy(),
+    )
+
+
+@kernel("i8[::1], b1[::1], f8[:, ::1], f8[::1], b1[::1], f8, i8, i8")
+def mapped_static_cells(
+    ids: np.ndarray,
+    alive: np.ndarray,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    cell: float,
+    limit: int,
+    scale: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct live, mapped, static points among ``ids`` (repeats allowed), ascending, and their cell keys.
+
+    numpy: ``u = unique(ids); u = u[alive[u] & (pos_weight[u] > 0) & ~dynamic[u]]`` and
+    ``u, cell_keys(gather_positions(pos_sum, pos_weight, u), cell, limit, scale)``.
+    """
+    distinct = distinct_ascending(ids)
+    kept = np.empty(distinct.shape[0], np.int64)
+    keys = np.empty(distinct.shape[0], np.int64)
+    n = 0
+    for r in range(distinct.shape[0]):
+        i = distinct[r]
+        if alive[i] and pos_weight[i] > 0 and not dynamic[i]:
+            w = max(pos_weight[i], 1e-300)
+            kept[n] = i
+            keys[n] = _cell_key(pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w, cell, limit, scale)
+            n += 1
+    return kept[:n].copy(), keys[:n].copy()

@@ -31,7 +31,6 @@ import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
     basis_coordinates,
-    distinct_ascending,
     group_anchors,
     replace_contribution,
     spread_basis,
@@ -360,9 +359,9 @@ class GroupMap:
         self._changed.append(np.array([older], np.int64))
 
     def take_changed(self) -> IntArray:
-        """Distinct ids whose combined position changed since the last call."""
+        """Ids whose combined position changed since the last call (repeats possible, in no order)."""
         if not self._changed:
             return np.zeros(0, np.int64)
         changed = np.concatenate(self._changed)
         self._changed = []
-        return distinct_ascending(changed)  # ids are row numbers: np.unique in linear time
+        return changed

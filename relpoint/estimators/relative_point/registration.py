@@ -29,6 +29,8 @@ from relpoint.estimators.relative_point._kernels import (
     cell_changes,
     cell_keys,
     claim_one_to_one,
+    index_refresh,
+    mapped_static_cells,
     match_recent,
     mutual_nearest,
     nearest_two,
@@ -38,6 +40,7 @@ from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.geometry import FloatArray
 
 IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
 
 NO_MATCH = -1
 
@@ -206,9 +209,51 @@ class GlobalIndex:
             np.ascontiguousarray(positions, dtype=np.float64), self.cell, _KEY_LIMIT, _KEY_SCALE,
             np.ascontiguousarray(ids, dtype=np.int64), self._key, self._indexed,
         )  # fmt: skip
+        self._leave(relocated)
+        self._enter(ids, keys)
+
+    def refresh(
+        self, changed: IntArray, alive: BoolArray, pos_sum: FloatArray, pos_weight: FloatArray, dynamic: BoolArray
+    ) -> None:
+        """Bring the index up to date for the points ``changed`` (ids, repeats allowed) of a point store.
+
+        ``alive``, ``pos_sum``, ``pos_weight`` and ``dynamic`` are the store's per-point arrays
+        (:class:`~relpoint.estimators.relative_point.points.PointStore`): a live point with a global
+        position (``pos_sum / pos_weight``) that is not flagged is indexed there, any other live
+        point leaves the index. One compiled pass (:func:`~._kernels.index_refresh`) finds the points
+        whose cell changes; only those touch the hash table.
+        """
+        if len(changed) == 0:
+            return
+        self._reserve(len(alive) - 1)
+        relocated, ids, keys, leaving = index_refresh(
+            changed, alive, pos_sum, pos_weight, dynamic, self.cell, _KEY_LIMIT, _KEY_SCALE, self._key, self._indexed
+        )
+        self._leave(relocated)
+        self._enter(ids, keys)
+        self._leave(leaving)
+
+    def indexable_cells(
+        self, ids: IntArray, alive: BoolArray, pos_sum: FloatArray, pos_weight: FloatArray, dynamic: BoolArray
+    ) -> tuple[IntArray, IntArray]:
+        """The distinct points among ``ids`` (repeats allowed) that belong in the index, ascending, and their cells' keys.
+
+        The store's arrays as in :meth:`refresh`: live points with a global position, not flagged.
+        """
+        return mapped_static_cells(ids, alive, pos_sum, pos_weight, dynamic, self.cell, _KEY_LIMIT, _KEY_SCALE)
+
+    def remove(self, ids: npt.ArrayLike) -> None:
+        """Drop points from the index (unknown ids are ignored)."""
+        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
         if len(ids) == 0:
             return
-        self.remove(relocated)
+        ids = ids[ids < len(self._indexed)]
+        self._leave(ids[self._indexed[ids]])
+
+    def _enter(self, ids: IntArray, keys: IntArray) -> None:
+        """Put points ``ids`` (N,), not indexed now, into the cells with keys ``keys`` (N,)."""
+        if len(ids) == 0:
+            return
         cells = self._cells
         for i, key in zip(ids.tolist(), keys.tolist(), strict=True):
             members = cells.get(key)
@@ -220,13 +265,8 @@ class GlobalIndex:
         self._indexed[ids] = True
         self._size += len(ids)
 
-    def remove(self, ids: npt.ArrayLike) -> None:
-        """Drop points from the index (unknown ids are ignored)."""
-        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
-        if len(ids) == 0:
-            return
-        ids = ids[ids < len(self._indexed)]
-        ids = ids[self._indexed[ids]]
+    def _leave(self, ids: IntArray) -> None:
+        """Take indexed points ``ids`` (N,) out of their cells."""
         if len(ids) == 0:
             return
         cells = self._cells

@@ -10,12 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
-from relpoint.estimators.relative_point._kernels import (
-    distinct_ascending,
-    flagged_within,
-    older_within,
-    split_indexable,
-)
+from relpoint.estimators.relative_point._kernels import flagged_within, older_within
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
@@ -231,14 +226,15 @@ class DynamicSweep(EstimatorState):
             self._newly_mapped = []
             return ids
         store = self.store
-        newly = distinct_ascending(np.concatenate(self._newly_mapped))
+        newly_mapped = np.concatenate(self._newly_mapped)
         self._newly_mapped = []
         self._refresh_index()
-        newly = split_indexable(newly, store.alive, store.pos_weight, store.dynamic)[0]
+        newly, keys = self.index.indexable_cells(
+            newly_mapped, store.alive, store.pos_sum, store.pos_weight, store.dynamic
+        )
         bound2 = self.config.merge_bound**2
-        if not self._older_point_within(newly, bound2):
-            newly = newly[:0]  # the usual case, found in one pass: nothing to merge
-        for newer in newly.tolist():
+        merging = newly if self._older_point_within(newly, keys, bound2) else newly[:0]  # usually none
+        for newer in merging.tolist():
             if not store.alive[newer]:
                 continue
             position = store.positions(np.array([newer]))[0]
@@ -258,8 +254,9 @@ class DynamicSweep(EstimatorState):
         self._reabsorb_flagged(newly, ids, k)
         return ids
 
-    def _older_point_within(self, newly: IntArray, bound2: float) -> bool:
-        """Whether any of the mapped points ``newly`` has an older indexed point within ``sqrt(bound2)`` m.
+    def _older_point_within(self, newly: IntArray, keys: IntArray, bound2: float) -> bool:
+        """Whether any of the mapped points ``newly`` (in the index cells ``keys``) has an older indexed
+        point within ``sqrt(bound2)`` m.
 
         One pass over every point's index neighbours (:func:`~._kernels.older_within`); when it finds
         none, the merging loop of :meth:`_merge_duplicates` would merge nothing.
@@ -267,7 +264,7 @@ class DynamicSweep(EstimatorState):
         if len(newly) == 0:
             return False
         store = self.store
-        neighbours = [self.index.candidates_at(key) for key in self.index.keys(store.positions(newly)).tolist()]
+        neighbours = [self.index.candidates_at(key) for key in keys.tolist()]
         offsets = np.zeros(len(neighbours) + 1, np.int64)
         np.cumsum([len(found) for found in neighbours], out=offsets[1:])
         candidates = np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(offsets[-1]))
@@ -283,17 +280,15 @@ class DynamicSweep(EstimatorState):
         mapped static at its old mean position, and if it is, it would otherwise sit in the map twice.
         """
         store = self.store
-        newly = split_indexable(newly, store.alive, store.pos_weight, store.dynamic)[0]
-        if len(newly) == 0:
-            return
-        positions = store.positions(newly)
         bound2 = self.config.merge_bound**2
         n = store.high_water
         if not flagged_within(
-            store.world_sum, store.n_obs, store.alive, store.dynamic, store.uid, n, positions, store.uid[newly],
-            float(bound2),
+            store.world_sum, store.n_obs, store.alive, store.dynamic, store.uid, n, store.pos_sum, store.pos_weight,
+            newly, float(bound2),
         ):  # fmt: skip
             return  # the usual case, found in one pass: nothing to take over
+        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
+        positions = store.positions(newly)
         flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
         flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
         d2 = np.sum((positions[:, None, :] - flagged_at[None, :, :]) ** 2, axis=2)

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import pose_anchors, recent_references, split_indexable
+from relpoint.estimators.relative_point._kernels import pose_anchors, recent_references
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -143,10 +143,5 @@ class Localisation(EstimatorState):
 
     def _refresh_index(self) -> None:
         """Move changed global positions in the global index."""
-        changed = self.groups.take_changed()
-        if len(changed) == 0:
-            return
         store = self.store
-        indexable, unindexable = split_indexable(changed, store.alive, store.pos_weight, store.dynamic)
-        self.index.update(indexable, store.positions(indexable))
-        self.index.remove(unindexable)
+        self.index.refresh(self.groups.take_changed(), store.alive, store.pos_sum, store.pos_weight, store.dynamic)
