@@ -1865,3 +1865,45 @@ def mapped_static_cells(
             keys[n] = _cell_key(pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w, cell, limit, scale)
             n += 1
     return kept[:n].copy(), keys[:n].copy()
+
+
+# -- RltGroupRef (section II-B): per point, the groups it is in -----------------------------------------
+
+
+@kernel("i8[:, ::1], i8[::1], i8[::1], i8")
+def append_group(table: np.ndarray, count: np.ndarray, members: np.ndarray, gid: int) -> bool:
+    """Append group ``gid`` to the group lists of its distinct ``members`` (M,), in place; False if a list is full.
+
+    Point ``i``'s list is ``table[i, :count[i]]`` in the order the groups were added. numpy::
+
+        if any(count[members] >= table.shape[1]): False (nothing changed)
+        table[members, count[members]] = gid;  count[members] += 1;  True
+    """
+    width = table.shape[1]
+    for r in range(members.shape[0]):
+        if count[members[r]] >= width:
+            return False
+    for r in range(members.shape[0]):
+        i = members[r]
+        table[i, count[i]] = gid
+        count[i] += 1
+    return True
+
+
+@kernel("i8[:, ::1], i8[::1], i8[::1], i8")
+def drop_group(table: np.ndarray, count: np.ndarray, members: np.ndarray, gid: int) -> None:
+    """Take group ``gid`` out of the group lists of ``members`` (M,), in place, keeping the others' order.
+
+    numpy, per member ``i`` with ``listed = table[i, :count[i]]`` holding ``gid``:
+    ``j = flatnonzero(listed == gid)[0]; table[i, j:count[i] - 1] = listed[j + 1:]; count[i] -= 1``
+    (the first occurrence, as ``list.remove``; members whose list lacks it are left alone).
+    """
+    for r in range(members.shape[0]):
+        i = members[r]
+        n = count[i]
+        for j in range(n):
+            if table[i, j] == gid:
+                for s in range(j, n - 1):
+                    table[i, s] = table[i, s + 1]
+                count[i] = n - 1
+                break

@@ -3,7 +3,7 @@
 Paper name -> Python name
     *RltGroup*     :class:`RelativeGroup`: the member *RltPoints*, three basis members, the running sum
                    of each member's relative position and the group's fit to the global map.
-    *RltGroupRef*  :attr:`GroupMap.refs`: per point, the ids of the groups it is in.
+    *RltGroupRef*  :meth:`GroupMap.refs_of`: per point, the ids of the groups it is in (a row of a table).
     *RltLSF*       :func:`relpoint.estimators.relative_point.lsf.fit_transform`.
 
 Basis frame (:func:`basis_rotation`): the first basis point is the origin, the second lies on the
@@ -23,14 +23,15 @@ the squared disagreement between their groups) and gross outliers are trimmed.
 
 from __future__ import annotations
 
-from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
+    append_group,
     basis_coordinates,
+    drop_group,
     group_anchors,
     replace_contribution,
     spread_basis,
@@ -193,7 +194,9 @@ class GroupMap:
         self.consensus = consensus
         self.spread_floor = spread_floor
         self.groups: dict[int, RelativeGroup] = {}
-        self.refs: defaultdict[int, list[int]] = defaultdict(list)  # read with get: no empty lists
+        # The paper's RltGroupRef lists: point i is in the groups refs_table[i, :refs_count[i]], oldest first.
+        self._refs_table = np.zeros((0, 8), np.int64)
+        self._refs_count = np.zeros(0, np.int64)
         self.open: list[int] = []
         self._next_gid = 0
         self._changed: list[IntArray] = []
@@ -210,8 +213,22 @@ class GroupMap:
         return gid
 
     def refs_of(self, point: int) -> list[int]:
-        """Ids of the groups point ``point`` is in (the paper's *RltGroupRef* list)."""
-        return self.refs.get(point, [])
+        """Ids of the groups point ``point`` is in, in the order they were created or taken over
+        (the paper's *RltGroupRef* list)."""
+        if point >= len(self._refs_count):
+            return []
+        return self._refs_table[point, : self._refs_count[point]].tolist()
+
+    def _reserve_refs(self) -> None:
+        """Give every row of the point store a group list."""
+        extra = self.store.capacity - len(self._refs_count)
+        if extra > 0:
+            self._refs_table = np.concatenate([self._refs_table, np.zeros((extra, self._refs_table.shape[1]), np.int64)])
+            self._refs_count = np.concatenate([self._refs_count, np.zeros(extra, np.int64)])
+
+    def _widen_refs(self) -> None:
+        """Double the room of every point's group list."""
+        self._refs_table = np.concatenate([self._refs_table, np.zeros_like(self._refs_table)], axis=1)
 
     # -- placement -------------------------------------------------------------------------------
 
@@ -280,9 +297,9 @@ class GroupMap:
             return False
         gid = group.gid
         self.groups[gid] = group
-        refs = self.refs
-        for point in group.members.tolist():
-            refs[point].append(gid)
+        self._reserve_refs()
+        while not append_group(self._refs_table, self._refs_count, group.members, gid):
+            self._widen_refs()
         self.store.n_groups[group.members] += 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] += 1
@@ -295,13 +312,7 @@ class GroupMap:
         """Delete a group and withdraw its contribution from its members' positions."""
         group = self.groups.pop(gid)
         self._contribute(group, group.placed, 0.0)
-        refs = self.refs
-        for point in group.members.tolist():
-            listed = refs.get(point)
-            if listed is not None:
-                listed.remove(gid)
-                if not listed:
-                    del refs[point]
+        drop_group(self._refs_table, self._refs_count, group.members, gid)
         self.store.n_groups[group.members] -= 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] -= 1
@@ -342,10 +353,17 @@ class GroupMap:
     def transfer(self, newer: int, older: int) -> None:
         """Make ``older`` take ``newer``'s place in every group of ``newer`` (point merging)."""
         store = self.store
-        for gid in self.refs.pop(newer, []):
+        taken_over = self.refs_of(newer)
+        for gid in taken_over:
             group = self.groups[gid]
             group.members = np.where(group.members == newer, older, group.members)
-            self.refs.setdefault(older, []).append(gid)
+        self._reserve_refs()
+        while self._refs_count[older] + len(taken_over) > self._refs_table.shape[1]:
+            self._widen_refs()
+        start = self._refs_count[older]
+        self._refs_table[older, start : start + len(taken_over)] = taken_over
+        self._refs_count[older] += len(taken_over)
+        self._refs_count[newer] = 0
         store.pos_sum[older] += store.pos_sum[newer]
         store.pos_weight[older] += store.pos_weight[newer]
         store.pos_sq[older] += store.pos_sq[newer]
