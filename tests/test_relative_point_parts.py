@@ -1260,3 +1260,21 @@ def test_group_list_kernels_equal_list_operations() -> None:
             lists.setdefault(p, []).append(gid)
         for p in range(30):
             assert table[p, : count[p]].tolist() == lists.get(p, [])
+
+
+def test_group_relative_map_kernel_equals_its_steps() -> None:
+    rng = np.random.default_rng(30)
+    store = PointStore(ring_size=8, capacity=40)
+    ids = store.new_points(30)
+    for t in range(10):
+        store.add_observations(ids, rng.normal(0, 5, (30, 3)), t)
+    verified = np.where(rng.random(store.capacity) < 0.5, 1, -1)
+    for _ in range(30):
+        members = rng.permutation(ids)[: int(rng.integers(4, 20))]
+        iterations = np.sort(rng.permutation(np.arange(3, 10))[: int(rng.integers(1, 7))])
+        observations, _ = store.observations(members, iterations)
+        basis = _kernels.basis_preferring_verified(np.ascontiguousarray(observations[:, 0]), members, verified, 0.5)
+        found = _kernels.group_relative_map(store.obs, store.obs_iter, members, iterations, verified, 0.5)
+        assert tuple(found[:3]) == tuple(basis)
+        total, count, first = _kernels.relative_map_sum(observations, *basis, 0.5)
+        assert found[3].tobytes() == total.tobytes() and (found[4], found[5]) == (count, first)

@@ -1907,3 +1907,36 @@ def drop_group(table: np.ndarray, count: np.ndarray, members: np.ndarray, gid: i
                     table[i, s] = table[i, s + 1]
                 count[i] = n - 1
                 break
+
+
+@kernel("f8[:, :, ::1], i8[:, ::1], i8[::1], i8[::1], i8[::1], f8")
+def group_relative_map(
+    obs: np.ndarray,
+    obs_iter: np.ndarray,
+    members: np.ndarray,
+    iterations: np.ndarray,
+    verified: np.ndarray,
+    min_spread: float,
+) -> tuple[int, int, int, np.ndarray, int, int]:
+    """A new group's basis and relative map, from its members' rings over the iterations of its interval.
+
+    ``members`` (M,) are point ids, ``iterations`` (L,) the interval's iterations (every member
+    observed in each). Returns the basis rows ``i0, i1, i2`` (-1s when none), then as
+    :func:`relative_map_sum` the summed relative map (M, 3, basis frame, m), the iterations summed
+    and the first of them. numpy::
+
+        observations = ring_observations(obs, obs_iter, members, iterations)[0]
+        i0, i1, i2 = basis_preferring_verified(observations[:, 0], members, verified, min_spread)
+        (i0, i1, i2, *relative_map_sum(observations, i0, i1, i2, min_spread)) if i0 >= 0 else (-1, -1, -1, ...)
+    """
+    observations = ring_observations(obs, obs_iter, members, iterations)[0]
+    m = members.shape[0]
+    first = np.empty((m, 3))
+    for r in range(m):
+        for a in range(3):
+            first[r, a] = observations[r, 0, a]
+    i0, i1, i2 = basis_preferring_verified(first, members, verified, min_spread)
+    if i0 < 0:
+        return -1, -1, -1, np.zeros((0, 3)), 0, -1
+    total, count, first_valid = relative_map_sum(observations, i0, i1, i2, min_spread)
+    return i0, i1, i2, total, count, first_valid

@@ -41,9 +41,9 @@ class DynamicSweep(EstimatorState):
     """
 
     def _detect_dynamic(
-        self, k: int, members: IntArray, observations: FloatArray, interval: int
+        self, k: int, members: IntArray, iterations: IntArray
     ) -> tuple[IntArray, npt.NDArray[np.bool_], IntArray]:
-        """Dynamic detection before a group is final (paper II-C).
+        """Dynamic detection before a group is final (paper II-C), over the group's ``iterations`` (L,).
 
         Returns the ids found moving, whether each stands out of the bulk (:meth:`_beyond_bulk`)
         and the ids verified static. Runs over the group's interval when it is at least
@@ -52,8 +52,9 @@ class DynamicSweep(EstimatorState):
         """
         config = self.config
         none = np.zeros(0, np.int64)
-        if not config.dynamic_detection or interval < config.dynamic_min_iterations:
+        if not config.dynamic_detection or len(iterations) < config.dynamic_min_iterations:
             return none, np.zeros(0, bool), none
+        observations, _ = self.store.observations(members, iterations)
         result = detect_dynamic(observations, gap_ratio=config.dynamic_gap_ratio, floor=self._pair_noise(1))
         self.counts["dynamic_comparisons"] += result.comparisons
         if not result.decided:

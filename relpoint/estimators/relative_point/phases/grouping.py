@@ -11,11 +11,10 @@ from relpoint.estimators.relative_point._kernels import (
     SELECTION_MADE,
     SELECTION_NO_CREATION,
     SELECTION_NONE,
-    basis_preferring_verified,
     creation_triage,
+    group_relative_map,
     group_selection,
     regroup_due,
-    relative_map_sum,
 )
 from relpoint.estimators.relative_point.groups import (
     FIRST,
@@ -126,25 +125,22 @@ class Grouping(EstimatorState):
         if outcome != SELECTION_MADE:
             return False
         iterations = first + np.flatnonzero(interval)
-        observations, _ = store.observations(members, iterations)
-        moving, beyond, verified = self._detect_dynamic(k, members, observations, len(iterations))
+        moving, beyond, verified = self._detect_dynamic(k, members, iterations)
         if len(moving):
-            keep = ~np.isin(members, moving)
-            members, observations = members[keep], observations[keep]
+            members = members[~np.isin(members, moving)]
         if len(members) < config.seed_points + 1:
             return False
-        basis = self._choose_basis(members, observations[:, 0])
-        if basis is None:
-            return False
-        rel_sum, count, first_valid = relative_map_sum(
-            np.ascontiguousarray(observations, dtype=np.float64), *basis, float(config.min_basis_spread)
+        i0, i1, i2, rel_sum, count, first_valid = group_relative_map(
+            store.obs, store.obs_iter, members, iterations, store.verified, float(config.min_basis_spread)
         )
-        if count == 0:
-            return False
+        if i0 < 0 or count == 0:
+            return False  # no basis, or no iteration with a usable one
+        basis = (int(i0), int(i1), int(i2))
         anchor_targets = None
         if root:
             t0 = int(iterations[first_valid])
             T0 = self._poses[t0 % config.ring_size] if t0 < k else self._T_world_sensor
+            observations, _ = store.observations(members, iterations)
             anchor_targets = apply_transform(T0, observations[:, first_valid])
         group = RelativeGroup(
             gid=self.groups.new_gid(),
@@ -170,15 +166,6 @@ class Grouping(EstimatorState):
         crowded = members[store.n_groups[members] > config.max_groups_per_point]
         self._over_grouped.update(crowded.tolist())
         return True
-
-    def _choose_basis(self, members: IntArray, points: FloatArray) -> tuple[int, int, int] | None:
-        """Basis rows of ``members`` (M,) from their points (M, 3, one iteration's sensor frame): among
-        points verified static when they allow one, else among all (:func:`~.groups.choose_basis`'s rule)."""
-        i0, i1, i2 = basis_preferring_verified(
-            np.ascontiguousarray(points, dtype=np.float64), members, self.store.verified,
-            float(self.config.min_basis_spread),
-        )  # fmt: skip
-        return None if i0 < 0 else (int(i0), int(i1), int(i2))
 
     def _select_members(
         self, candidates: IntArray, creation: int, first: int, last: int, *, everyone_grouped: bool
