@@ -1675,8 +1675,7 @@ def older_within(
         def near(p, c):  # c: the candidates of point p
             d2 = sum((gather_positions(pos_sum, pos_weight, c) - gather_positions(pos_sum, pos_weight, [p])) ** 2, axis=1)
             return any((c != p) & (uid[c] < uid[p]) & ((d2 <= bound_squared) | (pos_weight[c] <= 0)))
-        any(near(p, c)
-            for p, c in zip(points, split(candidates, offsets[1:-1])))
+        any(near(p, c) for p, c in zip(points, split(candidates, offsets[1:-1])))
     """
     for r in range(points.shape[0]):
         p = points[r]

@@ -14,7 +14,10 @@ sensor frame with the inter-iteration motion estimated from the previous iterati
 *untransformed* pairs (:class:`MotionModel`; ``predict_motion=False`` gives the paper's plain
 untransformed-to-untransformed matching), which keeps the matching bound tight at high point density.
 A predicted point is off by the motion's rotation error times its range, so the points a first round
-leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows with range.
+leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows with range. An
+iteration runs all of it, the motion refreshed in between, as one compiled call
+(:meth:`MotionModel.match`, :func:`~._kernels.match_recent`); :func:`match_nearest` and
+:func:`match_mutual` are its two rounds on their own.
 """
 
 from __future__ import annotations
