@@ -40,7 +40,7 @@ def test_every_kernel_declares_its_argument_types() -> None:
     defined = {line.split("(")[0].removeprefix("def ") for line in source.splitlines() if line.startswith("def ")}
     helpers = {"source_digest", "_ahead_of_time", "kernel", "_checked", "prepare"}
     assert declared == defined - helpers
-    assert len(declared) == 51
+    assert len(declared) == 52
 
 
 def test_the_prebuilt_module_is_refused_when_unwanted_or_built_from_another_source(

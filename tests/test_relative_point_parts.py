@@ -1278,3 +1278,30 @@ def test_group_relative_map_kernel_equals_its_steps() -> None:
         assert tuple(found[:3]) == tuple(basis)
         total, count, first = _kernels.relative_map_sum(observations, *basis, 0.5)
         assert found[3].tobytes() == total.tobytes() and (found[4], found[5]) == (count, first)
+
+
+def test_open_group_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(31)
+    store = PointStore(ring_size=8, capacity=40)
+    ids = store.new_points(30)
+    for t in range(6):
+        seen = ids[rng.random(30) < 0.9] if t == 5 else ids
+        store.add_observations(seen, rng.normal(0, 5, (len(seen), 3)), t)
+    store.dynamic[ids[rng.random(30) < 0.1]] = True
+    outcomes = set()
+    for _ in range(40):
+        members = rng.permutation(ids)[: int(rng.integers(4, 15))]
+        basis = tuple(int(b) for b in rng.permutation(len(members))[:3])
+        rel_sum = rng.normal(size=(len(members), 3))
+        expected = rel_sum.copy()
+        if np.any(store.last_iter[members] != 5) or np.any(store.dynamic[members[list(basis)]]):
+            outcome = _kernels.OPEN_GROUP_CLOSES
+        else:
+            relative, valid = _kernels.basis_coordinates(np.ascontiguousarray(store.obs[members, 5 % 8][:, None]), *basis, 0.5)
+            outcome = _kernels.OPEN_GROUP_AVERAGED if valid[0] else _kernels.OPEN_GROUP_SKIPS
+            if valid[0]:
+                expected += relative[:, 0]
+        assert _kernels.extend_open_group(store.obs, store.last_iter, store.dynamic, members, *basis, 5, 0.5, rel_sum) == outcome
+        assert rel_sum.tobytes() == expected.tobytes()
+        outcomes.add(outcome)
+    assert _kernels.OPEN_GROUP_CLOSES in outcomes and _kernels.OPEN_GROUP_AVERAGED in outcomes

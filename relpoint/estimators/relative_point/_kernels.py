@@ -1939,3 +1939,54 @@ def group_relative_map(
         return -1, -1, -1, np.zeros((0, 3)), 0, -1
     total, count, first_valid = relative_map_sum(observations, i0, i1, i2, min_spread)
     return i0, i1, i2, total, count, first_valid
+
+
+OPEN_GROUP_CLOSES = 0
+"""Outcome of :func:`extend_open_group`: a member went unobserved or a basis member was flagged."""
+OPEN_GROUP_SKIPS = 1
+"""Outcome of :func:`extend_open_group`: the group stays open, but this iteration's basis is unusable."""
+OPEN_GROUP_AVERAGED = 2
+"""Outcome of :func:`extend_open_group`: this iteration was added to the group's relative map."""
+
+
+@kernel("f8[:, :, ::1], i8[::1], b1[::1], i8[::1], i8, i8, i8, i8, f8, f8[:, ::1]")
+def extend_open_group(
+    obs: np.ndarray,
+    last_iter: np.ndarray,
+    dynamic: np.ndarray,
+    members: np.ndarray,
+    i0: int,
+    i1: int,
+    i2: int,
+    iteration: int,
+    min_spread: float,
+    rel_sum: np.ndarray,
+) -> int:
+    """Average ``iteration`` into an open group's relative map ``rel_sum`` (M, 3, basis frame, m), in place.
+
+    ``members`` (M,) are the group's points, rows ``i0, i1, i2`` its basis. numpy, with
+    ``slot = iteration % obs.shape[1]``::
+
+        if any(last_iter[members] != iteration) or any(dynamic[members[[i0, i1, i2]]]): OPEN_GROUP_CLOSES
+        relative, valid = basis_coordinates(obs[members, slot][:, None], i0, i1, i2, min_spread)
+        if not valid[0]: OPEN_GROUP_SKIPS
+        rel_sum += relative[:, 0];  OPEN_GROUP_AVERAGED
+    """
+    m = members.shape[0]
+    for r in range(m):
+        if last_iter[members[r]] != iteration:
+            return OPEN_GROUP_CLOSES
+    if dynamic[members[i0]] or dynamic[members[i1]] or dynamic[members[i2]]:
+        return OPEN_GROUP_CLOSES
+    slot = iteration % obs.shape[1]
+    current = np.empty((m, 1, 3))
+    for r in range(m):
+        for a in range(3):
+            current[r, 0, a] = obs[members[r], slot, a]
+    relative, valid = basis_coordinates(current, i0, i1, i2, min_spread)
+    if not valid[0]:
+        return OPEN_GROUP_SKIPS
+    for r in range(m):
+        for a in range(3):
+            rel_sum[r, a] += relative[r, 0, a]
+    return OPEN_GROUP_AVERAGED

@@ -29,9 +29,12 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.relative_point._kernels import (
+    OPEN_GROUP_AVERAGED,
+    OPEN_GROUP_CLOSES,
     append_group,
     basis_coordinates,
     drop_group,
+    extend_open_group,
     group_anchors,
     replace_contribution,
     spread_basis,
@@ -327,21 +330,18 @@ class GroupMap:
         observation in the iteration. Returns the number of groups recomputed.
         """
         store = self.store
-        slot = iteration % store.ring_size
         still_open: list[int] = []
         updated = 0
         for gid in self.open:
             group = self.groups[gid]
-            members = group.members
-            basis_members = members[list(group.basis)]
-            if np.any(store.last_iter[members] != iteration) or np.any(store.dynamic[basis_members]):
+            outcome = extend_open_group(
+                store.obs, store.last_iter, store.dynamic, group.members, *group.basis, iteration,
+                float(self.min_basis_spread), group.rel_sum,
+            )  # fmt: skip
+            if outcome == OPEN_GROUP_CLOSES:
                 group.is_open = False
                 continue
-            relative, valid = relative_coordinates(
-                store.obs[members, slot][:, None], group.basis, self.min_basis_spread
-            )
-            if valid[0]:
-                group.rel_sum += relative[:, 0]
+            if outcome == OPEN_GROUP_AVERAGED:
                 group.count += 1
                 group.last_iteration = iteration
                 self.place(group)
