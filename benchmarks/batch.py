@@ -46,9 +46,10 @@ align = "se3"
 """
 
 
-def run_batch(plan: Path, jobs: int, results: Path, scheduler: str | None = None) -> tuple[float, float]:
-    """Wall seconds of one ``relpoint batch`` process and the CPU seconds its jobs report; with
-    ``scheduler`` the jobs go to that Dask cluster instead of a local pool of ``jobs`` workers."""
+def run_batch(plan: Path, jobs: int, results: Path, scheduler: str | None = None) -> tuple[float, float, float]:
+    """Wall seconds of one ``relpoint batch`` process, the CPU seconds its jobs report and the sum of their
+    wall seconds; with ``scheduler`` the jobs go to that Dask cluster instead of a local pool of ``jobs``
+    workers."""
     where = ["--scheduler", scheduler] if scheduler is not None else ["--jobs", str(jobs)]
     command = [sys.executable, "-m", "relpoint_cli.main", "-q", "batch", str(plan), *where,
                "--results", str(results)]  # fmt: skip
@@ -58,7 +59,7 @@ def run_batch(plan: Path, jobs: int, results: Path, scheduler: str | None = None
     if completed.returncode != 0:
         raise SystemExit(f"batch --jobs {jobs} failed ({completed.returncode}):\n{completed.stdout}{completed.stderr}")
     rows = json.loads((results / "results.json").read_text())["jobs"]
-    return seconds, sum(row["cpu_seconds"] for row in rows)
+    return seconds, sum(row["cpu_seconds"] for row in rows), sum(row["wall_seconds"] for row in rows)
 
 
 def _burn(n: int) -> float:
@@ -105,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"plan: 2 logs x {args.iterations} iterations (density {args.density:g}) x ekf, fastslam "
               f"({args.particles} particles) x 2 grid values = 8 jobs; {os.cpu_count()} cores")  # fmt: skip
         times: dict[int, list[float]] = {1: [], 2: []}
+        outside: list[float] = []  # --jobs 1: the batch's wall time outside its jobs (start-up, wind-down)
+        job_walls: list[float] = []
         clusters = {}
         if args.dask:  # started once, outside the timed runs, as a cluster would be
             from distributed import LocalCluster
@@ -116,8 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         for repeat in range(args.repeats):
             for jobs in (1, 2):
                 scheduler = clusters[jobs].scheduler_address if clusters else None
-                seconds, cpu = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}", scheduler)
+                seconds, cpu, walls = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}", scheduler)
                 times[jobs].append(seconds)
+                if jobs == 1:
+                    outside.append(seconds - walls)
+                    job_walls.append(walls)
                 print(
                     f"  {'Dask workers' if clusters else '--jobs'} {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
                     f"   (load average {os.getloadavg()[0]:.1f})"
@@ -127,6 +133,10 @@ def main(argv: list[str] | None = None) -> int:
         one, two = statistics.median(times[1]), statistics.median(times[2])
         label = "Dask workers" if args.dask else "--jobs"
         print(f"median wall time {label} 1: {one:.2f} s, {label} 2: {two:.2f} s, speed-up {one / two:.2f}x")
+        serial, work = statistics.median(outside), statistics.median(job_walls)
+        print(f"  with 1 worker: {work:.2f} s in jobs, {serial:.2f} s outside them (start-up, plan, wind-down); "
+              f"the jobs alone run {work / max(two - serial, 1e-9):.2f}x faster on 2 workers, and with this start-up "
+              f"the most 2 workers can give is {(serial + work) / (serial + work / 2):.2f}x")  # fmt: skip
         print(f"yardstick: a pure-Python CPU burn runs {burn_speedup():.2f}x faster on 2 workers than on 1 just now")
     return 0
 

@@ -7,7 +7,7 @@ since on a shared machine wall time mostly measures the neighbours. Both kernel 
 measured: the kernels compiled ahead of time at install (the default) and ``RELPOINT_KERNELS=jit``
 (compiled by numba on first call, the fallback when no compiler was at hand at install).
 
-Usage: python benchmarks/cold_start.py [--log sample_logs/figure8.mcap] [--repeat 2]
+Usage: python benchmarks/cold_start.py [--log sample_logs/figure8.mcap] [--estimator relpoint] [--repeat 2]
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ def directory_bytes(path: Path) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--log", type=Path, default=ROOT / "sample_logs" / "figure8.mcap")
+    parser.add_argument("--estimator", default="relpoint", help="the estimator of the runs (relpoint, fastslam, ...)")
     parser.add_argument("--repeat", type=int, default=2, help="warm runs and start-ups (the least CPU is kept)")
     args = parser.parse_args()
     relpoint = relpoint_command()
@@ -61,7 +62,7 @@ def main() -> None:
                 environment["RELPOINT_KERNELS"] = "jit"
             else:
                 environment.pop("RELPOINT_KERNELS", None)
-            run = [*relpoint, "run", str(args.log), "--estimator", "relpoint", "--overwrite", "-o"]
+            run = [*relpoint, "run", str(args.log), "--estimator", args.estimator, "--overwrite", "-o"]
             cold = measure([*run, str(Path(scratch) / f"cold-{mode}")], environment)
             warm = min(measure([*run, str(Path(scratch) / f"warm-{mode}")], environment) for _ in range(args.repeat))
             print(f"{'run ' + args.log.name + ', kernels ' + mode + ', cold (empty cache)':52s} {cold[0]:7.2f} {cold[1]:7.2f}")

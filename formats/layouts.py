@@ -232,9 +232,19 @@ def _describe_ros1(path: Path) -> Storage:
 
 def _describe_rosbag2(path: Path) -> Storage:
     metadata = _rosbag2_metadata(path)
+    try:
+        return _rosbag2_storage(path, metadata)
+    except (AttributeError, TypeError, ValueError, KeyError) as error:  # fields of the wrong shape
+        raise InputError(
+            f"{path}: {ROSBAG2_METADATA} is malformed ({type(error).__name__}: {error})", Layout.ROSBAG2.repair_hint
+        ) from None
+
+
+def _rosbag2_storage(path: Path, metadata: dict[str, Any]) -> Storage:
+    """:func:`_describe_rosbag2` from the bag's parsed metadata (raises on fields of the wrong type)."""
     per_file = {Path(f["path"]).name: f for f in metadata.get("files") or [] if isinstance(f, dict) and "path" in f}
     files = []
-    for name in metadata.get("relative_file_paths", []):
+    for name in metadata.get("relative_file_paths") or []:
         storage_file = path / Path(name).name
         if not storage_file.is_file():
             raise InputError(f"{path}: the storage file {storage_file.name} named in {ROSBAG2_METADATA} is missing",
@@ -298,7 +308,7 @@ def decompress_bag(path: Path, into: Path) -> Path:
     """
     metadata = _rosbag2_metadata(path)
     names = []
-    for name in metadata.get("relative_file_paths", []):
+    for name in metadata.get("relative_file_paths") or []:
         source = path / Path(name).name
         target = into / source.name.removesuffix(".zstd")
         with source.open("rb") as compressed, zstd.open(compressed, "rb") as stream, target.open("wb") as out:

@@ -241,7 +241,7 @@ def _warm_modules() -> list[str]:
     from relpoint.estimators import _fastslam_kernels
 
     loaded = [name for name in ("relpoint_app.worker_warmup", "relpoint.estimators.fastslam") if name in sys.modules]
-    if _fastslam_kernels.associate.signatures:
+    if _fastslam_kernels.COMPILED_AHEAD or _fastslam_kernels.associate.signatures:  # prebuilt, or compiled
         loaded.append("fastslam kernels")
     return loaded
 

@@ -5,9 +5,15 @@ FastSLAM's association takes the points one at a time (a landmark takes at most 
 handful of landmark slots in every particle. In numpy every point costs some twenty calls over
 arrays of a few dozen elements; here the same arithmetic runs as plain loops. Each kernel's docstring
 gives the numpy expression it equals up to rounding, and ``tests/test_fastslam.py`` checks the
-kernels against the numpy reference on random inputs. The kernels are compiled on their first call
-(``cache=True`` keeps the machine code for later processes); :func:`prepare` compiles them ahead of a
-run.
+kernels against the numpy reference on random inputs.
+
+An install builds the kernels ahead of time into the extension module ``_fastslam_kernels_aot``
+(numba's ``pycc``, from the argument types each kernel names; see ``setup.py`` and
+:mod:`relpoint._aot_kernels`, the mechanism Relative Point's kernels share), so no run pays for
+compilation and numba is not imported. Without that module (no C compiler at install, a source
+checkout, or ``RELPOINT_KERNELS=jit``), or when it was built from another version of this file, each
+kernel is compiled on its first call instead (``cache=True`` keeps the machine code for later
+processes); :func:`prepare` compiles them ahead of a run. Both give bit-identical results.
 """
 
 from __future__ import annotations
@@ -15,12 +21,25 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from relpoint._aot_kernels import KernelSet
+
+kernels = KernelSet(__file__, "relpoint.estimators._fastslam_kernels_aot")
+"""This file's kernels: prebuilt at install into ``_fastslam_kernels_aot`` or compiled on first call."""
+kernel = kernels.kernel
+SIGNATURES: dict[str, str] = kernels.signatures
+"""Argument types of every kernel in numba's notation, by name: what the ahead-of-time build compiles."""
+COMPILED_AHEAD = kernels.compiled_ahead
+"""Whether the kernels below are the prebuilt machine code (True) or compiled on first call (False)."""
+source_digest = kernels.source_digest
+prepare = kernels.prepare
+"""Compile every public kernel for its declared argument types, or load it from numba's cache
+(nothing to do when :data:`COMPILED_AHEAD`); :meth:`FastSlam.compile` calls this before a run."""
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[::1], f8[::1], f8[::1]")
 def _in_sensor_frame(R, position, mean, out):  # pragma: no cover - compiled
     """``out = R^T (mean - position)``: a world point (3,) in the sensor frame of pose ``(R, position)``."""
     d0 = mean[0] - position[0]
@@ -30,7 +49,7 @@ def _in_sensor_frame(R, position, mean, out):  # pragma: no cover - compiled
         out[a] = R[0, a] * d0 + R[1, a] * d1 + R[2, a] * d2
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1]")
 def _measurement_covariance(R, C, Q, CR, S):  # pragma: no cover - compiled
     """``S = R^T C R + Q``: a landmark's covariance ``C`` (world) seen from ``R``, plus the point noise
     ``Q``; ``CR`` (3, 3) is scratch and holds ``C R`` afterwards."""
@@ -42,7 +61,7 @@ def _measurement_covariance(R, C, Q, CR, S):  # pragma: no cover - compiled
             S[a, b] = R[0, a] * CR[0, b] + R[1, a] * CR[1, b] + R[2, a] * CR[2, b] + Q[a, b]
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, :, ::1], i8[::1], f8")
 def near_slots(points, positions, rotations, means, counts, radius):  # pragma: no cover - compiled
     """Per point, the landmark slots within ``radius`` of it (sensor frame) in at least one particle.
 
@@ -105,7 +124,7 @@ def near_slots(points, positions, rotations, means, counts, radius):  # pragma: 
     return offsets, found[:size].copy()
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[:, ::1]")
 def _inverse_and_logdet3(L, out):  # pragma: no cover - compiled
     """``out = L^-1`` of a 3x3 matrix; returns ``log|det L|`` (NaN when singular)."""
     a, b, c = L[0, 0], L[0, 1], L[0, 2]
@@ -130,7 +149,7 @@ def _inverse_and_logdet3(L, out):  # pragma: no cover - compiled
     return math.log(abs(det))
 
 
-@njit(cache=True)
+@kernel("f8[:, ::1], f8[::1]")
 def _rotate_by(R, w):  # pragma: no cover - compiled
     """``R @ Exp(w)`` in place for a rotation vector ``w`` (rad), Rodrigues' formula."""
     theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
@@ -154,7 +173,10 @@ def _rotate_by(R, w):  # pragma: no cover - compiled
             R[a, b] = r0 * E[0, b] + r1 * E[1, b] + r2 * E[2, b]
 
 
-@njit(cache=True)
+@kernel(
+    "f8[:, ::1], i8[::1], i8[::1], f8[:, ::1], f8[:, :, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, :, :, ::1], i8[::1], "
+    "f8[:, ::1], f8[:, :, ::1], b1, f8, f8"
+)
 def associate(
     points, offsets, slots, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal, log_new, log_start
 ):  # pragma: no cover - compiled
@@ -318,7 +340,10 @@ def associate(
     return assoc, log_likelihood, paired, discarded
 
 
-@njit(cache=True)
+@kernel(
+    "f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, :, ::1], f8[:, :, :, ::1], f8[:, ::1], i8[:, ::1], "
+    "i8[:, ::1], i8"
+)
 def update_landmarks(points, assoc, positions, rotations, means, covs, Q, seen, last, iteration):  # pragma: no cover
     """The 3x3 EKF update of every paired landmark with its particle's (sampled) pose.
 
@@ -372,17 +397,3 @@ def update_landmarks(points, assoc, positions, rotations, means, covs, Q, seen, 
             seen[p, j] += 1
             last[p, j] = iteration
 
-
-def prepare() -> None:
-    """Compile (or load from the cache) both kernels on tiny inputs, ahead of the first iteration."""
-    points = np.zeros((1, 3))
-    positions = np.zeros((1, 3))
-    rotations = np.eye(3)[None].copy()
-    means = np.ones((1, 1, 3))
-    counts = np.ones(1, dtype=np.int64)
-    offsets, slots = near_slots(points, positions, rotations, means, counts, 5.0)
-    covs = np.eye(3)[None, None].copy()
-    associate(points, offsets, slots, positions, rotations, np.zeros((1, 6)), means, covs, counts, np.eye(3),
-              np.eye(12)[None].copy(), True, -10.0, -20.0)  # fmt: skip
-    update_landmarks(points, np.zeros((1, 1), dtype=np.int64), positions, rotations, means, covs, np.eye(3),
-                     np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1), dtype=np.int64), 0)  # fmt: skip

@@ -49,6 +49,13 @@ from relpoint.estimators._association import (
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._landmark_motion import (
+    HAND_OVER_MEMORY,
+    REACH_SIGMAS,
+    MotionTest,
+    hand_over,
+    shared_motion_removed,
+)
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
@@ -114,6 +121,15 @@ class EkfConfig(Settings):
     with the pose uncertainty that all pairs share, and pulls the pose and map. Needs
     ``CONSENSUS_MIN_PAIRS`` pairs: with fewer, a pair that disagrees cannot be told from a
     consensus that is wrong."""
+    follow_movers: bool = setting(True)
+    """Tell moving landmarks apart by their smoothed innovations and let them follow their points
+    without pulling the pose (:mod:`relpoint.estimators._landmark_motion`); the map flags them dynamic.
+    Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
+    mover_gate_probability: float = setting(0.999, above=0, below=1)
+    """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
+    hand_over_movers: bool = setting(True)
+    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
+    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     mover_radius_sigmas: float = setting(0.0, low=0, high=1e6)
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a
@@ -245,6 +261,9 @@ class EkfSlam(Estimator[PointObservation]):
         radius = self.config.mover_radius_sigmas * sigma
         self._movers = MoverTracks(radius) if radius > 0 else None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
+        self._mover_test = MotionTest(self.config.mover_gate_probability, REACH_SIGMAS * sigma) if self.config.follow_movers else None
+        self._drift = np.zeros((0, 3))  # smoothed innovation of each landmark (world, m)
+        self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
 
     # ------------------------------------------------------------------------------------ interface
@@ -256,12 +275,21 @@ class EkfSlam(Estimator[PointObservation]):
         self._predict_to(observation.stamp_ns)
         points = np.asarray(observation.points)
         if len(points):
+            if self._mover_test is not None:
+                self._widen(np.flatnonzero(self._moving))
             assignment, may_start = self._associate(observation)
-            if self.config.rigid_consensus:
-                kept = self._keep_consensus(points, assignment)
+            to_moving = np.zeros(len(points), dtype=bool)
+            to_moving[assignment >= 0] = self._moving[assignment[assignment >= 0]]
+            if self._mover_test is not None:
+                self._classify_motion(points, assignment)
+            if self.config.rigid_consensus:  # over the static landmarks' pairs: a moving one says nothing of the pose
+                kept = self._keep_consensus(points, np.where(to_moving, -1, assignment))
+                kept = np.where(to_moving, assignment, kept)
                 if self._movers is not None:  # a pair the consensus leaves out may be a landmark that moved
                     may_start |= (assignment >= 0) & (kept < 0)
                 assignment = kept
+            if self._mover_test is not None and self.config.hand_over_movers:
+                self._hand_over(points, assignment, may_start)
             paired = np.flatnonzero(assignment >= 0)
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
@@ -331,7 +359,7 @@ class EkfSlam(Estimator[PointObservation]):
         if self._frame is not None:
             T = self._frame.provisional
             positions = apply_transform(T, positions)
-        dynamic = np.arange(len(positions)) >= n
+        dynamic = np.concatenate([self._moving, np.ones(len(positions) - n, dtype=bool)])
         return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id)
 
     @property
@@ -550,6 +578,8 @@ class EkfSlam(Estimator[PointObservation]):
         S = self._innovation_covariances(H_pose)
         innovations = points[:, None, :] - z_hat[None, :, :]
         d2 = mahalanobis_squared(innovations, np.linalg.inv(S))
+        # Static landmarks first: a moving one's gate is wide, and it takes only a point they leave.
+        moving_d2, d2 = d2, np.where(self._moving[None, :], np.inf, d2)
         assignment, _ = nearest_neighbour(d2, self._gate)
         may_start = ~(d2 < self._new_gate).any(axis=1)
         if self.config.association == "jcbb":
@@ -568,7 +598,69 @@ class EkfSlam(Estimator[PointObservation]):
                 if gave_up:
                     self._jcbb_gave_up()
                 assignment = np.where(local >= 0, candidates[np.maximum(local, 0)], -1)
+        if self._moving.any():
+            moving_d2 = np.where(self._moving[None, :] & (assignment < 0)[:, None], moving_d2, np.inf)
+            followed, _ = nearest_neighbour(moving_d2, self._gate)
+            assignment = np.where(followed >= 0, followed, assignment)
         return assignment, may_start & (assignment < 0)
+
+    def _widen(self, landmarks: np.ndarray) -> None:
+        """Widen the covariance blocks of moving ``landmarks`` (:meth:`MotionTest.widen`): process noise
+        of a landmark that moves, so that its pair updates it and not the pose."""
+        assert self._mover_test is not None
+        if len(landmarks):
+            cols = self._landmark_columns(landmarks).reshape(-1, 3)
+            self._P[cols[:, :, None], cols[:, None, :]] += self._mover_test.widening * np.eye(3)
+
+    def _classify_motion(self, points: FloatArray, assignment: np.ndarray) -> None:
+        """Smooth the innovation of every paired landmark and flag the moving ones
+        (:mod:`relpoint.estimators._landmark_motion`)."""
+        assert self._mover_test is not None
+        rows = np.flatnonzero(assignment >= 0)
+        if len(rows) == 0:
+            return
+        landmarks = assignment[rows]
+        R = self._rotation
+        offsets = points[rows] @ R.T
+        innovations = self._position + offsets - self._landmarks[landmarks]
+        innovations = shared_motion_removed(np.zeros(len(rows), dtype=np.int64), innovations, offsets, 1)
+        cols = self._landmark_columns(landmarks).reshape(-1, 3)
+        landmark_covariances = self._P[cols[:, :, None], cols[:, None, :]]
+        point_covariance = np.broadcast_to(R @ self._R_obs @ R.T, landmark_covariances.shape)
+        seen = np.array(self._observations, dtype=np.int64)[landmarks]
+        self._drift[landmarks], self._moving[landmarks] = self._mover_test.classify(
+            np.zeros(len(rows), dtype=np.int64), 1, innovations, point_covariance, landmark_covariances,
+            self._drift[landmarks], self._moving[landmarks], seen,
+        )  # fmt: skip
+
+    def _hand_over(self, points: FloatArray, assignment: np.ndarray, may_start: np.ndarray) -> None:
+        """Pair points that would start landmarks with the landmarks that moved out of their gates
+        (:func:`relpoint.estimators._landmark_motion.hand_over`); those landmarks are moving, widened
+        before the update. Updates ``assignment`` and ``may_start`` in place."""
+        assert self._mover_test is not None
+        unpaired = np.flatnonzero(may_start)
+        iteration = self._stats["iterations"]
+        last_seen = self._last_seen.copy()
+        last_seen[assignment[assignment >= 0]] = iteration
+        candidates = np.flatnonzero((last_seen >= iteration - HAND_OVER_MEMORY) & (last_seen < iteration))
+        if len(unpaired) == 0 or len(candidates) == 0:
+            return
+        per_point = np.zeros(len(points), dtype=np.int64)
+        per_point[unpaired] = len(candidates)
+        near = (np.concatenate([[0], np.cumsum(per_point)]), np.tile(candidates, len(unpaired)))
+        claims = np.where(assignment >= 0, assignment, np.where(may_start, -1, -2))[None]
+        _, rows, landmarks = hand_over(
+            claims, near, np.array([len(self._landmarks)]), last_seen[None], iteration, self._position[None],
+            self._rotation[None], points, self._landmarks[None], self._mover_test.reach,
+        )  # fmt: skip
+        if len(rows) == 0:
+            return
+        self._drift[landmarks] = self._position + points[rows] @ self._rotation.T - self._landmarks[landmarks]
+        self._moving[landmarks] = True
+        self._widen(landmarks)
+        assignment[rows] = landmarks
+        may_start[rows] = False
+        self._stats["handed_over"] += len(rows)
 
     def _keep_consensus(self, points: FloatArray, assignment: np.ndarray) -> np.ndarray:
         """``assignment`` without the pairs the rigid motion most pairs share leaves unexplained.
@@ -710,6 +802,8 @@ class EkfSlam(Estimator[PointObservation]):
         grown[:N, N:] = P_new_all.T
         grown[N:, N:] = 0.5 * (P_nn + P_nn.T)
         self._landmarks = np.vstack([self._landmarks, self._position + points @ R.T])
+        self._drift = np.vstack([self._drift, np.zeros((k, 3))])
+        self._moving = np.concatenate([self._moving, np.zeros(k, dtype=bool)])
 
     def _follow_movers(
         self, points: FloatArray, fresh: np.ndarray, assignment: np.ndarray, ids: np.ndarray | None
@@ -761,6 +855,8 @@ class EkfSlam(Estimator[PointObservation]):
         self._resize(len(cols))[:] = kept
         self._landmarks = self._landmarks[keep]
         self._last_seen = self._last_seen[keep]
+        self._drift = self._drift[keep]
+        self._moving = self._moving[keep]
         self._observations = [o for o, k in zip(self._observations, keep.tolist(), strict=True) if k]
         self._id_votes = [v for v, k in zip(self._id_votes, keep.tolist(), strict=True) if k]
         if self._known:

@@ -11,6 +11,11 @@ that lies inside a wider gate of one is discarded rather than mapped (as the EKF
 loop closure the first points of old landmarks arrive offset by the drift, and a duplicate started
 from them would win every later association and keep the loop open.
 
+Moving points: a landmark whose smoothed innovation, beside the particle's other landmarks', leaves
+its gate is taken to be moving (``follow_movers``, :mod:`relpoint.estimators._landmark_motion`): it
+follows its points without pulling the pose instead of leaving a trail of duplicate landmarks, and
+the map flags it dynamic.
+
 Position fixes (``/fix``; *General Concept of 3D SLAM*, sections 5-6) are fused in the loop once
 they pin the local frame (``relpoint.estimators._fix_frame``): each particle is weighted by a fix's
 likelihood and moved towards it by eq. 31-32 together with the landmarks it saw lately.
@@ -47,6 +52,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._landmark_motion import MotionTest, hand_over, shared_motion_removed
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
@@ -75,6 +81,8 @@ _PARTICLE_ARRAYS = (
     "_frame_cov",
     "_vote_id",
     "_vote_n",
+    "_drift",
+    "_moving",
 )
 
 
@@ -129,6 +137,15 @@ class FastSlamConfig(Settings):
     keeps the proposal full rank when odometry is perfect."""
     resample_threshold: float = setting(0.5, low=0, high=1)
     """Resample when the effective sample size falls below this fraction of the particles."""
+    follow_movers: bool = setting(True)
+    """Tell moving landmarks apart by their smoothed innovations and let them follow their points
+    without pulling the pose (:mod:`relpoint.estimators._landmark_motion`); the map flags them dynamic.
+    Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
+    mover_gate_probability: float = setting(0.999, above=0, below=1)
+    """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
+    hand_over_movers: bool = setting(True)
+    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
+    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     search_radius: float | None = setting(None, low=1e-6, high=1e6)
     """Landmarks farther than this from a point (in every particle) are not considered for it (m).
     Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
@@ -225,6 +242,9 @@ class FastSlam(Estimator[PointObservation]):
         self._frame_cov = np.zeros((n, 3, 3))  # covariance of each particle's position in the fixes' frame
         self._vote_id = np.full((n, self._capacity), -1, dtype=np.int64)
         self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
+        self._drift = np.zeros((n, self._capacity, 3))  # smoothed innovation of each landmark (world, m)
+        self._moving = np.zeros((n, self._capacity), dtype=bool)
+        self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
         self._stamp_ns: int | None = None
         self._moved = False
         self._twist_unknown = False
@@ -241,7 +261,8 @@ class FastSlam(Estimator[PointObservation]):
 
     @classmethod
     def compile(cls) -> None:
-        """Compile or load the association's compiled loops (:mod:`relpoint.estimators._fastslam_kernels`)."""
+        """Compile or load the association's compiled loops (:mod:`relpoint.estimators._fastslam_kernels`);
+        nothing to do when they were built ahead of time at install."""
         _fastslam_kernels.prepare()
 
     @property
@@ -264,7 +285,9 @@ class FastSlam(Estimator[PointObservation]):
             self._apply_sample(Sigma)
             Sigma = np.zeros_like(Sigma)
         points = np.asarray(observation.points)
-        assoc, log_likelihood, Sigma = self._associate(points, Sigma, proposal)
+        if self._mover_test is not None:
+            self._mover_test.widen(self.covs, self._moving)
+        assoc, log_likelihood, Sigma, near = self._associate(points, Sigma, proposal)
         if proposal:
             self._apply_sample(Sigma)
         if self._frame_fit is not None:
@@ -280,7 +303,11 @@ class FastSlam(Estimator[PointObservation]):
         self._step_stamp_ns = observation.stamp_ns
         self.log_weights = self.log_weights + log_likelihood
         self.log_weights -= logsumexp(self.log_weights)
+        if self._mover_test is not None:
+            self._classify_motion(points, assoc)
         self._update_landmarks(points, assoc, observation.ids)
+        if self._mover_test is not None and self.config.hand_over_movers:
+            self._hand_over(points, assoc, near, observation.ids)
         self._add_landmarks(points, assoc, observation.ids)
         self._resample_if_degenerate()
         self._stats["iterations"] += 1
@@ -388,7 +415,7 @@ class FastSlam(Estimator[PointObservation]):
         return LandmarkMap(
             positions,
             self._seen[best, :n].copy(),
-            np.zeros(n, dtype=bool),
+            self._moving[best, :n].copy(),
             self._vote_id[best, :n].copy(),
         )
 
@@ -402,6 +429,7 @@ class FastSlam(Estimator[PointObservation]):
             "variant": self.config.variant,
             "particles": self.config.particles,
             "landmarks": self.map_size,
+            "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
@@ -485,24 +513,25 @@ class FastSlam(Estimator[PointObservation]):
 
     def _associate(
         self, points: FloatArray, Sigma: FloatArray, proposal: bool
-    ) -> tuple[np.ndarray, FloatArray, FloatArray]:
+    ) -> tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]:
         """Maximum-likelihood association of each point in each particle, one point at a time.
 
         The candidates of a point are the landmark slots within ``search_radius`` of it in at least one
         particle (taken before the points move the proposal). Returns the association (N, k) (landmark
         slot, -1 for a new landmark, -2 for a discarded point), each particle's log-likelihood of the
-        points (N,), and the proposal covariance after the points (when ``proposal``, i.e. 2.0: each
-        paired point refines the pose prior ``Sigma`` and moves the particle's pose). Compiled loops:
+        points (N,), the proposal covariance after the points (when ``proposal``, i.e. 2.0: each
+        paired point refines the pose prior ``Sigma`` and moves the particle's pose) and the
+        candidates (CSR ``offsets, slots`` per point). Compiled loops:
         :func:`relpoint.estimators._fastslam_kernels.associate`.
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         counts = self.counts.astype(np.int64)
-        offsets, slots = _fastslam_kernels.near_slots(
-            points, self.positions, self.rotations, self.means, counts, float(self._search_radius)
-        )
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
         rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
         twists = np.ascontiguousarray(self.twists, dtype=np.float64)
+        offsets, slots = _fastslam_kernels.near_slots(
+            points, positions, rotations, self.means, counts, float(self._search_radius)
+        )
         Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
         assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
             points, offsets, slots, positions, rotations, twists, self.means, self.covs, counts, self._Q, Sigma,
@@ -511,7 +540,7 @@ class FastSlam(Estimator[PointObservation]):
         self.positions, self.rotations, self.twists = positions, rotations, twists
         self._stats["paired"] += int(paired)
         self._stats["discarded"] += int(discarded)
-        return assoc, log_likelihood, Sigma
+        return assoc, log_likelihood, Sigma, (offsets, slots)
 
     # ---------------------------------------------------------------------------------- landmarks
 
@@ -527,6 +556,49 @@ class FastSlam(Estimator[PointObservation]):
         if ids is not None:
             p, i = np.nonzero(assoc >= 0)
             self._vote(p, assoc[p, i], np.asarray(ids)[i])
+
+    def _classify_motion(self, points: FloatArray, assoc: np.ndarray) -> None:
+        """Smooth the innovation of every paired landmark and flag the moving ones
+        (:mod:`relpoint.estimators._landmark_motion`), before the pairs update the landmarks."""
+        assert self._mover_test is not None
+        p, i = np.nonzero(assoc >= 0)
+        if len(p) == 0:
+            return
+        j = assoc[p, i]
+        R = self.rotations[p]
+        offsets = np.einsum("pij,pj->pi", R, points[i])
+        innovations = self.positions[p] + offsets - self.means[p, j]
+        innovations = shared_motion_removed(p, innovations, offsets, self.config.particles)  # the pose's error
+        self._drift[p, j], self._moving[p, j] = self._mover_test.classify(
+            p, self.config.particles, innovations, R @ self._Q @ np.swapaxes(R, 1, 2), self.covs[p, j],
+            self._drift[p, j], self._moving[p, j], self._seen[p, j],
+        )  # fmt: skip
+
+    def _hand_over(
+        self, points: FloatArray, assoc: np.ndarray, near: tuple[np.ndarray, np.ndarray], ids: np.ndarray | None
+    ) -> None:
+        """Pair a point that would start a landmark with a landmark of the same particle that moved out
+        of its gate (:func:`relpoint.estimators._landmark_motion.hand_over`); the landmark is moving."""
+        assert self._mover_test is not None
+        iteration = self._stats["iterations"]
+        p, i, j = hand_over(
+            assoc, near, self.counts, self._last, iteration, self.positions, self.rotations, points, self.means,
+            self._search_radius,
+        )  # fmt: skip
+        if len(p) == 0:
+            return
+        R = self.rotations[p]
+        world = self.positions[p] + np.einsum("pij,pj->pi", R, points[i])
+        self._drift[p, j] = world - self.means[p, j]
+        self.means[p, j] = world
+        self.covs[p, j] = R @ self._Q @ np.swapaxes(R, 1, 2)
+        self._moving[p, j] = True
+        self._seen[p, j] += 1
+        self._last[p, j] = iteration
+        assoc[p, i] = j
+        if ids is not None:
+            self._vote(p, j, np.asarray(ids)[i])
+        self._stats["handed_over"] += len(p)
 
     def _vote(self, p: np.ndarray, j: np.ndarray, ids: np.ndarray) -> None:
         """Boyer-Moore majority vote of the ground-truth ids fused into each landmark (diagnosis only)."""
@@ -547,6 +619,8 @@ class FastSlam(Estimator[PointObservation]):
         R = self.rotations[p]
         self.means[p, slots] = self.positions[p] + np.einsum("pij,pj->pi", R, points[i])
         self.covs[p, slots] = R @ self._Q @ np.swapaxes(R, 1, 2)
+        self._drift[p, slots] = 0.0
+        self._moving[p, slots] = False
         self._seen[p, slots] = 1
         self._last[p, slots] = self._stats["iterations"]
         self._vote_id[p, slots] = -1 if ids is None else np.asarray(ids)[i]
@@ -566,6 +640,8 @@ class FastSlam(Estimator[PointObservation]):
         self._last = np.concatenate([self._last, np.zeros((n, extra), dtype=np.int64)], axis=1)
         self._vote_id = np.concatenate([self._vote_id, np.full((n, extra), -1, dtype=np.int64)], axis=1)
         self._vote_n = np.concatenate([self._vote_n, np.zeros((n, extra), dtype=np.int64)], axis=1)
+        self._drift = np.concatenate([self._drift, np.zeros((n, extra, 3))], axis=1)
+        self._moving = np.concatenate([self._moving, np.zeros((n, extra), dtype=bool)], axis=1)
         self._capacity = capacity
 
     # ---------------------------------------------------------------------------------- resampling

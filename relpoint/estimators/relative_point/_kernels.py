@@ -7,7 +7,8 @@ equals (up to floating-point rounding); ``tests/test_relative_point_parts.py`` c
 against that expression on random inputs.
 
 An install builds all kernels ahead of time into the extension module ``_kernels_aot`` (numba's
-``pycc``, from the argument types each :func:`kernel` names; see ``setup.py``), so no run pays for
+``pycc``, from the argument types each :func:`kernel` names; see ``setup.py`` and
+:mod:`relpoint._aot_kernels`, the mechanism FastSLAM's kernels share), so no run pays for
 compilation and numba itself is not even imported. Without that module (no C compiler at install,
 a source checkout, or ``RELPOINT_KERNELS=jit``), or when it was built from another version of this
 file, each kernel is compiled on its first call instead (``cache=True`` keeps the machine code in
@@ -19,100 +20,23 @@ seconds of compilation each, so the callers sort and the 3x3 rotation is solved 
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
-import os
-import re
-from collections.abc import Callable
-from pathlib import Path
-from types import ModuleType
-from typing import Any
 
 import numpy as np
 
-SIGNATURES: dict[str, str] = {}
+from relpoint._aot_kernels import KernelSet
+
+kernels = KernelSet(__file__, "relpoint.estimators.relative_point._kernels_aot")
+"""This file's kernels: prebuilt at install into ``_kernels_aot`` or compiled on first call."""
+kernel = kernels.kernel
+SIGNATURES: dict[str, str] = kernels.signatures
 """Argument types of every kernel in numba's notation, by name: what the ahead-of-time build compiles."""
-
-
-def source_digest() -> int:
-    """First 60 bits of the SHA-256 of this file: the ahead-of-time module must have been built from it."""
-    return int(hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:15], 16)
-
-
-def _ahead_of_time() -> ModuleType | None:
-    """The prebuilt ``_kernels_aot`` module if present, wanted and built from this very source; else None."""
-    if os.environ.get("RELPOINT_KERNELS", "auto") == "jit":
-        return None
-    try:
-        from relpoint.estimators.relative_point import _kernels_aot  # type: ignore[attr-defined]
-    except ImportError:
-        return None
-    return _kernels_aot if _kernels_aot.source_digest() == source_digest() else None
-
-
-_PREBUILT = _ahead_of_time()
-COMPILED_AHEAD = _PREBUILT is not None
+COMPILED_AHEAD = kernels.compiled_ahead
 """Whether the kernels below are the prebuilt machine code (True) or compiled on first call (False)."""
-
-
-def kernel(argument_types: str) -> Callable[[Callable[..., Any]], Any]:
-    """Declare a compiled kernel taking ``argument_types`` (numba notation, e.g. ``"f8[:, ::1], i8"``).
-
-    The name is bound to the prebuilt function when :data:`COMPILED_AHEAD`, else to a lazily
-    compiling ``numba.njit(cache=True)`` dispatcher of the same loops.
-    """
-
-    def declare(function: Callable[..., Any]) -> Any:
-        SIGNATURES[function.__name__] = argument_types
-        if _PREBUILT is not None:
-            return _checked(getattr(_PREBUILT, function.__name__), function, argument_types)
-        from numba import njit
-
-        return njit(cache=True)(function)
-
-    return declare
-
-
-_DTYPES = {"f8": np.dtype(np.float64), "i8": np.dtype(np.int64), "b1": np.dtype(np.bool_)}
-_ARGUMENT = re.compile(r"(\w+)(?:\[([^\]]*)\])?")
-
-
-def _checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument_types: str) -> Callable[..., Any]:
-    """``prebuilt`` behind a check of its array arguments' dtype, dimensions and C order.
-
-    A prebuilt kernel reads its arrays as declared without looking (a strided view would be read
-    wrongly, a float32 array past its end), where a numba dispatcher would compile a variant; so a
-    call with any other array is refused with a TypeError naming the kernel and argument.
-    """
-    arrays = [
-        (position, _DTYPES[code], dimensions.count(",") + 1)
-        for position, (code, dimensions) in enumerate(_ARGUMENT.findall(argument_types))
-        if dimensions
-    ]
-
-    def call(*arguments: Any) -> Any:
-        for position, dtype, ndim in arrays:
-            array = arguments[position]
-            if array.__class__ is not np.ndarray or array.dtype != dtype or array.ndim != ndim or not array.flags.c_contiguous:
-                raise TypeError(f"{function.__name__}: argument {position} must be a C-ordered {ndim}-d {dtype} array")
-        return prebuilt(*arguments)
-
-    return functools.update_wrapper(call, function)
-
-
-def prepare() -> None:
-    """Compile every public kernel for its declared argument types, or load it from numba's cache.
-
-    Nothing to do when :data:`COMPILED_AHEAD`. Otherwise a run calls this before its first
-    iteration, so compilation is timed on its own and not inside an iteration; a kernel called
-    with other types (a strided view, say) still compiles for those on first call.
-    """
-    if COMPILED_AHEAD:
-        return
-    for name, argument_types in SIGNATURES.items():
-        if not name.startswith("_"):
-            globals()[name].compile(f"({argument_types},)")
+source_digest = kernels.source_digest
+prepare = kernels.prepare
+"""Compile every public kernel for its declared argument types, or load it from numba's cache
+(nothing to do when :data:`COMPILED_AHEAD`); a run calls this before its first iteration."""
 
 # -- RltLSF (section II-B): least-squares rigid fitting ------------------------------------------
 
