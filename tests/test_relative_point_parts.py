@@ -939,3 +939,369 @@ def test_sweep_kernels_equal_numpy(block: int) -> None:
         kernel = _kernels.block_mean_scatter(tracks, valid, poses, block)
         assert np.allclose(kernel, expected, rtol=1e-12, atol=1e-12, equal_nan=True)
         assert np.isnan(kernel[0])
+
+
+def numpy_match_recent(reference, age, points, T_curr_prev, bound, angle, predict):  # type: ignore[no-untyped-def]
+    """Local matching step by step in numpy (the kernel ``match_recent``'s meaning)."""
+
+    def motion(row):  # type: ignore[no-untyped-def]
+        pairs = np.flatnonzero((row >= 0) & (age[np.maximum(row, 0)] == 1))
+        fit = fit_transform(reference[row[pairs]], points[pairs], trim=0.0, collinear_tolerance=0.05)
+        return None if fit is None else fit.T
+
+    predicted = _kernels.transform_by_age(T_curr_prev, reference, age) if predict else reference
+    row = match_nearest(predicted, points, bound)[0]
+    T = T_curr_prev
+    T_new = motion(row)
+    measured = T_new is not None
+    if measured:
+        T = T_new
+        D = T_new @ np.linalg.inv(T_curr_prev)
+        angle_change = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+        shift = np.linalg.norm(D[:3, 3]) + angle_change * np.sqrt(np.max(np.sum(reference**2, axis=1)))
+        if predict and shift > bound / 2:
+            predicted = _kernels.transform_by_age(T, reference, age)
+            row = match_nearest(predicted, points, bound)[0]
+    far = 0
+    if predict and angle > 0:
+        free_points = np.flatnonzero(row == NO_MATCH)
+        free_refs = np.setdiff1d(np.arange(len(reference)), row)
+        if len(free_points) and len(free_refs):
+            bounds = bound + angle * np.linalg.norm(predicted[free_refs], axis=1)
+            found = match_mutual(predicted[free_refs], points[free_points], bounds)
+            row[free_points[found >= 0]] = free_refs[found[found >= 0]]
+            far = int(np.count_nonzero(found >= 0))
+            if far:
+                T_far = motion(row)
+                if T_far is not None:
+                    T, measured = T_far, True
+    return row, T, measured, far
+
+
+def test_local_matching_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(21)
+    for trial in range(300):
+        m = int(rng.integers(1, 60))
+        reference = rng.uniform(-20, 20, (m, 3))
+        age = rng.integers(1, 4, m)
+        T_true = random_pose(rng, 0.8)
+        T_true[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
+        carried = _kernels.transform_by_age(T_true, reference, age)
+        keep = rng.random(m) < 0.8
+        points = np.concatenate([carried[keep] + rng.normal(0, 0.1, (int(keep.sum()), 3)), rng.uniform(-20, 20, (5, 3))])
+        points = points[rng.permutation(len(points))]
+        T_guess = np.eye(4) if trial % 3 == 0 else T_true @ random_pose(rng, 0.3) if trial % 3 == 1 else T_true
+        bound, angle, predict = float(rng.uniform(0.5, 2.0)), float(rng.choice([0.0, 0.05])), bool(trial % 5)
+        row, T, measured, far = _kernels.match_recent(reference, age, points, T_guess, bound, angle, predict, 0.05)
+        row_ref, T_ref, measured_ref, far_ref = numpy_match_recent(reference, age, points, T_guess, bound, angle, predict)
+        assert np.array_equal(row, row_ref) and measured == measured_ref and far == far_ref
+        assert np.allclose(T, T_ref, atol=1e-12)
+
+
+def test_stable_argsort_and_prediction_shift_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(22)
+    for n in (0, 1, 2, 7, 64, 65, 200):
+        values = np.round(rng.normal(0, 3, n))  # rounded: ties
+        assert np.array_equal(_kernels._stable_argsort(values), np.argsort(values, kind="stable"))
+    for _ in range(50):
+        T_new, T_before, reference = random_pose(rng, 2.0), random_pose(rng, 2.0), rng.normal(0, 10, (20, 3))
+        D = T_new @ np.linalg.inv(T_before)
+        angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+        expected = np.linalg.norm(D[:3, 3]) + angle * np.sqrt(np.max(np.sum(reference**2, axis=1)))
+        assert np.isclose(_kernels._prediction_shift(T_new, T_before, reference), expected, rtol=1e-12)
+
+
+def random_store_arrays(rng: np.random.Generator, c: int = 80):  # type: ignore[no-untyped-def]
+    """Per-point arrays like a PointStore's: positions' accumulators, flags, verification, uids."""
+    pos_weight = np.where(rng.random(c) < 0.7, rng.uniform(0.5, 20, c), 0.0)
+    pos_sum = rng.normal(0, 10, (c, 3)) * pos_weight[:, None]
+    pos_sq = np.sum(pos_sum**2, axis=1) / np.maximum(pos_weight, 1e-12) + rng.uniform(0, 2, c) * pos_weight
+    return {
+        "pos_sum": pos_sum,
+        "pos_weight": pos_weight,
+        "pos_sq": pos_sq,
+        "alive": rng.random(c) < 0.9,
+        "dynamic": rng.random(c) < 0.15,
+        "verified": np.where(rng.random(c) < 0.6, rng.integers(0, 50, c), -1),
+        "uid": rng.permutation(c).astype(np.int64),
+    }
+
+
+def test_anchor_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(23)
+    for trial in range(50):
+        s = random_store_arrays(rng)
+        members = rng.permutation(80)[:30]
+        relative, placed = rng.normal(0, 5, (30, 3)), rng.normal(0, 5, (30, 3))
+        own = 0.0 if trial % 3 == 0 else float(rng.uniform(0.1, 3.0))
+        source, target, weights = _kernels.group_anchors(
+            s["pos_sum"], s["pos_weight"], s["pos_sq"], s["dynamic"], s["verified"], members, relative, placed, own,
+            bool(trial % 4), 0.04, 0.5,
+        )  # fmt: skip
+        other = s["pos_weight"][members] - own
+        anchors = ~s["dynamic"][members] & (other > 1e-9)
+        own_part = own * placed[anchors] if own > 0 else 0.0
+        expected_target = (s["pos_sum"][members[anchors]] - own_part) / other[anchors, None]
+        spread = _kernels.gather_spread(s["pos_sum"], s["pos_weight"], s["pos_sq"], members[anchors])
+        expected_weights = other[anchors] / (spread**2 + 0.04)
+        expected_weights *= np.where(s["verified"][members[anchors]] >= 0, 1.0, 0.5)
+        if not trial % 4:
+            expected_weights = np.ones(int(anchors.sum()))
+        assert source.tobytes() == relative[anchors].tobytes() and target.tobytes() == expected_target.tobytes()
+        assert weights.tobytes() == expected_weights.tobytes()
+        ids = np.flatnonzero(s["pos_weight"] > 0)
+        positions, weights = _kernels.pose_anchors(s["pos_sum"], s["pos_weight"], s["pos_sq"], s["verified"], ids, 0.04, 0.5)
+        expected = 1.0 / (_kernels.gather_spread(s["pos_sum"], s["pos_weight"], s["pos_sq"], ids) ** 2 + 0.04)
+        expected *= np.where(s["verified"][ids] >= 0, 1.0, 0.5)
+        assert positions.tobytes() == _kernels.gather_positions(s["pos_sum"], s["pos_weight"], ids).tobytes()
+        assert weights.tobytes() == expected.tobytes()
+
+
+def test_robust_fit_kernel_equals_its_steps() -> None:
+    rng = np.random.default_rng(24)
+    for trial in range(200):
+        n = int(rng.integers(2, 40))
+        source = rng.normal(0, 5, (n, 3))
+        T = random_pose(rng, 5.0)
+        target = apply_transform(T, source) + rng.normal(0, 0.05, (n, 3))
+        target[rng.random(n) < 0.2] += rng.normal(0, 5, 3)  # a moving group
+        if trial % 10 == 0:
+            source[:, 1:] = 0.0  # collinear
+        weights = rng.uniform(0.5, 2.0, n)
+        consensus = float(rng.choice([0.0, 1.0]))
+        T_kernel, inliers, outcome = _kernels.robust_fit(source, target, weights, 3.0, 0.3, 0.05, 2, consensus, 0.05)
+        if n < 3:
+            assert outcome == _kernels.FIT_DEGENERATE
+            continue
+        T_fit, spread = _kernels.rigid_fit(source, target, weights, np.ones(n, bool))
+        if spread <= 0.05:
+            assert outcome == _kernels.FIT_DEGENERATE
+            continue
+        residual = _kernels.pair_residuals(source, target, T_fit)
+        if consensus > 0 and n > 4 and np.count_nonzero(residual > consensus) >= max(2, 0.05 * n):
+            assert outcome == _kernels.FIT_WANTS_CONSENSUS and T_kernel.tobytes() == T_fit.tobytes()
+            continue
+        expected = (T_fit, np.ones(n, bool))
+        if n > 4:
+            expected = _kernels.trimmed_fit(source, target, weights, T_fit, np.ones(n, bool), 3.0, 0.3, 2, 0.05)
+        assert outcome == _kernels.FIT_DONE
+        assert T_kernel.tobytes() == expected[0].tobytes() and np.array_equal(inliers, expected[1])
+
+
+def test_index_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(25)
+    cell, limit, scale = 2.5, (1 << 20) - 1, 1 << 21
+    for _ in range(50):
+        s = random_store_arrays(rng)
+        positions = rng.normal(0, 30, (40, 3))
+        positions[0] = 1e9  # clipped to the border cell
+        c = np.clip(np.floor(positions / cell), -limit, limit).astype(np.int64)
+        expected_keys = (c[:, 0] * scale + c[:, 1]) * scale + c[:, 2]
+        assert np.array_equal(_kernels.cell_keys(positions, cell, limit, scale), expected_keys)
+        changed = rng.integers(0, 80, 60)
+        assert np.array_equal(_kernels.distinct_ascending(changed), np.unique(changed))
+        key = rng.integers(-5, 5, 80)
+        indexed = rng.random(80) < 0.5
+        ids = np.unique(changed)
+        live = ids[s["alive"][ids]]
+        keep = (s["pos_weight"][live] > 0) & ~s["dynamic"][live]
+        stay, drop = live[keep], live[~keep]
+        stay_positions = _kernels.gather_positions(s["pos_sum"], s["pos_weight"], stay)
+        keys = _kernels.cell_keys(stay_positions, cell, limit, scale)
+        key[stay[::3]] = keys[::3]  # some stay in their cell
+        moved = ~indexed[stay] | (keys != key[stay])
+        expected = (stay[moved & indexed[stay]], stay[moved], keys[moved], drop[indexed[drop]])
+        found = _kernels.index_refresh(
+            changed, s["alive"], s["pos_sum"], s["pos_weight"], s["dynamic"], cell, limit, scale, key, indexed
+        )
+        assert all(np.array_equal(a, b) for a, b in zip(found, expected, strict=True))
+        moving, moving_keys, relocated = _kernels.cell_changes(stay_positions, cell, limit, scale, stay, key, indexed)
+        assert np.array_equal(moving, stay[moved]) and np.array_equal(moving_keys, keys[moved])
+        assert np.array_equal(relocated, stay[moved & indexed[stay]])
+        mapped, mapped_keys = _kernels.mapped_static_cells(
+            changed, s["alive"], s["pos_sum"], s["pos_weight"], s["dynamic"], cell, limit, scale
+        )
+        assert np.array_equal(mapped, stay) and np.array_equal(mapped_keys, keys)
+
+
+def test_merge_check_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(26)
+    for _ in range(100):
+        s = random_store_arrays(rng, 60)
+        world_sum, n_obs = rng.normal(0, 3, (60, 3)) * 4, rng.integers(0, 5, 60)
+        ids = rng.permutation(60)[:10]
+        bound2 = float(rng.uniform(0.5, 30.0))
+        mapped = ids[s["alive"][ids] & (s["pos_weight"][ids] > 0) & ~s["dynamic"][ids]]
+        flagged = np.flatnonzero(s["alive"] & s["dynamic"])
+        at = world_sum[flagged] / np.maximum(n_obs[flagged], 1)[:, None]
+        d2 = np.sum((_kernels.gather_positions(s["pos_sum"], s["pos_weight"], mapped)[:, None, :] - at[None]) ** 2, axis=2)
+        expected = bool(np.any((d2 <= bound2) & (s["uid"][flagged][None, :] < s["uid"][mapped][:, None])))
+        found = _kernels.flagged_within(
+            world_sum, n_obs, s["alive"], s["dynamic"], s["uid"], 60, s["pos_sum"], s["pos_weight"], ids, bound2
+        )
+        assert found == expected
+        points = np.flatnonzero(s["pos_weight"] > 0)[:8]
+        lists = [rng.permutation(60)[: int(rng.integers(0, 6))] for _ in points]
+        offsets = np.concatenate([[0], np.cumsum([len(c) for c in lists])]).astype(np.int64)
+        near = []
+        for p, c in zip(points, lists, strict=True):
+            d2 = np.sum((_kernels.gather_positions(s["pos_sum"], s["pos_weight"], c) - s["pos_sum"][p] / s["pos_weight"][p]) ** 2, axis=1)
+            near.append(np.any((c != p) & (s["uid"][c] < s["uid"][p]) & ((d2 <= bound2) | (s["pos_weight"][c] <= 0))))
+        candidates = np.concatenate(lists).astype(np.int64)
+        assert _kernels.older_within(s["pos_sum"], s["pos_weight"], s["uid"], points, candidates, offsets, bound2) == any(near)
+
+
+def test_group_creation_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(27)
+    for trial in range(100):
+        s = random_store_arrays(rng, 50)
+        obs_iter = np.where(rng.random((50, 16)) < 0.8, np.arange(16)[None, :], -1)
+        candidates = np.unique(rng.integers(0, 50, 30))
+        creation = int(candidates[int(rng.integers(0, len(candidates)))])
+        everyone = bool(trial % 5 == 0)
+        members, interval, outcome = _kernels.group_selection(
+            obs_iter, s["alive"], s["dynamic"], s["pos_weight"], candidates, creation, 2, 13, 3, everyone
+        )
+        usable = candidates[s["alive"][candidates] & ~s["dynamic"][candidates]]
+        if creation not in usable:
+            assert outcome == _kernels.SELECTION_NO_CREATION
+            continue
+        presence = _kernels.ring_presence(obs_iter, usable, 2, 13)
+        grouped = np.ones(len(usable), bool) if everyone else s["pos_weight"][usable] > 0
+        selection = select_members(presence, grouped, int(np.flatnonzero(usable == creation)[0]), 3)
+        if selection is None:
+            assert outcome == _kernels.SELECTION_NONE
+            continue
+        assert outcome == _kernels.SELECTION_MADE
+        assert np.array_equal(members, usable[selection[0]]) and np.array_equal(interval, selection[1])
+    for _ in range(100):
+        m = int(rng.integers(3, 20))
+        points = rng.normal(0, 3, (m, 3))
+        members = rng.permutation(50)[:m]
+        verified = np.where(rng.random(50) < 0.4, 1, -1)
+        trusted = np.flatnonzero(verified[members] >= 0)
+        expected = None
+        if len(trusted) >= 3 and (basis := choose_basis(points[trusted], 1.0)) is not None:
+            expected = tuple(int(trusted[b]) for b in basis)
+        expected = expected or choose_basis(points, 1.0) or (-1, -1, -1)
+        assert tuple(_kernels.basis_preferring_verified(points, members, verified, 1.0)) == expected
+    for length in (1, 5, 40):
+        observations = rng.normal(0, 5, (12, length, 3))
+        observations[:, 0] = observations[0, 0]  # a degenerate first iteration
+        total, count, first = _kernels.relative_map_sum(observations, 3, 7, 1, 0.5)
+        relative, valid = _kernels.basis_coordinates(observations, 3, 7, 1, 0.5)
+        assert total.tobytes() == relative[:, valid].sum(axis=1).tobytes()
+        assert count == valid.sum() and first == (np.flatnonzero(valid)[0] if valid.any() else -1)
+
+
+def test_bookkeeping_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(28)
+    c, ring = 40, 8
+    for iteration in range(12):
+        obs, obs_iter = rng.normal(size=(c, ring, 3)), rng.integers(-1, iteration + 1, (c, ring))
+        first_iter = np.where(rng.random(c) < 0.3, -1, rng.integers(0, iteration + 1, c))
+        last_iter = np.where(first_iter < 0, -1, np.maximum(first_iter, rng.integers(0, iteration + 1, c)))
+        run_start, n_obs = np.minimum(last_iter, rng.integers(0, iteration + 1, c)), rng.integers(0, 9, c)
+        ids, points = rng.permutation(c)[:15], rng.normal(size=(15, 3))
+        expected = [a.copy() for a in (obs, obs_iter, first_iter, last_iter, run_start, n_obs)]
+        e_obs, e_iter, e_first, e_last, e_run, e_n = expected
+        slot = iteration % ring
+        e_obs[ids, slot], e_iter[ids, slot] = points, iteration
+        first = e_first[ids] < 0
+        e_first[ids[first]] = iteration
+        e_run[ids[first | (e_last[ids] != iteration - 1)]] = iteration
+        e_last[ids] = iteration
+        e_n[ids] += 1
+        _kernels.record_observations(obs, obs_iter, first_iter, last_iter, run_start, n_obs, ids, points, iteration)
+        assert all(np.array_equal(a, b) for a, b in zip((obs, obs_iter, first_iter, last_iter, run_start, n_obs), expected, strict=True))
+        s = random_store_arrays(rng, c)
+        listed = rng.permutation(c)[:25]
+        done = ~s["alive"][listed] | (s["pos_weight"][listed] > 0) | s["dynamic"][listed]
+        stale = s["alive"][listed] & ~done & (iteration - last_iter[listed] > 3)
+        due = ~done & ~stale & (last_iter[listed] == iteration) & (iteration - run_start[listed] >= 2)
+        found = _kernels.creation_triage(listed, s["alive"], s["pos_weight"], s["dynamic"], last_iter, run_start, iteration, 3, 2)
+        assert all(np.array_equal(a, b) for a, b in zip(found, (listed[stale], listed[done | stale], listed[due]), strict=True))
+        previous, current = np.unique(rng.integers(0, c, 12)), np.unique(rng.integers(0, c, 12))
+        n_later, attempt = rng.integers(0, 2, c), rng.integers(-1, iteration + 1, c)
+        live = previous[s["alive"][previous]]
+        left = live[(last_iter[live] == iteration - 1) & (iteration - run_start[live] >= 2)]
+        due = np.concatenate([left, current[iteration - run_start[current] + 1 >= 3]])
+        due = due[(n_later[due] == 0) & (s["pos_weight"][due] > 0) & ~s["dynamic"][due] & (iteration - attempt[due] >= 3)]
+        found = _kernels.regroup_due(
+            previous, current, s["alive"], last_iter, run_start, n_later, s["pos_weight"], s["dynamic"], attempt,
+            iteration, 2, 3,
+        )  # fmt: skip
+        assert np.array_equal(found, due)
+        window = [np.unique(rng.integers(0, c, 10)) for _ in range(3)]
+        first_t = iteration - 3
+        refs = np.concatenate([seen[last_iter[seen] == first_t + t] for t, seen in enumerate(window)])
+        offsets = np.concatenate([[0], np.cumsum([len(w) for w in window])]).astype(np.int64)
+        found = _kernels.recent_references(np.concatenate(window), offsets, first_t, last_iter, obs)
+        expected = (refs, obs[refs, last_iter[refs] % ring], iteration - last_iter[refs])
+        assert all(np.array_equal(a, b) for a, b in zip(found, expected, strict=True))
+
+
+def test_group_list_kernels_equal_list_operations() -> None:
+    rng = np.random.default_rng(29)
+    table, count = np.zeros((30, 4), np.int64), np.zeros(30, np.int64)
+    lists: dict[int, list[int]] = {}
+    for gid in range(60):
+        members = rng.permutation(30)[: int(rng.integers(1, 10))]
+        if rng.random() < 0.3 and lists:
+            victim = int(rng.choice(list({g for listed in lists.values() for g in listed} or {gid})))
+            holders = np.array([p for p, listed in lists.items() if victim in listed], np.int64)
+            _kernels.drop_group(table, count, holders, victim)
+            for p in holders.tolist():
+                lists[p].remove(victim)
+            continue
+        while not _kernels.append_group(table, count, members, gid):
+            table = np.concatenate([table, np.zeros_like(table)], axis=1)
+        for p in members.tolist():
+            lists.setdefault(p, []).append(gid)
+        for p in range(30):
+            assert table[p, : count[p]].tolist() == lists.get(p, [])
+
+
+def test_group_relative_map_kernel_equals_its_steps() -> None:
+    rng = np.random.default_rng(30)
+    store = PointStore(ring_size=8, capacity=40)
+    ids = store.new_points(30)
+    for t in range(10):
+        store.add_observations(ids, rng.normal(0, 5, (30, 3)), t)
+    verified = np.where(rng.random(store.capacity) < 0.5, 1, -1)
+    for _ in range(30):
+        members = rng.permutation(ids)[: int(rng.integers(4, 20))]
+        iterations = np.sort(rng.permutation(np.arange(3, 10))[: int(rng.integers(1, 7))])
+        observations, _ = store.observations(members, iterations)
+        basis = _kernels.basis_preferring_verified(np.ascontiguousarray(observations[:, 0]), members, verified, 0.5)
+        found = _kernels.group_relative_map(store.obs, store.obs_iter, members, iterations, verified, 0.5)
+        assert tuple(found[:3]) == tuple(basis)
+        total, count, first = _kernels.relative_map_sum(observations, *basis, 0.5)
+        assert found[3].tobytes() == total.tobytes() and (found[4], found[5]) == (count, first)
+
+
+def test_open_group_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(31)
+    store = PointStore(ring_size=8, capacity=40)
+    ids = store.new_points(30)
+    for t in range(6):
+        seen = ids[rng.random(30) < 0.9] if t == 5 else ids
+        store.add_observations(seen, rng.normal(0, 5, (len(seen), 3)), t)
+    store.dynamic[ids[rng.random(30) < 0.1]] = True
+    outcomes = set()
+    for _ in range(40):
+        members = rng.permutation(ids)[: int(rng.integers(4, 15))]
+        basis = tuple(int(b) for b in rng.permutation(len(members))[:3])
+        rel_sum = rng.normal(size=(len(members), 3))
+        expected = rel_sum.copy()
+        if np.any(store.last_iter[members] != 5) or np.any(store.dynamic[members[list(basis)]]):
+            outcome = _kernels.OPEN_GROUP_CLOSES
+        else:
+            relative, valid = _kernels.basis_coordinates(np.ascontiguousarray(store.obs[members, 5 % 8][:, None]), *basis, 0.5)
+            outcome = _kernels.OPEN_GROUP_AVERAGED if valid[0] else _kernels.OPEN_GROUP_SKIPS
+            if valid[0]:
+                expected += relative[:, 0]
+        assert _kernels.extend_open_group(store.obs, store.last_iter, store.dynamic, members, *basis, 5, 0.5, rel_sum) == outcome
+        assert rel_sum.tobytes() == expected.tobytes()
+        outcomes.add(outcome)
+    assert _kernels.OPEN_GROUP_CLOSES in outcomes and _kernels.OPEN_GROUP_AVERAGED in outcomes

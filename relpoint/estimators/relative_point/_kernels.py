@@ -861,3 +861,1056 @@ def block_mean_scatter(tracks: np.ndarray, valid: np.ndarray, poses: np.ndarray,
             total += (means[u, 0] - cx) ** 2 + (means[u, 1] - cy) ** 2 + (means[u, 2] - cz) ** 2
         scatter[i] = math.sqrt(total / (used - 1))
     return scatter
+
+
+# -- Local matching of one iteration, whole (section II-A) ------------------------------------------
+
+
+@kernel("f8[::1]")
+def _stable_argsort(values: np.ndarray) -> np.ndarray:
+    """numpy: ``argsort(values, kind="stable")`` (bottom-up merge sort; NaN-free input)."""
+    n = values.shape[0]
+    order = np.arange(n)
+    spare = np.empty(n, np.int64)
+    width = 1
+    while width < n:
+        for low in range(0, n, 2 * width):
+            middle, high = min(low + width, n), min(low + 2 * width, n)
+            i, j = low, middle
+            for out in range(low, high):
+                if i < middle and (j >= high or values[order[i]] <= values[order[j]]):
+                    spare[out] = order[i]
+                    i += 1
+                else:
+                    spare[out] = order[j]
+                    j += 1
+        order, spare = spare, order
+        width *= 2
+    return order
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8")
+def _nearest_one_to_one(reference: np.ndarray, query: np.ndarray, bound: float) -> np.ndarray:
+    """Row of ``reference`` (M, 3) each query (N, 3) takes one-to-one within ``bound`` (m), -1 if none.
+
+    numpy: ``claim_one_to_one(*nearest_two(reference, argsort(reference[:, 0]), query, bound), M)[0]``
+    (:func:`~relpoint.estimators.relative_point.registration.match_nearest`; ``nearest_two`` breaks
+    distance ties by row, so the order among equal x does not matter).
+    """
+    m = reference.shape[0]
+    xs = np.empty(m)
+    for r in range(m):
+        xs[r] = reference[r, 0]
+    j, d = nearest_two(reference, _stable_argsort(xs), query, bound)
+    return claim_one_to_one(j, d, m)[0]
+
+
+@kernel("f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8")
+def _motion_from_pairs(
+    previous: np.ndarray, current: np.ndarray, row: np.ndarray, age: np.ndarray, collinear_tolerance: float
+) -> tuple[np.ndarray, bool]:
+    """Inter-iteration motion ``T_curr_prev`` (4, 4) from the pairs matched to points seen one iteration ago.
+
+    ``previous`` (R, 3) are the references' latest observations, ``current`` (N, 3) this
+    iteration's points, ``row`` (N,) the reference each point matched (-1 none), ``age`` (R,)
+    iterations since each reference was seen. numpy, with ``pairs = flatnonzero((row >= 0) & (age[row] == 1))``::
+
+        fit_transform(previous[row[pairs]], current[pairs], trim=0, collinear_tolerance=collinear_tolerance)
+
+    (:meth:`~relpoint.estimators.relative_point.registration.MotionModel.update`): the plain fit, and
+    False where there are fewer than three pairs or their sources are collinear.
+    """
+    count = 0
+    for q in range(row.shape[0]):
+        if row[q] >= 0 and age[row[q]] == 1:
+            count += 1
+    T = np.eye(4)
+    if count < 3:
+        return T, False
+    source = np.empty((count, 3))
+    target = np.empty((count, 3))
+    p = 0
+    for q in range(row.shape[0]):
+        if row[q] >= 0 and age[row[q]] == 1:
+            for a in range(3):
+                source[p, a] = previous[row[q], a]
+                target[p, a] = current[q, a]
+            p += 1
+    T, spread = rigid_fit(source, target, np.ones(count), np.ones(count, np.bool_))
+    return T, spread > collinear_tolerance
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8[:, ::1]")
+def _prediction_shift(T_new: np.ndarray, T_before: np.ndarray, reference: np.ndarray) -> float:
+    """Largest change (m) of the predicted references (R, 3) when the motion goes from ``T_before`` to ``T_new``.
+
+    numpy: with ``D = T_new @ rigid_inverse(T_before)``,
+    ``norm(D[:3, 3]) + arccos(clip((trace(D[:3, :3]) - 1) / 2, -1, 1)) * sqrt(max(sum(reference**2, 1)))``:
+    translation plus angle times range.
+    """
+    inverse_t = np.empty(3)
+    for a in range(3):
+        inverse_t[a] = -(T_before[0, a] * T_before[0, 3] + T_before[1, a] * T_before[1, 3] + T_before[2, a] * T_before[2, 3])
+    trace = 0.0
+    squared = 0.0
+    for a in range(3):
+        trace += T_new[a, 0] * T_before[a, 0] + T_new[a, 1] * T_before[a, 1] + T_new[a, 2] * T_before[a, 2]
+        moved = T_new[a, 0] * inverse_t[0] + T_new[a, 1] * inverse_t[1] + T_new[a, 2] * inverse_t[2] + T_new[a, 3]
+        squared += moved * moved
+    angle = math.acos(min(1.0, max(-1.0, (trace - 1.0) / 2.0)))
+    reach2 = 0.0
+    for r in range(reference.shape[0]):
+        x, y, z = reference[r, 0], reference[r, 1], reference[r, 2]
+        reach2 = max(reach2, x * x + y * y + z * z)
+    return math.sqrt(squared) + angle * math.sqrt(reach2)
+
+
+@kernel("f8[:, ::1], f8[:, ::1], i8[::1], f8, f8")
+def _match_far(predicted: np.ndarray, points: np.ndarray, row: np.ndarray, match_bound: float, match_angle: float) -> int:
+    """Second round of local matching, in place on ``row`` (N,): returns the number of new pairs.
+
+    The points nobody matched (``row == -1``) and the references (R, 3, predicted into the current
+    frame) no point took are paired as mutual nearest neighbours within
+    ``match_bound + match_angle * norm(predicted)`` (:func:`mutual_nearest`). numpy::
+
+        free_points = flatnonzero(row == -1);  free_refs = setdiff1d(arange(R), row)
+        bounds = match_bound + match_angle * sqrt(einsum("ij,ij->i", predicted[free_refs], predicted[free_refs]))
+        found = mutual_nearest(predicted[free_refs], points[free_points], bounds)
+        row[free_points[found >= 0]] = free_refs[found[found >= 0]]
+    """
+    n_points, n_refs = row.shape[0], predicted.shape[0]
+    taken = np.zeros(n_refs, np.bool_)
+    free_count, taken_count = 0, 0
+    for q in range(n_points):
+        if row[q] < 0:
+            free_count += 1
+        elif not taken[row[q]]:
+            taken[row[q]] = True
+            taken_count += 1
+    free_points = np.empty(free_count, np.int64)
+    f = 0
+    for q in range(n_points):
+        if row[q] < 0:
+            free_points[f] = q
+            f += 1
+    free_refs = np.empty(n_refs - taken_count, np.int64)
+    f = 0
+    for r in range(n_refs):
+        if not taken[r]:
+            free_refs[f] = r
+            f += 1
+    if free_points.shape[0] == 0 or free_refs.shape[0] == 0:
+        return 0
+    references = np.empty((free_refs.shape[0], 3))
+    bounds = np.empty(free_refs.shape[0])
+    for f in range(free_refs.shape[0]):
+        x, y, z = predicted[free_refs[f], 0], predicted[free_refs[f], 1], predicted[free_refs[f], 2]
+        references[f, 0], references[f, 1], references[f, 2] = x, y, z
+        bounds[f] = match_bound + match_angle * math.sqrt(x * x + y * y + z * z)
+    queries = np.empty((free_points.shape[0], 3))
+    for f in range(free_points.shape[0]):
+        for a in range(3):
+            queries[f, a] = points[free_points[f], a]
+    found = mutual_nearest(references, queries, bounds)
+    matched = 0
+    for f in range(found.shape[0]):
+        if found[f] >= 0:
+            row[free_points[f]] = free_refs[found[f]]
+            matched += 1
+    return matched
+
+
+@kernel("f8[:, ::1], i8[::1], f8[:, ::1], f8[:, ::1], f8, f8, b1, f8")
+def match_recent(
+    reference: np.ndarray,
+    age: np.ndarray,
+    points: np.ndarray,
+    T_curr_prev: np.ndarray,
+    match_bound: float,
+    match_angle: float,
+    predict_motion: bool,
+    collinear_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """Local matching of one iteration's points (N, 3) against the recent points' latest observations.
+
+    ``reference`` (R, 3) are those observations (each in the sensor frame of its iteration), ``age``
+    (R,) iterations since each, ``T_curr_prev`` (4, 4) the motion between the last two iterations.
+    Returns ``row`` (N,), the reference each point matched (-1 none), the refreshed motion (4, 4),
+    whether this iteration's pairs measured it, and the number of pairs the second round added.
+    numpy, as :meth:`~relpoint.estimators.relative_point.phases.localisation.Localisation._register`
+    did it step by step::
+
+        predicted = transform_by_age(T_curr_prev, reference, age) if predict_motion else reference
+        row = match_nearest(predicted, points, match_bound)[0]
+        T, measured = _motion_from_pairs(reference, points, row, age)      # T_curr_prev if not measured
+        if predict_motion and measured and _prediction_shift(T, T_curr_prev, reference) > match_bound / 2:
+            predicted = transform_by_age(T, reference, age)                    # a turn began: match again
+            row = match_nearest(predicted, points, match_bound)[0]
+        if predict_motion and match_angle > 0 and (far := _match_far(predicted, points, row, ...)):
+            T, measured = _motion_from_pairs(...) if measured again else (T, measured)
+    """
+    predicted = transform_by_age(T_curr_prev, reference, age) if predict_motion else reference
+    row = _nearest_one_to_one(predicted, points, match_bound)
+    T, measured = _motion_from_pairs(reference, points, row, age, collinear_tolerance)
+    if not measured:
+        T = T_curr_prev.copy()
+    if predict_motion and measured and _prediction_shift(T, T_curr_prev, reference) > 0.5 * match_bound:
+        predicted = transform_by_age(T, reference, age)
+        row = _nearest_one_to_one(predicted, points, match_bound)
+    far = 0
+    if predict_motion and match_angle > 0:
+        far = _match_far(predicted, points, row, match_bound, match_angle)
+        if far > 0:
+            T_far, measured_far = _motion_from_pairs(reference, points, row, age, collinear_tolerance)
+            if measured_far:
+                T, measured = T_far, True
+    return row, T, measured, far
+
+
+# -- RltGroup (section II-B): a group's anchors for its fit into the world ---------------------------
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8")
+def _point_spread(pos_sum: np.ndarray, pos_weight: np.ndarray, pos_sq: np.ndarray, i: int) -> float:
+    """RMS disagreement (m) between the global positions point ``i``'s groups give it: :func:`gather_spread` of one point."""
+    w = max(pos_weight[i], 1e-12)
+    m0, m1, m2 = pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w
+    return math.sqrt(max(pos_sq[i] / w - (m0 * m0 + m1 * m1 + m2 * m2), 0.0))
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], b1[::1], i8[::1], i8[::1], f8[:, ::1], f8[:, ::1], f8, b1, f8, f8")
+def group_anchors(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    pos_sq: np.ndarray,
+    dynamic: np.ndarray,
+    verified: np.ndarray,
+    members: np.ndarray,
+    relative: np.ndarray,
+    placed: np.ndarray,
+    own_weight: float,
+    weighted: bool,
+    spread_floor_squared: float,
+    unverified_weight: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs a group's fit into ``world`` uses: its static members that other groups placed.
+
+    ``members`` (M,) are the group's points, ``relative`` (M, 3) their relative map (basis frame,
+    m), ``placed`` (M, 3) the group's own contribution with weight ``own_weight`` (0: none yet, and
+    ``placed`` is not read). Returns the anchors' relative positions (A, 3), their global positions
+    without the group's own contribution (A, 3, ``world``) and their weights (A,). numpy::
+
+        other = pos_weight[members] - own_weight
+        anchors = ~dynamic[members] & (other > 1e-9)
+        own = own_weight * placed[anchors] if own_weight > 0 else 0.0
+        target = (pos_sum[members[anchors]] - own) / other[anchors, None]
+        weights = other[anchors] / (gather_spread(..., members[anchors]) ** 2 + spread_floor_squared)
+        weights *= where(verified[members[anchors]] >= 0, 1.0, unverified_weight)   # if weighted, else ones
+
+    Inverse-variance weights: an anchor's global position is as good as the iterations averaged
+    into it and as bad as its groups disagree about it.
+    """
+    m = members.shape[0]
+    count = 0
+    for r in range(m):
+        i = members[r]
+        if not dynamic[i] and pos_weight[i] - own_weight > 1e-9:
+            count += 1
+    source = np.empty((count, 3))
+    target = np.empty((count, 3))
+    weights = np.ones(count)
+    a = 0
+    for r in range(m):
+        i = members[r]
+        other = pos_weight[i] - own_weight
+        if dynamic[i] or not other > 1e-9:
+            continue
+        for c in range(3):
+            source[a, c] = relative[r, c]
+            own = own_weight * placed[r, c] if own_weight > 0.0 else 0.0
+            target[a, c] = (pos_sum[i, c] - own) / other
+        if weighted:
+            spread = _point_spread(pos_sum, pos_weight, pos_sq, i)
+            weights[a] = other / (spread * spread + spread_floor_squared)
+            weights[a] *= 1.0 if verified[i] >= 0 else unverified_weight
+        a += 1
+    return source, target, weights
+
+
+@kernel("f8[:, ::1], f8[::1], f8[::1], i8[::1], i8[::1], f8, f8")
+def pose_anchors(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    pos_sq: np.ndarray,
+    verified: np.ndarray,
+    ids: np.ndarray,
+    spread_floor_squared: float,
+    unverified_weight: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Global positions (N, 3, ``world``, m) of mapped points ``ids`` (N,) and their weights (N,) in the pose fit.
+
+    numpy::
+
+        positions = gather_positions(pos_sum, pos_weight, ids)
+        weights = 1.0 / (gather_spread(pos_sum, pos_weight, pos_sq, ids) ** 2 + spread_floor_squared)
+        weights *= where(verified[ids] >= 0, 1.0, unverified_weight)
+
+    Points whose groups disagree about their position (slow movers) and points not yet verified
+    static count for less.
+    """
+    n = ids.shape[0]
+    positions = gather_positions(pos_sum, pos_weight, ids)
+    weights = np.empty(n)
+    for r in range(n):
+        i = ids[r]
+        spread = _point_spread(pos_sum, pos_weight, pos_sq, i)
+        weights[r] = 1.0 / (spread * spread + spread_floor_squared)
+        weights[r] *= 1.0 if verified[i] >= 0 else unverified_weight
+    return positions, weights
+
+
+# -- RltLSF (section II-B): the whole fit but the consensus ----------------------------------------
+
+FIT_DEGENERATE = 0
+"""Outcome of :func:`robust_fit`: fewer than three pairs or a collinear source, no fit."""
+FIT_DONE = 1
+"""Outcome of :func:`robust_fit`: the fit, trimmed."""
+FIT_WANTS_CONSENSUS = 2
+"""Outcome of :func:`robust_fit`: enough pairs lie beyond the consensus bound that the caller re-seeds the fit."""
+
+
+@kernel("f8[:, ::1], f8[:, ::1], f8[::1], f8, f8, f8, i8, f8, f8")
+def robust_fit(
+    source: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    trim: float,
+    floor: float,
+    collinear_tolerance: float,
+    rounds: int,
+    consensus: float,
+    consensus_share: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`~relpoint.estimators.relative_point.lsf.fit_transform` up to its consensus step: ``T`` (4, 4), inliers (N,), outcome.
+
+    numpy, for N pairs ``source`` -> ``target`` (N, 3) with ``weights`` (N,)::
+
+        if N < 3: FIT_DEGENERATE
+        T, spread = rigid_fit(source, target, weights, ones(N, bool))
+        if spread <= collinear_tolerance: FIT_DEGENERATE
+        if consensus > 0 and N > 4 and count_nonzero(pair_residuals(source, target, T) > consensus)
+                >= max(2, consensus_share * N): FIT_WANTS_CONSENSUS, with T and all pairs
+        if trim > 0 and N > 4: T, inliers = trimmed_fit(source, target, weights, T, ones(N, bool), ...)
+        FIT_DONE
+    """
+    n = source.shape[0]
+    inliers = np.ones(n, np.bool_)
+    if n < 3:
+        return np.eye(4), inliers, FIT_DEGENERATE
+    T, spread = rigid_fit(source, target, weights, inliers)
+    if spread <= collinear_tolerance:
+        return T, inliers, FIT_DEGENERATE
+    if consensus > 0 and n > 4:
+        residual = pair_residuals(source, target, T)
+        beyond = 0
+        for i in range(n):
+            if residual[i] > consensus:
+                beyond += 1
+        if beyond >= max(2.0, consensus_share * n):
+            return T, inliers, FIT_WANTS_CONSENSUS
+    if trim > 0 and n > 4:
+        T, inliers = trimmed_fit(source, target, weights, T, inliers, trim, floor, rounds, collinear_tolerance)
+    return T, inliers, FIT_DONE
+
+
+# -- The global index (section II-D): cells and the points whose cell may have changed -----------------
+
+
+@kernel("f8, f8, f8, f8, i8, i8")
+def _cell_key(x: float, y: float, z: float, cell: float, limit: int, scale: int) -> int:
+    """Packed key of the grid cell (``cell`` m on a side) holding the point ``(x, y, z)`` m: :func:`cell_keys` of one point."""
+    cx = int(min(max(math.floor(x / cell), -limit), limit))
+    cy = int(min(max(math.floor(y / cell), -limit), limit))
+    cz = int(min(max(math.floor(z / cell), -limit), limit))
+    return (cx * scale + cy) * scale + cz
+
+
+@kernel("f8[:, ::1], f8, i8, i8")
+def cell_keys(positions: np.ndarray, cell: float, limit: int, scale: int) -> np.ndarray:
+    """Packed keys (N,) of the grid cells (``cell`` m on a side) holding positions (N, 3) m.
+
+    numpy: ``c = clip(floor(positions / cell), -limit, limit).astype(int64); (c[:, 0] * scale + c[:, 1]) * scale + c[:, 2]``
+    (:meth:`~relpoint.estimators.relative_point.registration.GlobalIndex.keys`; finite positions).
+    """
+    n = positions.shape[0]
+    keys = np.empty(n, np.int64)
+    for r in range(n):
+        keys[r] = _cell_key(positions[r, 0], positions[r, 1], positions[r, 2], cell, limit, scale)
+    return keys
+
+
+@kernel("i8[::1]")
+def distinct_ascending(ids: np.ndarray) -> np.ndarray:
+    """numpy: ``unique(ids)`` for non-negative ids (marked in a table as long as the largest, then collected)."""
+    largest = -1
+    for r in range(ids.shape[0]):
+        largest = max(largest, ids[r])
+    marked = np.zeros(largest + 1, np.bool_)
+    count = 0
+    for r in range(ids.shape[0]):
+        if not marked[ids[r]]:
+            marked[ids[r]] = True
+            count += 1
+    out = np.empty(count, np.int64)
+    c = 0
+    for i in range(largest + 1):
+        if marked[i]:
+            out[c] = i
+            c += 1
+    return out
+
+
+# -- Merging (section II-D): flagged points a newly mapped point may take over ---------------------------
+
+
+@kernel("f8[:, ::1], i8[::1], b1[::1], b1[::1], i8[::1], i8, f8[:, ::1], f8[::1], i8[::1], f8")
+def flagged_within(
+    world_sum: np.ndarray,
+    n_obs: np.ndarray,
+    alive: np.ndarray,
+    dynamic: np.ndarray,
+    uid: np.ndarray,
+    high_water: int,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    ids: np.ndarray,
+    bound_squared: float,
+) -> bool:
+    """Whether a live flagged point lies within the bound of a younger live, mapped, static point of ``ids``.
+
+    A flagged point sits at its mean observed position ``world_sum / n_obs``, a mapped point at its
+    global position (:func:`gather_positions`, ``world``, m); only flagged points older (smaller
+    ``uid``) than the mapped point count. numpy::
+
+        mapped = ids[alive[ids] & (pos_weight[ids] > 0) & ~dynamic[ids]]
+        flagged = flatnonzero(alive[:high_water] & dynamic[:high_water])
+        at = world_sum[flagged] / maximum(n_obs[flagged], 1)[:, None]
+        d2 = sum((gather_positions(pos_sum, pos_weight, mapped)[:, None, :] - at[None, :, :]) ** 2, axis=2)
+        any((d2 <= bound_squared) & (uid[flagged][None, :] < uid[mapped][:, None]))
+    """
+    n = ids.shape[0]
+    positions = np.empty((n, 3))
+    mapped = np.empty(n, np.int64)
+    m = 0
+    for r in range(n):
+        p = ids[r]
+        if alive[p] and pos_weight[p] > 0 and not dynamic[p]:
+            w = max(pos_weight[p], 1e-300)
+            for a in range(3):
+                positions[m, a] = pos_sum[p, a] / w
+            mapped[m] = p
+            m += 1
+    if m == 0:
+        return False
+    for i in range(high_water):
+        if not (alive[i] and dynamic[i]):
+            continue
+        count = float(max(n_obs[i], 1))
+        x, y, z = world_sum[i, 0] / count, world_sum[i, 1] / count, world_sum[i, 2] / count
+        for r in range(m):
+            if uid[i] >= uid[mapped[r]]:
+                continue
+            dx, dy, dz = positions[r, 0] - x, positions[r, 1] - y, positions[r, 2] - z
+            if dx * dx + dy * dy + dz * dz <= bound_squared:
+                return True
+    return False
+
+
+# -- RltMapper (section II-C): a new group's members, from the points charted in its interval --------
+
+SELECTION_NO_CREATION = 0
+"""Outcome of :func:`group_selection`: the creation point is not among the usable candidates."""
+SELECTION_NONE = 1
+"""Outcome of :func:`group_selection`: too few grouped candidates overlap the creation point."""
+SELECTION_MADE = 2
+"""Outcome of :func:`group_selection`: members and interval chosen."""
+
+
+@kernel("i8[:, ::1], b1[::1], b1[::1], f8[::1], i8[::1], i8, i8, i8, i8, b1")
+def group_selection(
+    obs_iter: np.ndarray,
+    alive: np.ndarray,
+    dynamic: np.ndarray,
+    pos_weight: np.ndarray,
+    candidates: np.ndarray,
+    creation: int,
+    first: int,
+    last: int,
+    seeds: int,
+    everyone_grouped: bool,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Members (point ids, creation point first) and interval mask (L,) of a new group over ``[first, last]``.
+
+    ``candidates`` (N,) are the points charted in the interval, ``creation`` the creation point's
+    id. Dead and flagged candidates are left out; the rest are ranked by how many iterations of the
+    interval they were observed in, and :func:`interval_members` picks among them, with the mapped
+    ones (``pos_weight > 0``; every one when ``everyone_grouped``) as the grouped candidates. numpy::
+
+        usable = candidates[alive[candidates] & ~dynamic[candidates]]
+        presence = ring_presence(obs_iter, usable, first, last)
+        grouped = ones(len(usable), bool) if everyone_grouped else pos_weight[usable] > 0
+        order = argsort(-presence.sum(axis=1), kind="stable")
+        rows, interval = interval_members(presence, grouped, order, flatnonzero(usable == creation)[0], seeds)
+        usable[rows], interval
+
+    The outcome says whether the creation point was usable and a selection was made.
+    """
+    count = 0
+    creation_row = -1
+    for r in range(candidates.shape[0]):
+        i = candidates[r]
+        if alive[i] and not dynamic[i]:
+            if i == creation:
+                creation_row = count
+            count += 1
+    if creation_row < 0:
+        return candidates[:0].copy(), np.zeros(0, np.bool_), SELECTION_NO_CREATION
+    usable = np.empty(count, np.int64)
+    grouped = np.empty(count, np.bool_)
+    u = 0
+    for r in range(candidates.shape[0]):
+        i = candidates[r]
+        if alive[i] and not dynamic[i]:
+            usable[u] = i
+            grouped[u] = everyone_grouped or pos_weight[i] > 0
+            u += 1
+    presence = ring_presence(obs_iter, usable, first, last)
+    fewer_observed = np.empty(count)
+    for u in range(count):
+        observed = 0
+        for t in range(presence.shape[1]):
+            observed += presence[u, t]
+        fewer_observed[u] = -observed
+    rows, interval = interval_members(presence, grouped, _stable_argsort(fewer_observed), creation_row, seeds)
+    if rows.shape[0] == 0:
+        return candidates[:0].copy(), interval, SELECTION_NONE
+    members = np.empty(rows.shape[0], np.int64)
+    for r in range(rows.shape[0]):
+        members[r] = usable[rows[r]]
+    return members, interval, SELECTION_MADE
+
+
+@kernel("f8[:, ::1], i8[::1], i8[::1], f8")
+def basis_preferring_verified(points: np.ndarray, members: np.ndarray, verified: np.ndarray, min_spread: float) -> tuple[int, int, int]:
+    """Basis rows of ``points`` (M, 3) by :func:`spread_basis`, among the members verified static when they allow one.
+
+    ``members`` (M,) are the points' ids, ``verified`` the store's last verification per point (-1
+    never). numpy, with ``trusted = flatnonzero(verified[members] >= 0)``: ``trusted[spread_basis(points[trusted])]``
+    when there are three or more trusted points and they give a basis, else ``spread_basis(points)``
+    (-1s when neither does).
+    """
+    m = members.shape[0]
+    trusted_count = 0
+    for r in range(m):
+        if verified[members[r]] >= 0:
+            trusted_count += 1
+    if trusted_count >= 3:
+        trusted = np.empty(trusted_count, np.int64)
+        trusted_points = np.empty((trusted_count, 3))
+        t = 0
+        for r in range(m):
+            if verified[members[r]] >= 0:
+                trusted[t] = r
+                for a in range(3):
+                    trusted_points[t, a] = points[r, a]
+                t += 1
+        i0, i1, i2 = spread_basis(trusted_points, min_spread)
+        if i0 >= 0:
+            return trusted[i0], trusted[i1], trusted[i2]
+    return spread_basis(points, min_spread)
+
+
+@kernel("f8[:, :, ::1], i8, i8, i8, f8")
+def relative_map_sum(
+    observations: np.ndarray, i0: int, i1: int, i2: int, min_spread: float
+) -> tuple[np.ndarray, int, int]:
+    """A new group's relative map: members' basis-frame coordinates summed over the iterations with a usable basis.
+
+    ``observations`` (M, L, 3) are the members' untransformed observations (sensor frame of each
+    iteration), rows ``i0, i1, i2`` the basis. Returns the sum (M, 3, basis frame, m), the number of
+    iterations summed and the first of them (-1 if none). numpy::
+
+        relative, valid = basis_coordinates(observations, i0, i1, i2, min_spread)
+        relative[:, valid].sum(axis=1), count_nonzero(valid), (flatnonzero(valid)[:1] or [-1])[0]
+
+    (numpy adds the iterations one after another from zero, as here).
+    """
+    relative, valid = basis_coordinates(observations, i0, i1, i2, min_spread)
+    m, length = relative.shape[0], relative.shape[1]
+    count, first_valid = 0, -1
+    for t in range(length):
+        if valid[t]:
+            count += 1
+            if first_valid < 0:
+                first_valid = t
+    total = np.zeros((m, 3))
+    for r in range(m):
+        for t in range(length):
+            if valid[t]:
+                for a in range(3):
+                    total[r, a] += relative[r, t, a]
+    return total, count, first_valid
+
+
+# -- RltPoint (section II-A): one iteration's observations into the rings -----------------------------
+
+
+@kernel("f8[:, :, ::1], i8[:, ::1], i8[::1], i8[::1], i8[::1], i8[::1], i8[::1], f8[:, ::1], i8")
+def record_observations(
+    obs: np.ndarray,
+    obs_iter: np.ndarray,
+    first_iter: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    n_obs: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+    iteration: int,
+) -> None:
+    """Append one iteration's untransformed points (N, 3) to the rings of the distinct points ``ids`` (N,), in place.
+
+    numpy, with ``slot = iteration % R`` for rings of R slots::
+
+        obs[ids, slot] = points;  obs_iter[ids, slot] = iteration
+        first = first_iter[ids] < 0;  first_iter[ids[first]] = iteration
+        run_start[ids[first | (last_iter[ids] != iteration - 1)]] = iteration   # a new unbroken run
+        last_iter[ids] = iteration;  n_obs[ids] += 1
+    """
+    slot = iteration % obs_iter.shape[1]
+    for r in range(ids.shape[0]):
+        i = ids[r]
+        for a in range(3):
+            obs[i, slot, a] = points[r, a]
+        obs_iter[i, slot] = iteration
+        first = first_iter[i] < 0
+        if first:
+            first_iter[i] = iteration
+        if first or last_iter[i] != iteration - 1:
+            run_start[i] = iteration
+        last_iter[i] = iteration
+        n_obs[i] += 1
+
+
+# -- RltUngroupedList (section II-C): which listed points are due for a first grouping ----------------
+
+
+@kernel("i8[::1], b1[::1], f8[::1], b1[::1], i8[::1], i8[::1], i8, i8, i8")
+def creation_triage(
+    listed: np.ndarray,
+    alive: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    iteration: int,
+    stale_after: int,
+    creation_delay: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sort the ungrouped list ``listed`` (N,) at ``iteration``: stale points, points to unlist, points due.
+
+    numpy::
+
+        done = ~alive[listed] | (pos_weight[listed] > 0) | dynamic[listed]          # gone, grouped or flagged
+        stale = alive[listed] & ~done & (iteration - last_iter[listed] > stale_after)   # not seen for long
+        due = ~done & ~stale & (last_iter[listed] == iteration)
+              & (iteration - run_start[listed] >= creation_delay)                      # seen long enough
+        listed[stale], listed[done | stale], listed[due]
+    """
+    n = listed.shape[0]
+    stale = np.empty(n, np.int64)
+    unlisted = np.empty(n, np.int64)
+    due = np.empty(n, np.int64)
+    n_stale, n_unlisted, n_due = 0, 0, 0
+    for r in range(n):
+        i = listed[r]
+        if not alive[i] or pos_weight[i] > 0 or dynamic[i]:
+            unlisted[n_unlisted] = i
+            n_unlisted += 1
+        elif iteration - last_iter[i] > stale_after:
+            stale[n_stale] = i
+            n_stale += 1
+            unlisted[n_unlisted] = i
+            n_unlisted += 1
+        elif last_iter[i] == iteration and iteration - run_start[i] >= creation_delay:
+            due[n_due] = i
+            n_due += 1
+    return stale[:n_stale].copy(), unlisted[:n_unlisted].copy(), due[:n_due].copy()
+
+
+@kernel("f8[:, ::1], f8, i8, i8, i8[::1], i8[::1], b1[::1]")
+def cell_changes(
+    positions: np.ndarray, cell: float, limit: int, scale: int, ids: np.ndarray, key: np.ndarray, indexed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points ``ids`` (N,) at ``positions`` (N, 3, m) that enter the global index or change cell.
+
+    ``key`` and ``indexed`` are the index's cell key and membership per point id. Returns those
+    points' ids, their new keys (:func:`cell_keys`) and, among them, the ones indexed before (to
+    take out of their old cells). numpy::
+
+        keys = cell_keys(positions, cell, limit, scale)
+        moved = ~indexed[ids] | (keys != key[ids])
+        ids[moved], keys[moved], ids[moved & indexed[ids]]
+    """
+    keys = cell_keys(positions, cell, limit, scale)
+    n = ids.shape[0]
+    moved_ids = np.empty(n, np.int64)
+    moved_keys = np.empty(n, np.int64)
+    relocated = np.empty(n, np.int64)
+    n_moved, n_relocated = 0, 0
+    for r in range(n):
+        i = ids[r]
+        if indexed[i] and keys[r] == key[i]:
+            continue
+        moved_ids[n_moved] = i
+        moved_keys[n_moved] = keys[r]
+        n_moved += 1
+        if indexed[i]:
+            relocated[n_relocated] = i
+            n_relocated += 1
+    return moved_ids[:n_moved].copy(), moved_keys[:n_moved].copy(), relocated[:n_relocated].copy()
+
+
+@kernel("f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1], i8[::1], f8")
+def older_within(
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    uid: np.ndarray,
+    points: np.ndarray,
+    candidates: np.ndarray,
+    offsets: np.ndarray,
+    bound_squared: float,
+) -> bool:
+    """Whether any of the mapped ``points`` (N,) has an older mapped candidate within the bound (``world``).
+
+    The candidates of ``points[r]`` are ``candidates[offsets[r]:offsets[r + 1]]`` (ids; the point
+    itself may be among them); positions are :func:`gather_positions`', and a candidate without one
+    counts as within. numpy::
+
+        def near(p, c):  # c: the candidates of point p
+            d2 = sum((gather_positions(pos_sum, pos_weight, c) - gather_positions(pos_sum, pos_weight, [p])) ** 2, axis=1)
+            return any((c != p) & (uid[c] < uid[p]) & ((d2 <= bound_squared) | (pos_weight[c] <= 0)))
+        any(near(p, c) for p, c in zip(points, split(candidates, offsets[1:-1])))
+    """
+    for r in range(points.shape[0]):
+        p = points[r]
+        w = max(pos_weight[p], 1e-300)
+        x, y, z = pos_sum[p, 0] / w, pos_sum[p, 1] / w, pos_sum[p, 2] / w
+        for c in candidates[offsets[r] : offsets[r + 1]]:
+            if c == p or uid[c] >= uid[p]:
+                continue
+            if pos_weight[c] <= 0.0:
+                return True  # no position (not in an index refreshed since): the caller looks closer
+            v = max(pos_weight[c], 1e-300)
+            dx, dy, dz = pos_sum[c, 0] / v - x, pos_sum[c, 1] / v - y, pos_sum[c, 2] / v - z
+            if dx * dx + dy * dy + dz * dz <= bound_squared:
+                return True
+    return False
+
+
+# -- RltMapper (section II-C): points due for regrouping ------------------------------------------------
+
+
+@kernel("i8[::1], i8[::1], b1[::1], i8[::1], i8[::1], i8[::1], f8[::1], b1[::1], i8[::1], i8, i8, i8")
+def regroup_due(
+    previous: np.ndarray,
+    current: np.ndarray,
+    alive: np.ndarray,
+    last_iter: np.ndarray,
+    run_start: np.ndarray,
+    n_later_groups: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    regroup_attempt: np.ndarray,
+    iteration: int,
+    min_iterations: int,
+    every: int,
+) -> np.ndarray:
+    """Points due for a regrouping at ``iteration``: runs that just ended, then runs that grew long.
+
+    ``previous`` and ``current`` are the points charted in the last and this iteration. A point
+    whose run of at least ``min_iterations`` ended last iteration, or whose current run reached
+    ``every`` iterations, is due when it is mapped, static, has no later grouping yet and was not
+    tried in the last ``every`` iterations. numpy::
+
+        live = previous[alive[previous]]
+        left = live[(last_iter[live] == iteration - 1) & (iteration - run_start[live] >= min_iterations)]
+        long_run = current[iteration - run_start[current] + 1 >= every]
+        due = concatenate([left, long_run])
+        due[(n_later_groups[due] == 0) & (pos_weight[due] > 0) & ~dynamic[due]
+            & (iteration - regroup_attempt[due] >= every)]
+    """
+    due = np.empty(previous.shape[0] + current.shape[0], np.int64)
+    n = 0
+    for r in range(previous.shape[0] + current.shape[0]):
+        if r < previous.shape[0]:
+            i = previous[r]
+            if not (alive[i] and last_iter[i] == iteration - 1 and iteration - run_start[i] >= min_iterations):
+                continue
+        else:
+            i = current[r - previous.shape[0]]
+            if iteration - run_start[i] + 1 < every:
+                continue
+        if n_later_groups[i] == 0 and pos_weight[i] > 0 and not dynamic[i] and iteration - regroup_attempt[i] >= every:
+            due[n] = i
+            n += 1
+    return due[:n].copy()
+
+
+@kernel("i8[::1], i8[::1], i8, i8[::1], f8[:, :, ::1]")
+def recent_references(
+    seen: np.ndarray, offsets: np.ndarray, first_iteration: int, last_iter: np.ndarray, obs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each recently seen point once, with its latest untransformed observation and its age.
+
+    ``seen[offsets[s]:offsets[s + 1]]`` are the points charted in iteration ``first_iteration + s``
+    (W iterations, up to the current one, ``first_iteration + W``, excluded). A point is taken from
+    the iteration it was last seen in. Returns the ids (R,), their latest observations (R, 3, sensor
+    frame of that iteration) and their ages (R,, iterations). numpy::
+
+        refs = concatenate([seen_t[last_iter[seen_t] == t] for each iteration t and its seen_t])
+        refs, obs[refs, last_iter[refs] % obs.shape[1]], first_iteration + W - last_iter[refs]
+    """
+    window = offsets.shape[0] - 1
+    ring = obs.shape[1]
+    refs = np.empty(seen.shape[0], np.int64)
+    n = 0
+    for s in range(window):
+        for r in range(offsets[s], offsets[s + 1]):
+            if last_iter[seen[r]] == first_iteration + s:
+                refs[n] = seen[r]
+                n += 1
+    reference = np.empty((n, 3))
+    age = np.empty(n, np.int64)
+    for r in range(n):
+        i = refs[r]
+        slot = last_iter[i] % ring
+        for a in range(3):
+            reference[r, a] = obs[i, slot, a]
+        age[r] = first_iteration + window - last_iter[i]
+    return refs[:n].copy(), reference, age
+
+
+@kernel("i8[::1], b1[::1], f8[:, ::1], f8[::1], b1[::1], f8, i8, i8, i8[::1], b1[::1]")
+def index_refresh(
+    changed: np.ndarray,
+    alive: np.ndarray,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    cell: float,
+    limit: int,
+    scale: int,
+    key: np.ndarray,
+    indexed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the global index must change for the points ``changed`` (ids, repeats allowed) of a point store.
+
+    A live point with a global position (``pos_sum / pos_weight``, ``world``, m) that is not
+    flagged ``dynamic`` belongs in the cell :func:`cell_keys` gives it; any other live point does
+    not belong in the index. ``key`` and ``indexed`` are the index's cell and membership per id.
+    Returns, in ascending id order: the indexed points that change cell, every point that enters
+    a cell (those and the new ones) with that cell's key, and the indexed points that leave. numpy::
+
+        ids = unique(changed);  live = ids[alive[ids]]
+        keep = (pos_weight[live] > 0) & ~dynamic[live];  stay, drop = live[keep], live[~keep]
+        moving_ids, keys, relocated = cell_changes(gather_positions(pos_sum, pos_weight, stay), cell, limit, scale,
+                                                   stay, key, indexed)
+        relocated, moving_ids, keys, drop[indexed[drop]]
+    """
+    ids = distinct_ascending(changed)
+    n = ids.shape[0]
+    relocated = np.empty(n, np.int64)
+    moving = np.empty(n, np.int64)
+    keys = np.empty(n, np.int64)
+    leaving = np.empty(n, np.int64)
+    n_relocated, n_moving, n_leaving = 0, 0, 0
+    for r in range(n):
+        i = ids[r]
+        if not alive[i]:
+            continue
+        if pos_weight[i] > 0 and not dynamic[i]:
+            w = max(pos_weight[i], 1e-300)
+            k = _cell_key(pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w, cell, limit, scale)
+            if indexed[i] and k == key[i]:
+                continue
+            moving[n_moving] = i
+            keys[n_moving] = k
+            n_moving += 1
+            if indexed[i]:
+                relocated[n_relocated] = i
+                n_relocated += 1
+        elif indexed[i]:
+            leaving[n_leaving] = i
+            n_leaving += 1
+    return (
+        relocated[:n_relocated].copy(),
+        moving[:n_moving].copy(),
+        keys[:n_moving].copy(),
+        leaving[:n_leaving].copy(),
+    )
+
+
+@kernel("i8[::1], b1[::1], f8[:, ::1], f8[::1], b1[::1], f8, i8, i8")
+def mapped_static_cells(
+    ids: np.ndarray,
+    alive: np.ndarray,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    dynamic: np.ndarray,
+    cell: float,
+    limit: int,
+    scale: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct live, mapped, static points among ``ids`` (repeats allowed), ascending, and their cell keys.
+
+    numpy: ``u = unique(ids); u = u[alive[u] & (pos_weight[u] > 0) & ~dynamic[u]]`` and
+    ``u, cell_keys(gather_positions(pos_sum, pos_weight, u), cell, limit, scale)``.
+    """
+    distinct = distinct_ascending(ids)
+    kept = np.empty(distinct.shape[0], np.int64)
+    keys = np.empty(distinct.shape[0], np.int64)
+    n = 0
+    for r in range(distinct.shape[0]):
+        i = distinct[r]
+        if alive[i] and pos_weight[i] > 0 and not dynamic[i]:
+            w = max(pos_weight[i], 1e-300)
+            kept[n] = i
+            keys[n] = _cell_key(pos_sum[i, 0] / w, pos_sum[i, 1] / w, pos_sum[i, 2] / w, cell, limit, scale)
+            n += 1
+    return kept[:n].copy(), keys[:n].copy()
+
+
+# -- RltGroupRef (section II-B): per point, the groups it is in -----------------------------------------
+
+
+@kernel("i8[:, ::1], i8[::1], i8[::1], i8")
+def append_group(table: np.ndarray, count: np.ndarray, members: np.ndarray, gid: int) -> bool:
+    """Append group ``gid`` to the group lists of its distinct ``members`` (M,), in place; False if a list is full.
+
+    Point ``i``'s list is ``table[i, :count[i]]`` in the order the groups were added. numpy::
+
+        if any(count[members] >= table.shape[1]): False (nothing changed)
+        table[members, count[members]] = gid;  count[members] += 1;  True
+    """
+    width = table.shape[1]
+    for r in range(members.shape[0]):
+        if count[members[r]] >= width:
+            return False
+    for r in range(members.shape[0]):
+        i = members[r]
+        table[i, count[i]] = gid
+        count[i] += 1
+    return True
+
+
+@kernel("i8[:, ::1], i8[::1], i8[::1], i8")
+def drop_group(table: np.ndarray, count: np.ndarray, members: np.ndarray, gid: int) -> None:
+    """Take group ``gid`` out of the group lists of ``members`` (M,), in place, keeping the others' order.
+
+    numpy, per member ``i`` with ``listed = table[i, :count[i]]`` holding ``gid``:
+    ``j = flatnonzero(listed == gid)[0]; table[i, j:count[i] - 1] = listed[j + 1:]; count[i] -= 1``
+    (the first occurrence, as ``list.remove``; members whose list lacks it are left alone).
+    """
+    for r in range(members.shape[0]):
+        i = members[r]
+        n = count[i]
+        for j in range(n):
+            if table[i, j] == gid:
+                for s in range(j, n - 1):
+                    table[i, s] = table[i, s + 1]
+                count[i] = n - 1
+                break
+
+
+@kernel("f8[:, :, ::1], i8[:, ::1], i8[::1], i8[::1], i8[::1], f8")
+def group_relative_map(
+    obs: np.ndarray,
+    obs_iter: np.ndarray,
+    members: np.ndarray,
+    iterations: np.ndarray,
+    verified: np.ndarray,
+    min_spread: float,
+) -> tuple[int, int, int, np.ndarray, int, int]:
+    """A new group's basis and relative map, from its members' rings over the iterations of its interval.
+
+    ``members`` (M,) are point ids, ``iterations`` (L,) the interval's iterations (every member
+    observed in each). Returns the basis rows ``i0, i1, i2`` (-1s when none), then as
+    :func:`relative_map_sum` the summed relative map (M, 3, basis frame, m), the iterations summed
+    and the first of them. numpy::
+
+        observations = ring_observations(obs, obs_iter, members, iterations)[0]
+        i0, i1, i2 = basis_preferring_verified(observations[:, 0], members, verified, min_spread)
+        (i0, i1, i2, *relative_map_sum(observations, i0, i1, i2, min_spread)) if i0 >= 0 else (-1, -1, -1, ...)
+    """
+    observations = ring_observations(obs, obs_iter, members, iterations)[0]
+    m = members.shape[0]
+    first = np.empty((m, 3))
+    for r in range(m):
+        for a in range(3):
+            first[r, a] = observations[r, 0, a]
+    i0, i1, i2 = basis_preferring_verified(first, members, verified, min_spread)
+    if i0 < 0:
+        return -1, -1, -1, np.zeros((0, 3)), 0, -1
+    total, count, first_valid = relative_map_sum(observations, i0, i1, i2, min_spread)
+    return i0, i1, i2, total, count, first_valid
+
+
+OPEN_GROUP_CLOSES = 0
+"""Outcome of :func:`extend_open_group`: a member went unobserved or a basis member was flagged."""
+OPEN_GROUP_SKIPS = 1
+"""Outcome of :func:`extend_open_group`: the group stays open, but this iteration's basis is unusable."""
+OPEN_GROUP_AVERAGED = 2
+"""Outcome of :func:`extend_open_group`: this iteration was added to the group's relative map."""
+
+
+@kernel("f8[:, :, ::1], i8[::1], b1[::1], i8[::1], i8, i8, i8, i8, f8, f8[:, ::1]")
+def extend_open_group(
+    obs: np.ndarray,
+    last_iter: np.ndarray,
+    dynamic: np.ndarray,
+    members: np.ndarray,
+    i0: int,
+    i1: int,
+    i2: int,
+    iteration: int,
+    min_spread: float,
+    rel_sum: np.ndarray,
+) -> int:
+    """Average ``iteration`` into an open group's relative map ``rel_sum`` (M, 3, basis frame, m), in place.
+
+    ``members`` (M,) are the group's points, rows ``i0, i1, i2`` its basis. numpy, with
+    ``slot = iteration % obs.shape[1]``::
+
+        if any(last_iter[members] != iteration) or any(dynamic[members[[i0, i1, i2]]]): OPEN_GROUP_CLOSES
+        relative, valid = basis_coordinates(obs[members, slot][:, None], i0, i1, i2, min_spread)
+        if not valid[0]: OPEN_GROUP_SKIPS
+        rel_sum += relative[:, 0];  OPEN_GROUP_AVERAGED
+    """
+    m = members.shape[0]
+    for r in range(m):
+        if last_iter[members[r]] != iteration:
+            return OPEN_GROUP_CLOSES
+    if dynamic[members[i0]] or dynamic[members[i1]] or dynamic[members[i2]]:
+        return OPEN_GROUP_CLOSES
+    slot = iteration % obs.shape[1]
+    current = np.empty((m, 1, 3))
+    for r in range(m):
+        for a in range(3):
+            current[r, 0, a] = obs[members[r], slot, a]
+    relative, valid = basis_coordinates(current, i0, i1, i2, min_spread)
+    if not valid[0]:
+        return OPEN_GROUP_SKIPS
+    for r in range(m):
+        for a in range(3):
+            rel_sum[r, a] += relative[r, 0, a]
+    return OPEN_GROUP_AVERAGED

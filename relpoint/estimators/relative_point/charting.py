@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import distinct_ascending
+
 IntArray = npt.NDArray[np.int64]
 
 
@@ -58,11 +60,7 @@ class PointCharting:
             return np.zeros(0, np.int64)
         if len(lists) == 1:
             return lists[0]
-        # Mark and collect rather than sort: ids are row numbers, so this is np.unique in linear time.
-        ids = np.concatenate(lists)
-        charted = np.zeros(int(ids.max()) + 1, bool)
-        charted[ids] = True
-        return np.flatnonzero(charted)
+        return distinct_ascending(np.concatenate(lists))  # ids are row numbers: np.unique in linear time
 
     def replace(self, old: int, new: int, first: int, last: int) -> None:
         """Re-chart ``old`` as ``new`` in ``[first, last]`` (after merging ``old`` into ``new``)."""

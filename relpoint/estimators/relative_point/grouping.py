@@ -7,7 +7,9 @@ Paper name -> Python name
                         :func:`select_members` combines rows that way.
     *RltUngroupedList*  :class:`UngroupedList`.
     *RltMapper*         :class:`~relpoint.estimators.relative_point.estimator.RelativePointEstimator`,
-                        which calls :func:`select_members` for first groupings and regroupings.
+                        which applies the heuristic of :func:`select_members` for first groupings and
+                        regroupings, in one compiled call with the candidates' presence rows
+                        (:func:`~._kernels.group_selection`).
 
 The heuristic (:func:`select_members`): the lists of grouped and ungrouped points present in the
 creation point's interval are sorted by how many iterations of it they cover; the creation point and

@@ -3,7 +3,7 @@
 Paper name -> Python name
     *RltGroup*     :class:`RelativeGroup`: the member *RltPoints*, three basis members, the running sum
                    of each member's relative position and the group's fit to the global map.
-    *RltGroupRef*  :attr:`GroupMap.refs`: per point, the ids of the groups it is in.
+    *RltGroupRef*  :meth:`GroupMap.refs_of`: per point, the ids of the groups it is in (a row of a table).
     *RltLSF*       :func:`relpoint.estimators.relative_point.lsf.fit_transform`.
 
 Basis frame (:func:`basis_rotation`): the first basis point is the origin, the second lies on the
@@ -28,7 +28,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import basis_coordinates, replace_contribution, spread_basis
+from relpoint.estimators.relative_point._kernels import (
+    OPEN_GROUP_AVERAGED,
+    OPEN_GROUP_CLOSES,
+    append_group,
+    basis_coordinates,
+    drop_group,
+    extend_open_group,
+    group_anchors,
+    replace_contribution,
+    spread_basis,
+)
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import PointStore
 from relpoint.geometry import FloatArray, apply_transform
@@ -187,7 +197,9 @@ class GroupMap:
         self.consensus = consensus
         self.spread_floor = spread_floor
         self.groups: dict[int, RelativeGroup] = {}
-        self.refs: dict[int, list[int]] = {}
+        # The paper's RltGroupRef lists: point i is in the groups refs_table[i, :refs_count[i]], oldest first.
+        self._refs_table = np.zeros((0, 8), np.int64)
+        self._refs_count = np.zeros(0, np.int64)
         self.open: list[int] = []
         self._next_gid = 0
         self._changed: list[IntArray] = []
@@ -204,8 +216,22 @@ class GroupMap:
         return gid
 
     def refs_of(self, point: int) -> list[int]:
-        """Ids of the groups point ``point`` is in (the paper's *RltGroupRef* list)."""
-        return self.refs.get(point, [])
+        """Ids of the groups point ``point`` is in, in the order they were created or taken over
+        (the paper's *RltGroupRef* list)."""
+        if point >= len(self._refs_count):
+            return []
+        return self._refs_table[point, : self._refs_count[point]].tolist()
+
+    def _reserve_refs(self) -> None:
+        """Give every row of the point store a group list."""
+        extra = self.store.capacity - len(self._refs_count)
+        if extra > 0:
+            self._refs_table = np.concatenate([self._refs_table, np.zeros((extra, self._refs_table.shape[1]), np.int64)])
+            self._refs_count = np.concatenate([self._refs_count, np.zeros(extra, np.int64)])
+
+    def _widen_refs(self) -> None:
+        """Double the room of every point's group list."""
+        self._refs_table = np.concatenate([self._refs_table, np.zeros_like(self._refs_table)], axis=1)
 
     # -- placement -------------------------------------------------------------------------------
 
@@ -218,26 +244,16 @@ class GroupMap:
         store = self.store
         members = group.members
         relative = group.relative_map
-        static = ~store.dynamic[members]
-        weights = None
         if group.anchor_targets is not None:
-            anchors = static
-            target = group.anchor_targets[anchors]
+            static = ~store.dynamic[members]
+            source, target, weights = relative[static], group.anchor_targets[static], None
         else:
-            other_weight = store.pos_weight[members] - group.weight
-            anchors = static & (other_weight > 1e-9)
-            verified = store.verified[members[anchors]] >= 0
-            own = group.weight * group.placed[anchors] if group.weight > 0 else 0.0
-            target = (store.pos_sum[members[anchors]] - own) / other_weight[anchors, None]
-            # Inverse-variance weights: an anchor's global position is as good as the iterations
-            # averaged into it, and as bad as its groups disagree about it (a slowly moving point).
-            # Points not yet verified static by dynamic detection count for less.
-            if self.weighted:
-                spread = store.spread(members[anchors])
-                weights = other_weight[anchors] / (spread**2 + self.spread_floor**2)
-                weights *= np.where(verified, 1.0, self.unverified_weight)
+            source, target, weights = group_anchors(
+                store.pos_sum, store.pos_weight, store.pos_sq, store.dynamic, store.verified, members, relative,
+                group.placed, float(group.weight), self.weighted, float(self.spread_floor) ** 2, float(self.unverified_weight),
+            )  # fmt: skip
         fit = fit_transform(
-            relative[anchors],
+            source,
             target,
             trim=self.trim,
             floor=self.floor,
@@ -284,13 +300,9 @@ class GroupMap:
             return False
         gid = group.gid
         self.groups[gid] = group
-        refs = self.refs
-        for point in group.members.tolist():
-            listed = refs.get(point)
-            if listed is None:
-                refs[point] = [gid]
-            else:
-                listed.append(gid)
+        self._reserve_refs()
+        while not append_group(self._refs_table, self._refs_count, group.members, gid):
+            self._widen_refs()
         self.store.n_groups[group.members] += 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] += 1
@@ -303,13 +315,7 @@ class GroupMap:
         """Delete a group and withdraw its contribution from its members' positions."""
         group = self.groups.pop(gid)
         self._contribute(group, group.placed, 0.0)
-        refs = self.refs
-        for point in group.members.tolist():
-            listed = refs.get(point)
-            if listed is not None:
-                listed.remove(gid)
-                if not listed:
-                    del refs[point]
+        drop_group(self._refs_table, self._refs_count, group.members, gid)
         self.store.n_groups[group.members] -= 1
         if group.kind == LATER:
             self.store.n_later_groups[group.members] -= 1
@@ -324,21 +330,18 @@ class GroupMap:
         observation in the iteration. Returns the number of groups recomputed.
         """
         store = self.store
-        slot = iteration % store.ring_size
         still_open: list[int] = []
         updated = 0
         for gid in self.open:
             group = self.groups[gid]
-            members = group.members
-            basis_members = members[list(group.basis)]
-            if np.any(store.last_iter[members] != iteration) or np.any(store.dynamic[basis_members]):
+            outcome = extend_open_group(
+                store.obs, store.last_iter, store.dynamic, group.members, *group.basis, iteration,
+                float(self.min_basis_spread), group.rel_sum,
+            )  # fmt: skip
+            if outcome == OPEN_GROUP_CLOSES:
                 group.is_open = False
                 continue
-            relative, valid = relative_coordinates(
-                store.obs[members, slot][:, None], group.basis, self.min_basis_spread
-            )
-            if valid[0]:
-                group.rel_sum += relative[:, 0]
+            if outcome == OPEN_GROUP_AVERAGED:
                 group.count += 1
                 group.last_iteration = iteration
                 self.place(group)
@@ -350,10 +353,17 @@ class GroupMap:
     def transfer(self, newer: int, older: int) -> None:
         """Make ``older`` take ``newer``'s place in every group of ``newer`` (point merging)."""
         store = self.store
-        for gid in self.refs.pop(newer, []):
+        taken_over = self.refs_of(newer)
+        for gid in taken_over:
             group = self.groups[gid]
             group.members = np.where(group.members == newer, older, group.members)
-            self.refs.setdefault(older, []).append(gid)
+        self._reserve_refs()
+        while self._refs_count[older] + len(taken_over) > self._refs_table.shape[1]:
+            self._widen_refs()
+        start = self._refs_count[older]
+        self._refs_table[older, start : start + len(taken_over)] = taken_over
+        self._refs_count[older] += len(taken_over)
+        self._refs_count[newer] = 0
         store.pos_sum[older] += store.pos_sum[newer]
         store.pos_weight[older] += store.pos_weight[newer]
         store.pos_sq[older] += store.pos_sq[newer]
@@ -367,12 +377,9 @@ class GroupMap:
         self._changed.append(np.array([older], np.int64))
 
     def take_changed(self) -> IntArray:
-        """Distinct ids whose combined position changed since the last call."""
+        """Ids whose combined position changed since the last call (repeats possible, in no order)."""
         if not self._changed:
             return np.zeros(0, np.int64)
         changed = np.concatenate(self._changed)
         self._changed = []
-        # Mark and collect: ids are row numbers, so this is np.unique in linear time.
-        marked = np.zeros(int(changed.max()) + 1, bool)
-        marked[changed] = True
-        return np.flatnonzero(marked)
+        return changed

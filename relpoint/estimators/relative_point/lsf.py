@@ -7,8 +7,9 @@ Paper name -> Python name
               plus the checks the algorithm needs: at least three pairs, a non-collinear source, and
               trimming of gross outliers (mismatched or moving points) before the final fit.
 
-The fit and the trimming rounds run as compiled kernels (:func:`~._kernels.rigid_fit`,
-:func:`~._kernels.trimmed_fit`); their docstrings give the numpy they equal. The kernel finds the
+The fit and the trimming rounds run as one compiled call (:func:`~._kernels.robust_fit`, over
+:func:`~._kernels.rigid_fit` and :func:`~._kernels.trimmed_fit`; their docstrings give the numpy
+they equal); only the consensus re-seeding, when called for, runs in numpy. The kernel finds the
 Arun / Umeyama rotation (the best proper rotation, reflections excluded) by Horn's quaternion method,
 which reaches the same optimum without a LAPACK call; the tests compare it with the SVD solution.
 """
@@ -21,7 +22,15 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import off_line_rms, pair_residuals, rigid_fit, trimmed_fit
+from relpoint.estimators.relative_point._kernels import (
+    FIT_DEGENERATE,
+    FIT_WANTS_CONSENSUS,
+    off_line_rms,
+    pair_residuals,
+    rigid_fit,
+    robust_fit,
+    trimmed_fit,
+)
 from relpoint.geometry import FloatArray
 
 
@@ -102,30 +111,48 @@ def fit_transform(
         ``None`` when fewer than three pairs or a collinear source; if trimming would leave a
         degenerate set, the untrimmed fit is kept.
     """
-    n = len(source)
-    if n < 3:
+    if len(source) < 3:
         return None
     source = np.ascontiguousarray(source, dtype=np.float64)
     target = np.ascontiguousarray(target, dtype=np.float64)
-    weights = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    inliers = np.ones(n, bool)
-    T, spread = rigid_fit(source, target, weights, inliers)
-    if spread <= collinear_tolerance:
+    weights = np.ones(len(source)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    T, inliers, outcome = robust_fit(
+        source, target, weights, float(trim), float(floor), float(collinear_tolerance), int(rounds), float(consensus),
+        _CONSENSUS_SHARE,
+    )  # fmt: skip
+    if outcome == FIT_DEGENERATE:
         return None
-    if consensus > 0 and n > 4:
-        residual = pair_residuals(source, target, T)
-        # Only a group of far-off pairs calls for it (stray mismatches are left to trimming), which
-        # also keeps its cost off the common case at high point counts.
-        if np.count_nonzero(residual > consensus) >= max(2, _CONSENSUS_SHARE * n):
-            agree = _consensus(source, target, weights, consensus, residual)
-            if agree is not None:
-                T_agree, spread = rigid_fit(source, target, weights, agree)
-                if spread > collinear_tolerance:
-                    T, inliers = T_agree, agree
-    if trim > 0 and n > 4:
+    if outcome == FIT_WANTS_CONSENSUS:
+        T, inliers = _reseeded_fit(source, target, weights, T, trim, floor, collinear_tolerance, rounds, consensus)
+    return Fit(T, inliers)
+
+
+def _reseeded_fit(
+    source: FloatArray,
+    target: FloatArray,
+    weights: FloatArray,
+    T: FloatArray,
+    trim: float,
+    floor: float,
+    collinear_tolerance: float,
+    rounds: int,
+    consensus: float,
+) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """The rest of :func:`fit_transform` once the first fit ``T`` left a group of pairs beyond ``consensus``.
+
+    The fit restarts from the pairs that agree with the best minimal fit (:func:`_consensus`), if
+    that one gathers more weight and is not collinear, and is then trimmed among those pairs.
+    """
+    inliers = np.ones(len(source), bool)
+    agree = _consensus(source, target, weights, consensus, pair_residuals(source, target, T))
+    if agree is not None:
+        T_agree, spread = rigid_fit(source, target, weights, agree)
+        if spread > collinear_tolerance:
+            T, inliers = T_agree, agree
+    if trim > 0:
         # Trimming only removes pairs the consensus kept (all without it).
         T, inliers = trimmed_fit(source, target, weights, T, inliers, trim, floor, rounds, collinear_tolerance)
-    return Fit(T, inliers)
+    return T, inliers
 
 
 _CONSENSUS_SHARE = 0.05

@@ -24,6 +24,7 @@ import numpy.typing as npt
 from relpoint.estimators.relative_point._kernels import (
     gather_positions,
     gather_spread,
+    record_observations,
     ring_observations,
     ring_presence,
 )
@@ -171,15 +172,10 @@ class PointStore:
 
     def add_observations(self, ids: IntArray, points: FloatArray, iteration: int) -> None:
         """Append one iteration's untransformed points (N, 3) to the rings of ``ids`` (N,), distinct."""
-        slot = iteration % self.ring_size
-        self.obs[ids, slot] = points
-        self.obs_iter[ids, slot] = iteration
-        first = self.first_iter[ids] < 0
-        self.first_iter[ids[first]] = iteration
-        broken = first | (self.last_iter[ids] != iteration - 1)
-        self.run_start[ids[broken]] = iteration
-        self.last_iter[ids] = iteration
-        self.n_obs[ids] += 1
+        record_observations(
+            self.obs, self.obs_iter, self.first_iter, self.last_iter, self.run_start, self.n_obs,
+            np.ascontiguousarray(ids, dtype=np.int64), np.ascontiguousarray(points, dtype=np.float64), int(iteration),
+        )  # fmt: skip
 
     def latest(self, ids: IntArray) -> FloatArray:
         """Most recent untransformed observation (N, 3) of each point."""

@@ -14,21 +14,36 @@ sensor frame with the inter-iteration motion estimated from the previous iterati
 *untransformed* pairs (:class:`MotionModel`; ``predict_motion=False`` gives the paper's plain
 untransformed-to-untransformed matching), which keeps the matching bound tight at high point density.
 A predicted point is off by the motion's rotation error times its range, so the points a first round
-leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows with range.
+leaves unmatched get a second one (:func:`match_mutual`) with a bound that grows with range. An
+iteration runs all of it, the motion refreshed in between, as one compiled call
+(:meth:`MotionModel.match`, :func:`~._kernels.match_recent`); :func:`match_nearest` and
+:func:`match_mutual` are its two rounds on their own.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import claim_one_to_one, mutual_nearest, nearest_two, transform_by_age
+from relpoint.estimators.relative_point._kernels import (
+    cell_changes,
+    cell_keys,
+    claim_one_to_one,
+    index_refresh,
+    mapped_static_cells,
+    match_recent,
+    mutual_nearest,
+    nearest_two,
+    transform_by_age,
+)
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.geometry import FloatArray
 
 IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
 
 NO_MATCH = -1
 
@@ -95,11 +110,53 @@ class MotionModel:
 
         Pairs come from one-to-one matching within the bound, so a plain fit suffices.
         """
-        fit = fit_transform(previous, current, trim=0.0, floor=floor)
+        fit = fit_transform(previous, current, trim=0.0, floor=floor, collinear_tolerance=MOTION_COLLINEAR_TOLERANCE)
         if fit is not None:
             self.T_curr_prev = fit.T
             return fit.T
         return None
+
+    def match(
+        self, reference: FloatArray, age: IntArray, points: FloatArray, bound: float, angle: float, predict: bool
+    ) -> LocalMatches:
+        """Local matching of one iteration's points (N, 3) against recent points, refreshing the motion.
+
+        ``reference`` (R, 3) are the recent points' latest observations (each in the sensor frame of
+        its iteration), ``age`` (R,) iterations since each was observed. A first round matches
+        :func:`match_nearest` within ``bound`` (m), against the references carried into the current
+        frame by the motion when ``predict``; its pairs with references seen one iteration ago refresh
+        the motion, and when that moves the prediction by more than half the bound (a turn began) the
+        round is repeated from the refreshed motion. With ``predict`` and ``angle`` > 0, the points
+        and references left over are paired by :func:`match_mutual` within ``bound + angle * range``
+        (the predicted range, m; the motion's rotation error grows with it), and new pairs refresh
+        the motion again. One compiled call (:func:`~._kernels.match_recent`).
+        """
+        row, T_curr_prev, measured, far = match_recent(
+            np.ascontiguousarray(reference, dtype=np.float64),
+            np.ascontiguousarray(age, dtype=np.int64),
+            np.ascontiguousarray(points, dtype=np.float64),
+            self.T_curr_prev,
+            float(bound),
+            float(angle),
+            bool(predict),
+            MOTION_COLLINEAR_TOLERANCE,
+        )
+        self.T_curr_prev = T_curr_prev
+        return LocalMatches(row, bool(measured), int(far))
+
+
+class LocalMatches(NamedTuple):
+    """What :meth:`MotionModel.match` found: ``row`` (N,), the reference each point matched
+    (``NO_MATCH`` if none); whether the motion was measured from this iteration's pairs; and how
+    many pairs the second, range-dependent round added."""
+
+    row: IntArray
+    motion_measured: bool
+    far_matches: int
+
+
+MOTION_COLLINEAR_TOLERANCE = 0.05
+"""RMS distance (m) off their best line below which matched points give no motion (collinear)."""
 
 
 _KEY_SCALE = 1 << 21
@@ -137,11 +194,7 @@ class GlobalIndex:
 
     def keys(self, positions: FloatArray) -> IntArray:
         """Cell keys (N,) of positions (N, 3) m."""
-        cell = np.floor(positions / self.cell)
-        np.maximum(cell, -_KEY_LIMIT, out=cell)
-        np.minimum(cell, _KEY_LIMIT, out=cell)
-        cell = cell.astype(np.int64)
-        return (cell[:, 0] * _KEY_SCALE + cell[:, 1]) * _KEY_SCALE + cell[:, 2]
+        return cell_keys(np.ascontiguousarray(positions, dtype=np.float64), self.cell, _KEY_LIMIT, _KEY_SCALE)
 
     def _reserve(self, largest_id: int) -> None:
         if largest_id < len(self._indexed):
@@ -155,14 +208,56 @@ class GlobalIndex:
         if len(ids) == 0:
             return
         self._reserve(int(ids.max()))
-        keys = self.keys(positions)
-        indexed = self._indexed[ids]
-        moved = ~indexed | (keys != self._key[ids])
-        if not moved.any():
+        ids, keys, relocated = cell_changes(
+            np.ascontiguousarray(positions, dtype=np.float64), self.cell, _KEY_LIMIT, _KEY_SCALE,
+            np.ascontiguousarray(ids, dtype=np.int64), self._key, self._indexed,
+        )  # fmt: skip
+        self._leave(relocated)
+        self._enter(ids, keys)
+
+    def refresh(
+        self, changed: IntArray, alive: BoolArray, pos_sum: FloatArray, pos_weight: FloatArray, dynamic: BoolArray
+    ) -> None:
+        """Bring the index up to date for the points ``changed`` (ids, repeats allowed) of a point store.
+
+        ``alive``, ``pos_sum``, ``pos_weight`` and ``dynamic`` are the store's per-point arrays
+        (:class:`~relpoint.estimators.relative_point.points.PointStore`): a live point with a global
+        position (``pos_sum / pos_weight``) that is not flagged is indexed there, any other live
+        point leaves the index. One compiled pass (:func:`~._kernels.index_refresh`) finds the points
+        whose cell changes; only those touch the hash table.
+        """
+        if len(changed) == 0:
             return
-        self.remove(ids[moved & indexed])
+        self._reserve(len(alive) - 1)
+        relocated, ids, keys, leaving = index_refresh(
+            changed, alive, pos_sum, pos_weight, dynamic, self.cell, _KEY_LIMIT, _KEY_SCALE, self._key, self._indexed
+        )
+        self._leave(relocated)
+        self._enter(ids, keys)
+        self._leave(leaving)
+
+    def indexable_cells(
+        self, ids: IntArray, alive: BoolArray, pos_sum: FloatArray, pos_weight: FloatArray, dynamic: BoolArray
+    ) -> tuple[IntArray, IntArray]:
+        """The distinct points among ``ids`` (repeats allowed) that belong in the index, ascending, and their cells' keys.
+
+        The store's arrays as in :meth:`refresh`: live points with a global position, not flagged.
+        """
+        return mapped_static_cells(ids, alive, pos_sum, pos_weight, dynamic, self.cell, _KEY_LIMIT, _KEY_SCALE)
+
+    def remove(self, ids: npt.ArrayLike) -> None:
+        """Drop points from the index (unknown ids are ignored)."""
+        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        if len(ids) == 0:
+            return
+        ids = ids[ids < len(self._indexed)]
+        self._leave(ids[self._indexed[ids]])
+
+    def _enter(self, ids: IntArray, keys: IntArray) -> None:
+        """Put points ``ids`` (N,), not indexed now, into the cells with keys ``keys`` (N,)."""
+        if len(ids) == 0:
+            return
         cells = self._cells
-        ids, keys = ids[moved], keys[moved]
         for i, key in zip(ids.tolist(), keys.tolist(), strict=True):
             members = cells.get(key)
             if members is None:
@@ -173,11 +268,8 @@ class GlobalIndex:
         self._indexed[ids] = True
         self._size += len(ids)
 
-    def remove(self, ids: npt.ArrayLike) -> None:
-        """Drop points from the index (unknown ids are ignored)."""
-        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
-        ids = ids[ids < len(self._indexed)]
-        ids = ids[self._indexed[ids]]
+    def _leave(self, ids: IntArray) -> None:
+        """Take indexed points ``ids`` (N,) out of their cells."""
         if len(ids) == 0:
             return
         cells = self._cells

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 
@@ -9,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators.relative_point._kernels import flagged_within, older_within
 from relpoint.estimators.relative_point.dynamics import (
     detect_dynamic,
     deviation_to_references,
@@ -39,9 +41,9 @@ class DynamicSweep(EstimatorState):
     """
 
     def _detect_dynamic(
-        self, k: int, members: IntArray, observations: FloatArray, interval: int
+        self, k: int, members: IntArray, iterations: IntArray
     ) -> tuple[IntArray, npt.NDArray[np.bool_], IntArray]:
-        """Dynamic detection before a group is final (paper II-C).
+        """Dynamic detection before a group is final (paper II-C), over the group's ``iterations`` (L,).
 
         Returns the ids found moving, whether each stands out of the bulk (:meth:`_beyond_bulk`)
         and the ids verified static. Runs over the group's interval when it is at least
@@ -50,8 +52,9 @@ class DynamicSweep(EstimatorState):
         """
         config = self.config
         none = np.zeros(0, np.int64)
-        if not config.dynamic_detection or interval < config.dynamic_min_iterations:
+        if not config.dynamic_detection or len(iterations) < config.dynamic_min_iterations:
             return none, np.zeros(0, bool), none
+        observations, _ = self.store.observations(members, iterations)
         result = detect_dynamic(observations, gap_ratio=config.dynamic_gap_ratio, floor=self._pair_noise(1))
         self.counts["dynamic_comparisons"] += result.comparisons
         if not result.decided:
@@ -208,6 +211,8 @@ class DynamicSweep(EstimatorState):
         ``moving`` (one per id, default all) says which are reported as dynamic landmarks, the
         others being left out of the map as unreliable (see ``dynamic_tail_sigmas``).
         """
+        if len(ids) == 0:
+            return
         fresh_mask = ~self.store.dynamic[ids]
         fresh = ids[fresh_mask]
         self.store.dynamic[fresh] = True
@@ -222,12 +227,15 @@ class DynamicSweep(EstimatorState):
             self._newly_mapped = []
             return ids
         store = self.store
-        newly = np.unique(np.concatenate(self._newly_mapped))
+        newly_mapped = np.concatenate(self._newly_mapped)
         self._newly_mapped = []
         self._refresh_index()
-        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
+        newly, keys = self.index.indexable_cells(
+            newly_mapped, store.alive, store.pos_sum, store.pos_weight, store.dynamic
+        )
         bound2 = self.config.merge_bound**2
-        for newer in newly.tolist():
+        merging = newly if self._older_point_within(newly, keys, bound2) else newly[:0]  # usually none
+        for newer in merging.tolist():
             if not store.alive[newer]:
                 continue
             position = store.positions(np.array([newer]))[0]
@@ -247,6 +255,22 @@ class DynamicSweep(EstimatorState):
         self._reabsorb_flagged(newly, ids, k)
         return ids
 
+    def _older_point_within(self, newly: IntArray, keys: IntArray, bound2: float) -> bool:
+        """Whether any of the mapped points ``newly`` (in the index cells ``keys``) has an older indexed
+        point within ``sqrt(bound2)`` m.
+
+        One pass over every point's index neighbours (:func:`~._kernels.older_within`); when it finds
+        none, the merging loop of :meth:`_merge_duplicates` would merge nothing.
+        """
+        if len(newly) == 0:
+            return False
+        store = self.store
+        neighbours = [self.index.candidates_at(key) for key in keys.tolist()]
+        offsets = np.zeros(len(neighbours) + 1, np.int64)
+        np.cumsum([len(found) for found in neighbours], out=offsets[1:])
+        candidates = np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(offsets[-1]))
+        return bool(older_within(store.pos_sum, store.pos_weight, store.uid, newly, candidates, offsets, float(bound2)))
+
     def _reabsorb_flagged(self, newly: IntArray, ids: IntArray, k: int) -> None:
         """Merge newly mapped static points onto older points flagged dynamic at the same place.
 
@@ -257,19 +281,20 @@ class DynamicSweep(EstimatorState):
         mapped static at its old mean position, and if it is, it would otherwise sit in the map twice.
         """
         store = self.store
-        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
-        if len(newly) == 0:
-            return
+        bound2 = self.config.merge_bound**2
         n = store.high_water
-        flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
-        if len(flagged) == 0:
-            return
-        flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
+        if not flagged_within(
+            store.world_sum, store.n_obs, store.alive, store.dynamic, store.uid, n, store.pos_sum, store.pos_weight,
+            newly, float(bound2),
+        ):  # fmt: skip
+            return  # the usual case, found in one pass: nothing to take over
+        newly = newly[store.alive[newly] & (store.pos_weight[newly] > 0) & ~store.dynamic[newly]]
         positions = store.positions(newly)
+        flagged = np.flatnonzero(store.alive[:n] & store.dynamic[:n])
+        flagged_at = store.world_sum[flagged] / np.maximum(store.n_obs[flagged], 1)[:, None]
         d2 = np.sum((positions[:, None, :] - flagged_at[None, :, :]) ** 2, axis=2)
         older_than = store.uid[flagged][None, :] < store.uid[newly][:, None]
         d2 = np.where(older_than, d2, np.inf)
-        bound2 = self.config.merge_bound**2
         taken: set[int] = set()
         nearest = d2.min(axis=1)
         for row in np.argsort(nearest).tolist():

@@ -5,15 +5,22 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import numpy.typing as npt
 
-from relpoint.estimators.relative_point.grouping import select_members
+from relpoint.estimators.relative_point._kernels import (
+    SELECTION_MADE,
+    SELECTION_NO_CREATION,
+    SELECTION_NONE,
+    creation_triage,
+    group_relative_map,
+    group_selection,
+    regroup_due,
+)
 from relpoint.estimators.relative_point.groups import (
     FIRST,
     LATER,
     ROOT,
     RelativeGroup,
-    choose_basis,
-    relative_coordinates,
 )
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -54,19 +61,19 @@ class Grouping(EstimatorState):
         listed = self.ungrouped.ids()
         if len(listed) == 0:
             return
-        alive = store.alive[listed]
-        done = ~alive | store.mapped(listed) | store.dynamic[listed]
-        stale = alive & ~done & (k - store.last_iter[listed] > config.stale_after)
-        if stale.any():
-            self._drop_points(listed[stale])
-        if (done | stale).any():
-            self.ungrouped.discard(listed[done | stale])
-        due = ~done & ~stale & (store.last_iter[listed] == k) & (k - store.run_start[listed] >= config.creation_delay)
+        stale, unlisted, due = creation_triage(
+            listed, store.alive, store.pos_weight, store.dynamic, store.last_iter, store.run_start, k,
+            int(config.stale_after), int(config.creation_delay),
+        )  # fmt: skip
+        if len(stale):
+            self._drop_points(stale)
+        if len(unlisted):
+            self.ungrouped.discard(unlisted)
         attempts = 0
-        for creation in listed[due].tolist():
+        for creation in due.tolist():
             if attempts >= config.max_creations_per_iteration:
                 break
-            if store.mapped(np.array([creation]))[0] or self._next_creation_try.get(creation, -1) > k:
+            if store.pos_weight[creation] > 0 or self._next_creation_try.get(creation, -1) > k:
                 continue
             attempts += 1
             first = max(int(store.run_start[creation]), k - config.ring_size + 1)
@@ -81,21 +88,13 @@ class Grouping(EstimatorState):
             return
         previous = self.charting.seen(k - 1)
         if len(previous):
-            previous = previous[store.alive[previous]]
-            left = previous[store.last_iter[previous] == k - 1]
-            left = left[(k - store.run_start[left] >= config.regroup_min_iterations)]
-            current = self.charting.seen(k)
-            long_run = current[k - store.run_start[current] + 1 >= config.regroup_after]
-            due = np.concatenate([left, long_run])
-            due = due[
-                (store.n_later_groups[due] == 0)
-                & (store.pos_weight[due] > 0)
-                & ~store.dynamic[due]
-                & (k - store.regroup_attempt[due] >= config.regroup_after)
-            ]
-            for point in due.tolist():
-                store.regroup_attempt[point] = k
-                self._regroup_queue.append(point)
+            due = regroup_due(
+                previous, self.charting.seen(k), store.alive, store.last_iter, store.run_start, store.n_later_groups,
+                store.pos_weight, store.dynamic, store.regroup_attempt, k, int(config.regroup_min_iterations),
+                int(config.regroup_after),
+            )  # fmt: skip
+            store.regroup_attempt[due] = k
+            self._regroup_queue.extend(due.tolist())
         done = 0
         while self._regroup_queue and done < config.max_regroups_per_iteration:
             point = self._regroup_queue.popleft()
@@ -115,47 +114,41 @@ class Grouping(EstimatorState):
         """Build, check and place one group with ``creation`` as creation point over ``[first, last]``."""
         config, store = self.config, self.store
         candidates = self.charting.enumerate(first, last)
-        candidates = candidates[store.alive[candidates] & ~store.dynamic[candidates]]
-        where = np.flatnonzero(candidates == creation)
-        if len(where) == 0:
+        members, interval, outcome = self._select_members(candidates, creation, first, last, everyone_grouped=False)
+        if outcome == SELECTION_NO_CREATION:
             return False
-        presence = store.presence(candidates, first, last)
-        selection = select_members(presence, store.mapped(candidates), int(where[0]), config.seed_points)
         root = False
-        if selection is None and kind == FIRST and self._no_anchor_in_view(candidates):
+        if outcome == SELECTION_NONE and kind == FIRST and self._no_anchor_in_view(candidates):
             # Nothing mapped in view (the start, or the map was lost): anchor to observations + pose.
-            selection = select_members(presence, np.ones(len(candidates), bool), int(where[0]), config.seed_points)
+            members, interval, outcome = self._select_members(candidates, creation, first, last, everyone_grouped=True)
             root = True
-        if selection is None:
+        if outcome != SELECTION_MADE:
             return False
-        rows, interval = selection
-        members = candidates[rows]
         iterations = first + np.flatnonzero(interval)
-        observations, _ = store.observations(members, iterations)
-        moving, beyond, verified = self._detect_dynamic(k, members, observations, len(iterations))
+        moving, beyond, verified = self._detect_dynamic(k, members, iterations)
         if len(moving):
-            keep = ~np.isin(members, moving)
-            members, observations = members[keep], observations[keep]
+            members = members[~np.isin(members, moving)]
         if len(members) < config.seed_points + 1:
             return False
-        basis = self._choose_basis(members, observations[:, 0])
-        if basis is None:
-            return False
-        relative, valid = relative_coordinates(observations, basis, config.min_basis_spread)
-        if not valid.any():
-            return False
+        i0, i1, i2, rel_sum, count, first_valid = group_relative_map(
+            store.obs, store.obs_iter, members, iterations, store.verified, float(config.min_basis_spread)
+        )
+        if i0 < 0 or count == 0:
+            return False  # no basis, or no iteration with a usable one
+        basis = (int(i0), int(i1), int(i2))
         anchor_targets = None
         if root:
-            t0 = int(iterations[valid][0])
+            t0 = int(iterations[first_valid])
             T0 = self._poses[t0 % config.ring_size] if t0 < k else self._T_world_sensor
-            anchor_targets = apply_transform(T0, observations[:, int(np.flatnonzero(valid)[0])])
+            observations, _ = store.observations(members, iterations)
+            anchor_targets = apply_transform(T0, observations[:, first_valid])
         group = RelativeGroup(
             gid=self.groups.new_gid(),
             kind=ROOT if root else kind,
             members=members,
             basis=basis,
-            rel_sum=relative[:, valid].sum(axis=1),
-            count=int(valid.sum()),
+            rel_sum=rel_sum,
+            count=int(count),
             last_iteration=int(iterations[-1]),
             is_open=bool(iterations[-1] == k),
             anchor_targets=anchor_targets,
@@ -164,7 +157,8 @@ class Grouping(EstimatorState):
         if not self.groups.add(group):
             return False
         self._flag_dynamic(moving, "grouping", beyond)
-        store.verified[verified] = k
+        if len(verified):
+            store.verified[verified] = k
         self._newly_mapped.append(newly_mapped)
         if group.kind == FIRST:
             self._first_groups.append(group.gid)
@@ -173,15 +167,17 @@ class Grouping(EstimatorState):
         self._over_grouped.update(crowded.tolist())
         return True
 
-    def _choose_basis(self, members: IntArray, points: FloatArray) -> tuple[int, int, int] | None:
-        """Basis rows of ``members``: among points verified static when they allow one, else among all."""
-        spread = self.config.min_basis_spread
-        trusted = np.flatnonzero(self.store.verified[members] >= 0)
-        if len(trusted) >= 3:
-            basis = choose_basis(points[trusted], spread)
-            if basis is not None:
-                return int(trusted[basis[0]]), int(trusted[basis[1]]), int(trusted[basis[2]])
-        return choose_basis(points, spread)
+    def _select_members(
+        self, candidates: IntArray, creation: int, first: int, last: int, *, everyone_grouped: bool
+    ) -> tuple[IntArray, npt.NDArray[np.bool_], int]:
+        """Members (ids) of a group over ``[first, last]`` among ``candidates`` (the points charted in it),
+        its interval mask and the outcome (:func:`~._kernels.group_selection`; the heuristic of
+        :func:`~relpoint.estimators.relative_point.grouping.select_members` over the live static candidates)."""
+        store = self.store
+        return group_selection(
+            store.obs_iter, store.alive, store.dynamic, store.pos_weight, candidates, int(creation), int(first),
+            int(last), int(self.config.seed_points), everyone_grouped,
+        )  # fmt: skip
 
     def _no_anchor_in_view(self, candidates: IntArray) -> bool:
         return int(np.count_nonzero(self.store.mapped(candidates) & ~self.store.dynamic[candidates])) < 3

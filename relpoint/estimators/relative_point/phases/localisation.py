@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.relative_point._kernels import pose_anchors, recent_references
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
-from relpoint.estimators.relative_point.registration import NO_MATCH, match_mutual, match_nearest
+from relpoint.estimators.relative_point.registration import NO_MATCH
 from relpoint.estimators.relative_point.state import EstimatorState
 from relpoint.geometry import FloatArray, apply_transform, rigid_inverse
 
@@ -30,70 +30,20 @@ class Localisation(EstimatorState):
         config, store = self.config, self.store
         ids = np.full(len(points), NO_MATCH, np.int64)
         # Each recently seen point, once: from the charting of the iteration it was last seen in.
-        recent = []
-        for t in range(k - config.match_window, k):
-            seen = self.charting.seen(t)
-            recent.append(seen[store.last_iter[seen] == t])
-        refs = np.concatenate(recent)
+        first = k - config.match_window
+        seen = [self.charting.seen(t) for t in range(first, k)]
+        offsets = np.zeros(len(seen) + 1, np.int64)
+        np.cumsum([len(ids_t) for ids_t in seen], out=offsets[1:])
+        refs, reference, age = recent_references(np.concatenate(seen), offsets, first, store.last_iter, store.obs)
         if len(refs) == 0:
             return ids
-        reference = store.latest(refs)
-        age = k - store.last_iter[refs]
-        predicted = self.motion.predict(reference, age) if config.predict_motion else reference
-        row, _ = match_nearest(predicted, points, config.match_bound)
-        pairs = np.flatnonzero((row != NO_MATCH) & (age[row] == 1))
-        before = self.motion.T_curr_prev
-        T_new = self.motion.update(reference[row[pairs]], points[pairs], config.trim_floor)
-        self._motion_measured = T_new is not None
-        if config.predict_motion and T_new is not None:
-            # Largest change of prediction over the references: translation plus angle x range.
-            (c00, _, _, x), (_, c11, _, y), (_, _, c22, z), _ = (T_new @ rigid_inverse(before)).tolist()
-            angle = math.acos(min(1.0, max(-1.0, (c00 + c11 + c22 - 1.0) / 2.0)))
-            reach = math.sqrt(float(np.max(np.einsum("ij,ij->i", reference, reference))))
-            shift = math.sqrt(x * x + y * y + z * z) + angle * reach
-            if shift > 0.5 * config.match_bound:
-                # The prediction was off (a turn began): match again from the refreshed motion.
-                predicted = self.motion.predict(reference, age)
-                row, _ = match_nearest(predicted, points, config.match_bound)
-        if config.predict_motion and config.match_angle > 0:
-            self._match_far(reference, predicted, age, points, row)
-        matched = row != NO_MATCH
-        ids[matched] = refs[row[matched]]
+        local = self.motion.match(reference, age, points, config.match_bound, config.match_angle, config.predict_motion)
+        self._motion_measured = local.motion_measured
+        matched = local.row != NO_MATCH
+        ids[matched] = refs[local.row[matched]]
         self.counts["local_matches"] += int(np.count_nonzero(matched))
+        self.counts["far_matches"] += local.far_matches
         return ids
-
-    def _match_far(
-        self, reference: FloatArray, predicted: FloatArray, age: IntArray, points: FloatArray, row: IntArray
-    ) -> None:
-        """Second round of local matching, in place on ``row``: bounds grow with the predicted range.
-
-        ``reference`` (R, 3) are the recent points' latest observations, ``predicted`` (R, 3) the same
-        carried into the current sensor frame, ``age`` (R,) iterations since each was observed.
-
-        The leftover observations and the recent points nobody matched are paired as mutual nearest
-        neighbours within ``match_bound + match_angle * range``; new pairs refresh the motion.
-        """
-        free_points = np.flatnonzero(row == NO_MATCH)
-        if len(free_points) == 0:
-            return
-        taken = np.zeros(len(reference), bool)
-        taken[row[row != NO_MATCH]] = True
-        free_refs = np.flatnonzero(~taken)
-        if len(free_refs) == 0:
-            return
-        predicted = predicted[free_refs]
-        bounds = self.config.match_bound + self.config.match_angle * np.sqrt(
-            np.einsum("ij,ij->i", predicted, predicted)
-        )
-        found = match_mutual(predicted, points[free_points], bounds)
-        matched = found != NO_MATCH
-        if not matched.any():
-            return
-        row[free_points[matched]] = free_refs[found[matched]]
-        self.counts["far_matches"] += int(np.count_nonzero(matched))
-        pairs = np.flatnonzero((row != NO_MATCH) & (age[np.maximum(row, 0)] == 1))
-        if self.motion.update(reference[row[pairs]], points[pairs], self.config.trim_floor) is not None:
-            self._motion_measured = True
 
     def _match_globally(self, points: FloatArray, ids: IntArray, k: int) -> None:
         """Global matching (paper II-D) of unmatched points through the provisional current position."""
@@ -150,9 +100,11 @@ class Localisation(EstimatorState):
         static count for less; gross outliers are trimmed. ``None`` if the fit is degenerate.
         """
         store, config = self.store, self.config
-        weights = 1.0 / (store.spread(ids) ** 2 + config.spread_floor**2)
-        weights *= np.where(store.verified[ids] >= 0, 1.0, config.unverified_weight)
-        return self._fit_sensor(points, store.positions(ids), weights)
+        positions, weights = pose_anchors(
+            store.pos_sum, store.pos_weight, store.pos_sq, store.verified, ids, float(config.spread_floor) ** 2,
+            float(config.unverified_weight),
+        )  # fmt: skip
+        return self._fit_sensor(points, positions, weights)
 
     def _fit_sensor(self, points: FloatArray, targets: FloatArray, weights: FloatArray | None) -> FloatArray | None:
         """``T_world_sensor`` by the trimmed least-squares fit of ``points`` (sensor) onto ``targets`` (world)."""
@@ -191,11 +143,5 @@ class Localisation(EstimatorState):
 
     def _refresh_index(self) -> None:
         """Move changed global positions in the global index."""
-        changed = self.groups.take_changed()
-        if len(changed) == 0:
-            return
         store = self.store
-        alive = changed[store.alive[changed]]
-        indexable = (store.pos_weight[alive] > 0) & ~store.dynamic[alive]
-        self.index.update(alive[indexable], store.positions(alive[indexable]))
-        self.index.remove(alive[~indexable])
+        self.index.refresh(self.groups.take_changed(), store.alive, store.pos_sum, store.pos_weight, store.dynamic)
