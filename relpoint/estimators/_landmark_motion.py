@@ -13,7 +13,9 @@ moves shows up ahead of its mean, in the direction it moves, iteration after ite
 exponentially smoothed innovation ``d <- (1 - a) d + a v`` of a static landmark has covariance
 ``S a / (2 - a)`` and a moving one's leaves the gate ``d^T (S a / (2 - a))^-1 d > chi2(p, 3)``.
 
-A landmark seen at least :data:`MIN_SEEN` times whose ``d`` leaves the gate is *moving*. Its position
+A landmark seen at least :data:`MIN_SEEN` times whose ``d`` leaves the gate, and is longer than
+:data:`MIN_MOTION_SIGMAS` point noises (a real keypoint slides by a noise or two as the viewpoint
+changes), is *moving*. Its position
 says nothing about the pose: before each association its covariance is widened by a variance as wide
 as the search (:meth:`MotionTest.widen`), so it takes the point nearest to it without pulling the
 pose, and the landmark update then places it on that point. It follows its mover instead of leaving
@@ -35,6 +37,9 @@ SMOOTHING = 0.3
 #: Pairings a landmark needs before it can be taken for a mover (a new landmark's first innovations
 #: are mostly its own initial error).
 MIN_SEEN = 3
+#: A landmark is taken for a mover only once its smoothed innovation is this many point noises long
+#: (per axis, scaled like the gate): real keypoints slide by a noise or two as the viewpoint changes.
+MIN_MOTION_SIGMAS = 3.0
 #: Median of the chi-square distribution with 3 degrees of freedom.
 CHI2_MEDIAN_3 = chi2_gate(0.5, 3)
 #: Chi-square probability of the gate under which a moving landmark is static again.
@@ -208,7 +213,11 @@ class MotionTest:
         scale = np.maximum(median_by_group(group, squared[:, None], groups)[:, 0] / CHI2_MEDIAN_3, 1.0)
         nis = np.einsum("ki,kij,kj->k", drift, S_inv, drift) * ((2.0 - a) / a) / scale
         decidable = (np.bincount(group, minlength=groups) >= MIN_PAIRED)[group]
-        started = decidable & (seen >= MIN_SEEN) & (nis > self.gate)
+        # A steady offset smaller than a few points' noise is what a real keypoint's position does as the
+        # viewpoint changes (it slides along an edge, its depth drifts with range): not motion.
+        noise = scale * np.trace(point_covariances, axis1=1, axis2=2) / 3.0
+        far = np.einsum("ki,ki->k", drift, drift) > MIN_MOTION_SIGMAS**2 * noise
+        started = decidable & (seen >= MIN_SEEN) & (nis > self.gate) & far
         return drift, np.where(moving, nis > self.release, started)
 
     def widen(self, covariances: FloatArray, moving: npt.NDArray[np.bool_]) -> None:
