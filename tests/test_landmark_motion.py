@@ -162,3 +162,38 @@ def test_static_scene_has_no_movers_and_is_unchanged_for_the_ekf() -> None:
     assert not map_with.dynamic.any()
     np.testing.assert_array_equal(with_test, without_test)
     np.testing.assert_array_equal(map_with.positions, map_without.positions)
+
+
+def test_the_small_motion_fit_is_the_least_squares_fit_per_group() -> None:
+    from relpoint.estimators._landmark_motion import _fit_small_motion, inverse_3x3
+    from relpoint.geometry import skew
+
+    rng = np.random.default_rng(0)
+    group = np.sort(rng.integers(0, 4, 200))
+    offsets, innovations = rng.normal(size=(200, 3)) * 5.0, rng.normal(size=(200, 3))
+    weights = (rng.random(200) > 0.2).astype(np.float64)
+    fitted = _fit_small_motion(group, innovations, offsets, weights, 4)
+    for g in range(4):
+        rows = (group == g) & (weights > 0)
+        design = np.zeros((rows.sum(), 3, 6))
+        design[:, :, :3] = np.eye(3)
+        design[:, :, 3:] = -skew(offsets[rows])
+        expected = np.linalg.lstsq(design.reshape(-1, 6), innovations[rows].ravel(), rcond=None)[0]
+        np.testing.assert_allclose(fitted[g], expected, atol=1e-9)
+    matrices = rng.normal(size=(50, 3, 3))
+    matrices = matrices @ np.swapaxes(matrices, 1, 2) + np.eye(3)
+    np.testing.assert_allclose(inverse_3x3(matrices), np.linalg.inv(matrices), atol=1e-12)
+
+
+def test_a_pose_error_is_not_taken_for_motion() -> None:
+    """Every landmark of a group shifted by one small rigid motion: nothing is left once it is removed."""
+    from relpoint.estimators._landmark_motion import shared_motion_removed
+
+    rng = np.random.default_rng(1)
+    offsets = rng.normal(size=(40, 3)) * 10.0
+    t, w = np.array([0.3, -0.2, 0.1]), np.array([0.01, -0.02, 0.015])
+    innovations = t + np.cross(w, offsets)
+    innovations[:5] += [2.0, 0.0, 0.0]  # five movers
+    residual = shared_motion_removed(np.zeros(40, dtype=np.int64), innovations, offsets, 1)
+    np.testing.assert_allclose(residual[5:], 0.0, atol=1e-9)
+    np.testing.assert_allclose(residual[:5], [[2.0, 0.0, 0.0]] * 5, atol=1e-9)

@@ -137,29 +137,65 @@ def shared_motion_removed(
     A pose error ``(t, w)`` (translation, small rotation) moves a landmark at ``offsets`` (k, 3, m, the
     landmark less the sensor position, ``world``) by ``t + w x offset``: fitted per group by least
     squares, first from every pair, then again without the pairs whose residual is over three times
-    the group's median residual (the movers, mostly). Groups of fewer than 3 pairs lose only their
-    median translation (:func:`median_by_group`).
+    the group's median residual (the movers, mostly). ``group`` ids are in ``[0, groups)``, ascending.
+    Groups of fewer than 3 (weighted) pairs keep their innovations.
     """
-    centred = innovations - median_by_group(group, innovations, groups)
-    design = np.zeros((len(group), 3, 6))
-    design[:, :, :3] = np.eye(3)
-    design[:, :, 3:] = -skew(offsets)  # w x r = -[r]x w
     weights = np.ones(len(group))
-    residual = centred
+    residual = innovations
     for _ in range(2):
-        normal = np.zeros((groups, 6, 6))
-        right = np.zeros((groups, 6))
-        np.add.at(normal, group, weights[:, None, None] * np.einsum("kai,kaj->kij", design, design))
-        np.add.at(right, group, weights[:, None] * np.einsum("kai,ka->ki", design, centred))
-        enough = np.bincount(group, weights=weights, minlength=groups) >= 3
-        normal[~enough] = np.eye(6)
-        right[~enough] = 0.0
-        shared = np.linalg.solve(normal + 1e-9 * np.eye(6), right[:, :, None])[:, :, 0]
-        residual = centred - np.einsum("kai,ki->ka", design, shared[group])
+        shared = _fit_small_motion(group, innovations, offsets, weights, groups)
+        residual = innovations - shared[group, :3] - np.cross(shared[group, 3:], offsets)
         size = np.linalg.norm(residual, axis=1)
-        typical = median_by_group(group, size[:, None], groups)[:, 0]
-        weights = (size <= 3.0 * typical).astype(np.float64)
+        weights = (size <= 3.0 * median_by_group(group, size[:, None], groups)[:, 0]).astype(np.float64)
     return residual
+
+
+def _fit_small_motion(
+    group: npt.NDArray[np.int64], innovations: FloatArray, offsets: FloatArray, weights: FloatArray, groups: int
+) -> FloatArray:
+    """Per group, the weighted least-squares ``(t, w)`` (groups, 6) of ``innovation ~ t + w x offset``.
+
+    The normal equations of the rows ``A = [I, -[r]x]`` are summed in closed form,
+    ``A^T A = [[I, -[r]x], [[r]x, |r|^2 I - r r^T]]`` and ``A^T v = [v, r x v]``, with one weighted
+    ``bincount`` per entry; a group with less than 3 of weight gets zero motion.
+    """
+
+    def total(values: FloatArray) -> FloatArray:
+        return np.bincount(group, weights=weights * values, minlength=groups)
+
+    r, v = offsets, innovations
+    count = total(np.ones(len(group)))
+    r_sum = np.stack([total(r[:, a]) for a in range(3)], axis=1)
+    rr = np.stack([np.stack([total(r[:, a] * r[:, b]) for b in range(3)], axis=1) for a in range(3)], axis=1)
+    normal = np.zeros((groups, 6, 6))
+    normal[:, :3, :3] = count[:, None, None] * np.eye(3)
+    normal[:, :3, 3:] = -skew(r_sum)
+    normal[:, 3:, :3] = skew(r_sum)
+    normal[:, 3:, 3:] = np.trace(rr, axis1=1, axis2=2)[:, None, None] * np.eye(3) - rr
+    rxv = np.cross(r, v)
+    right = np.stack([total(v[:, a]) for a in range(3)] + [total(rxv[:, a]) for a in range(3)], axis=1)
+    enough = count >= 3
+    normal[~enough] = np.eye(6)
+    right[~enough] = 0.0
+    return np.linalg.solve(normal + 1e-9 * np.eye(6), right[:, :, None])[:, :, 0]
+
+
+def inverse_3x3(matrices: FloatArray) -> FloatArray:
+    """Inverses of invertible 3x3 matrices (k, 3, 3) by their adjugates (several times faster than
+    ``np.linalg.inv`` on many small matrices)."""
+    m = matrices
+    adjugate = np.empty_like(m)
+    adjugate[:, 0, 0] = m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1]
+    adjugate[:, 0, 1] = m[:, 0, 2] * m[:, 2, 1] - m[:, 0, 1] * m[:, 2, 2]
+    adjugate[:, 0, 2] = m[:, 0, 1] * m[:, 1, 2] - m[:, 0, 2] * m[:, 1, 1]
+    adjugate[:, 1, 0] = m[:, 1, 2] * m[:, 2, 0] - m[:, 1, 0] * m[:, 2, 2]
+    adjugate[:, 1, 1] = m[:, 0, 0] * m[:, 2, 2] - m[:, 0, 2] * m[:, 2, 0]
+    adjugate[:, 1, 2] = m[:, 0, 2] * m[:, 1, 0] - m[:, 0, 0] * m[:, 1, 2]
+    adjugate[:, 2, 0] = m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0]
+    adjugate[:, 2, 1] = m[:, 0, 1] * m[:, 2, 0] - m[:, 0, 0] * m[:, 2, 1]
+    adjugate[:, 2, 2] = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    determinant = m[:, 0, 0] * adjugate[:, 0, 0] + m[:, 0, 1] * adjugate[:, 1, 0] + m[:, 0, 2] * adjugate[:, 2, 0]
+    return adjugate / determinant[:, None, None]
 
 
 class MotionTest:
@@ -208,7 +244,7 @@ class MotionTest:
         drift = (1.0 - a) * drift + a * innovations
         # A moving landmark sits on its last point: its innovation is the motion plus two points' noise.
         S = np.where(moving[:, None, None], 2.0 * point_covariances, point_covariances + landmark_covariances)
-        S_inv = np.linalg.inv(S)
+        S_inv = inverse_3x3(S)
         squared = np.einsum("ki,kij,kj->k", innovations, S_inv, innovations)
         scale = np.maximum(median_by_group(group, squared[:, None], groups)[:, 0] / CHI2_MEDIAN_3, 1.0)
         nis = np.einsum("ki,kij,kj->k", drift, S_inv, drift) * ((2.0 - a) / a) / scale

@@ -569,8 +569,9 @@ class FastSlam(Estimator[PointObservation]):
         offsets = np.einsum("pij,pj->pi", R, points[i])
         innovations = self.positions[p] + offsets - self.means[p, j]
         innovations = shared_motion_removed(p, innovations, offsets, self.config.particles)  # the pose's error
+        # Q is isotropic (observation_sigma per axis), so R Q R^T is Q.
         self._drift[p, j], self._moving[p, j] = self._mover_test.classify(
-            p, self.config.particles, innovations, R @ self._Q @ np.swapaxes(R, 1, 2), self.covs[p, j],
+            p, self.config.particles, innovations, np.broadcast_to(self._Q, (len(p), 3, 3)), self.covs[p, j],
             self._drift[p, j], self._moving[p, j], self._seen[p, j],
         )  # fmt: skip
 
