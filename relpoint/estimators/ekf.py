@@ -369,6 +369,7 @@ class EkfSlam(Estimator[PointObservation]):
     def summary(self) -> dict[str, Any]:
         return {
             "landmarks": self.map_size,
+            "moving_landmarks": int(self._moving.sum()),
             "association": self.config.association,
             "motion": self.config.motion,
             "state_size": int(self._P.shape[0]),
