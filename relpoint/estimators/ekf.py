@@ -50,6 +50,7 @@ from relpoint.estimators._association import (
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._landmark_motion import (
+    EKF_MIN_PAIRED,
     HAND_OVER_MEMORY,
     REACH_SIGMAS,
     MotionTest,
@@ -261,7 +262,11 @@ class EkfSlam(Estimator[PointObservation]):
         radius = self.config.mover_radius_sigmas * sigma
         self._movers = MoverTracks(radius) if radius > 0 else None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
-        self._mover_test = MotionTest(self.config.mover_gate_probability, REACH_SIGMAS * sigma) if self.config.follow_movers else None
+        self._mover_test = (
+            MotionTest(self.config.mover_gate_probability, REACH_SIGMAS * sigma, EKF_MIN_PAIRED)
+            if self.config.follow_movers
+            else None
+        )
         self._drift = np.zeros((0, 3))  # smoothed innovation of each landmark (world, m)
         self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
@@ -652,7 +657,7 @@ class EkfSlam(Estimator[PointObservation]):
         claims = np.where(assignment >= 0, assignment, np.where(may_start, -1, -2))[None]
         _, rows, landmarks = hand_over(
             claims, near, np.array([len(self._landmarks)]), last_seen[None], iteration, self._position[None],
-            self._rotation[None], points, self._landmarks[None], self._mover_test.reach,
+            self._rotation[None], points, self._landmarks[None], self._mover_test.reach, self._mover_test.min_pairs,
         )  # fmt: skip
         if len(rows) == 0:
             return
