@@ -26,10 +26,13 @@ stopped.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import numpy.typing as npt
 
 from relpoint.geometry import FloatArray, skew
+from relpoint.settings import Settings, setting
 from relpoint.statistics import chi2_gate
 
 #: Weight of the newest innovation in the smoothed one.
@@ -59,6 +62,21 @@ MIN_PAIRED = 8
 #: and with 8 pairs Starry Night's EKF (about 5 landmarks in view, 8 or more in a few frames) flagged
 #: static landmarks (landmark RMSE 0.50 m against 0.26 m with 10).
 EKF_MIN_PAIRED = 10
+
+
+@dataclass(frozen=True)
+class MovingLandmarkSettings(Settings):
+    """The moving-landmark settings the filters share (EKF-SLAM and FastSLAM inherit them)."""
+
+    follow_movers: bool = setting(True)
+    """Tell moving landmarks apart by their smoothed innovations and let them follow their points
+    without pulling the pose (:mod:`relpoint.estimators._landmark_motion`); the map flags them dynamic.
+    Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
+    mover_gate_probability: float = setting(0.999, above=0, below=1)
+    """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
+    hand_over_movers: bool = setting(True)
+    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
+    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
 
 
 def median_by_group(group: npt.NDArray[np.int64], values: FloatArray, groups: int) -> FloatArray:

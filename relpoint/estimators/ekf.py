@@ -54,6 +54,7 @@ from relpoint.estimators._landmark_motion import (
     HAND_OVER_MEMORY,
     REACH_SIGMAS,
     MotionTest,
+    MovingLandmarkSettings,
     hand_over,
     shared_motion_removed,
 )
@@ -63,7 +64,7 @@ from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, rigid_consensus, skew, so3_exp, twist_step
-from relpoint.settings import Settings, setting
+from relpoint.settings import setting
 from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -79,7 +80,7 @@ CONSENSUS_MIN_PAIRS = 6
 
 
 @dataclass(frozen=True)
-class EkfConfig(Settings):
+class EkfConfig(MovingLandmarkSettings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "ekf"
@@ -122,15 +123,6 @@ class EkfConfig(Settings):
     with the pose uncertainty that all pairs share, and pulls the pose and map. Needs
     ``CONSENSUS_MIN_PAIRS`` pairs: with fewer, a pair that disagrees cannot be told from a
     consensus that is wrong."""
-    follow_movers: bool = setting(True)
-    """Tell moving landmarks apart by their smoothed innovations and let them follow their points
-    without pulling the pose (:mod:`relpoint.estimators._landmark_motion`); the map flags them dynamic.
-    Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
-    mover_gate_probability: float = setting(0.999, above=0, below=1)
-    """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
-    hand_over_movers: bool = setting(True)
-    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
-    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     mover_radius_sigmas: float = setting(0.0, low=0, high=1e6)
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a

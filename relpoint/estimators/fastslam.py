@@ -52,13 +52,13 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
-from relpoint.estimators._landmark_motion import MotionTest, hand_over, shared_motion_removed
+from relpoint.estimators._landmark_motion import MotionTest, MovingLandmarkSettings, hand_over, shared_motion_removed
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
-from relpoint.settings import Settings, setting
+from relpoint.settings import setting
 from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -91,7 +91,7 @@ SEARCH_RADIUS_SIGMAS = 5.0 / SIMULATOR_SIGMA
 
 
 @dataclass(frozen=True)
-class FastSlamConfig(Settings):
+class FastSlamConfig(MovingLandmarkSettings):
     """Settings of the FastSLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "fastslam"
@@ -137,15 +137,6 @@ class FastSlamConfig(Settings):
     keeps the proposal full rank when odometry is perfect."""
     resample_threshold: float = setting(0.5, low=0, high=1)
     """Resample when the effective sample size falls below this fraction of the particles."""
-    follow_movers: bool = setting(True)
-    """Tell moving landmarks apart by their smoothed innovations and let them follow their points
-    without pulling the pose (:mod:`relpoint.estimators._landmark_motion`); the map flags them dynamic.
-    Off: a mover pulls the pose and leaves a trail of duplicate landmarks."""
-    mover_gate_probability: float = setting(0.999, above=0, below=1)
-    """Chi-square probability of the gate a static landmark's smoothed innovation stays inside."""
-    hand_over_movers: bool = setting(True)
-    """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
-    missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
     search_radius: float | None = setting(None, low=1e-6, high=1e6)
     """Landmarks farther than this from a point (in every particle) are not considered for it (m).
     Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
@@ -524,7 +515,7 @@ class FastSlam(Estimator[PointObservation]):
         candidates (CSR ``offsets, slots`` per point). Compiled loops:
         :func:`relpoint.estimators._fastslam_kernels.associate`.
         """
-        points = np.ascontiguousarray(points, dtype=np.float64)
+        points = np.array(points, dtype=np.float64)  # a writeable copy: one compiled variant per kernel
         counts = self.counts.astype(np.int64)
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
         rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
@@ -550,7 +541,7 @@ class FastSlam(Estimator[PointObservation]):
         if not (assoc >= 0).any():
             return
         _fastslam_kernels.update_landmarks(
-            np.ascontiguousarray(points, dtype=np.float64), assoc, self.positions, self.rotations, self.means,
+            np.array(points, dtype=np.float64), assoc, self.positions, self.rotations, self.means,
             self.covs, self._Q, self._seen, self._last, self._stats["iterations"],
         )  # fmt: skip
         if ids is not None:
