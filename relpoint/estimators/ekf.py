@@ -61,6 +61,7 @@ from relpoint.estimators._landmark_motion import (
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
+from relpoint.estimators._vanished import VanishedLandmarks
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, rigid_consensus, skew, so3_exp, twist_step
@@ -123,6 +124,13 @@ class EkfConfig(MovingLandmarkSettings):
     with the pose uncertainty that all pairs share, and pulls the pose and map. Needs
     ``CONSENSUS_MIN_PAIRS`` pairs: with fewer, a pair that disagrees cannot be told from a
     consensus that is wrong."""
+    drop_vanished: bool = setting(True)
+    """Drop a landmark that was paired regularly and is then missed, again and again, while points
+    all around its position are seen (:mod:`relpoint.estimators._vanished`): the place a mover left.
+    Without it, every stop-and-go mover leaves a duplicate landmark behind each time it moves on."""
+    vanished_probability: float = setting(1e-3, above=0, below=1)
+    """With ``drop_vanished``: a landmark vanishes once its current run of misses in view would have
+    less than this probability under its own detection rate (and is at least 5 long)."""
     mover_radius_sigmas: float = setting(0.0, low=0, high=1e6)
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a
@@ -262,6 +270,13 @@ class EkfSlam(Estimator[PointObservation]):
         self._drift = np.zeros((0, 3))  # smoothed innovation of each landmark (world, m)
         self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
+        self._vanished = (
+            VanishedLandmarks(self.config.vanished_probability, REACH_SIGMAS * sigma)
+            if self.config.drop_vanished
+            else None
+        )
+        if self._vanished is not None:
+            self._stats["vanished"] = 0  # landmarks dropped as vanished (run.json)
 
     # ------------------------------------------------------------------------------------ interface
 
@@ -299,6 +314,8 @@ class EkfSlam(Estimator[PointObservation]):
             self._record(observation.ids, paired, assignment[paired], fresh)
             if len(moved):
                 self._start_tracks(points[moved_points], moved, observation.ids, moved_points)
+            if self._vanished is not None:
+                self._drop_vanished(points, len(fresh))
             self._stats["paired"] += len(paired)
             self._stats["started"] += len(fresh)
             self._stats["discarded"] += len(points) - len(paired) - len(fresh)
@@ -844,6 +861,20 @@ class EkfSlam(Estimator[PointObservation]):
         self._remove_landmarks(landmarks)
         self._stats["movers"] += len(landmarks)
 
+    def _drop_vanished(self, points: FloatArray, started: int) -> None:
+        """Remove the landmarks that have vanished from the view of this iteration's ``points`` (q, 3,
+        sensor frame), after the update; the last ``started`` landmarks were started from them."""
+        assert self._vanished is not None
+        n = len(self._landmarks)
+        new = np.arange(n) >= n - started
+        paired = (self._last_seen == self._stats["iterations"]) & ~new
+        gone = self._vanished.update(
+            self._landmarks, points, self._rotation, self._position, paired, self._moving | new
+        )
+        if len(gone):
+            self._remove_landmarks(gone)
+            self._stats["vanished"] += len(gone)
+
     def _remove_landmarks(self, indices: np.ndarray) -> None:
         """Drop landmarks from the state: their rows and columns of ``P`` (marginalisation) and their records."""
         keep = np.ones(len(self._landmarks), dtype=bool)
@@ -855,6 +886,8 @@ class EkfSlam(Estimator[PointObservation]):
         self._last_seen = self._last_seen[keep]
         self._drift = self._drift[keep]
         self._moving = self._moving[keep]
+        if self._vanished is not None:
+            self._vanished.keep(keep)
         self._observations = [o for o, k in zip(self._observations, keep.tolist(), strict=True) if k]
         self._id_votes = [v for v, k in zip(self._id_votes, keep.tolist(), strict=True) if k]
         if self._known:
@@ -867,6 +900,8 @@ class EkfSlam(Estimator[PointObservation]):
         self._last_seen = np.concatenate([self._last_seen, np.full(len(fresh), self._stats["iterations"])])
         self._last_seen[indices] = self._stats["iterations"]
         self._observations.extend([1] * len(fresh))
+        if self._vanished is not None:
+            self._vanished.add(self._landmarks[first_new:])
         self._id_votes.extend(Counter[int]() for _ in range(len(fresh)))
         for j in indices.tolist():
             self._observations[j] += 1
