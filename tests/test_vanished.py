@@ -16,6 +16,7 @@ from relpoint.estimators._vanished import (
     run_log_probability,
 )
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
+from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
 from relpoint.simulation import SimulationConfig, simulate
 
 
@@ -125,9 +126,15 @@ def test_nothing_vanishes_while_most_of_the_view_goes_unpaired() -> None:
     assert not tracker.missed.any()
 
 
-def _ekf_run(config: SimulationConfig, drop: bool) -> tuple[float, int, np.ndarray]:
+def _ekf_run(config: SimulationConfig, drop: bool, name: str = "ekf") -> tuple[float, int, np.ndarray]:
     simulation = simulate(config)
-    estimator = EkfSlam(EkfConfig(observation_sigma=config.noise, drop_vanished=drop))
+    estimator: EkfSlam | FastSlam
+    if name == "ekf":
+        estimator = EkfSlam(EkfConfig(observation_sigma=config.noise, drop_vanished=drop))
+    else:
+        estimator = FastSlam(
+            FastSlamConfig(observation_sigma=config.noise, drop_vanished=drop), np.random.default_rng(0)
+        )
     positions = np.array([estimator.step(step.observation).position for step in simulation.steps()])
     landmarks = estimator.landmark_map()
     counts = Counter(landmarks.gt_id.tolist())
@@ -146,9 +153,20 @@ def test_ekf_drops_what_stop_and_go_movers_leave_behind(scale: float, noise: flo
     assert with_drop <= 0.4 * without
 
 
-def test_ekf_on_a_static_scene_drops_nothing() -> None:
+def test_fastslam_drops_what_movers_leave_behind_in_each_particle() -> None:
+    config = SimulationConfig(iterations=200, seed=1, noise=0.3, dynamic=0.2, mover_motion="stop-and-go",
+                              mover_speed=0.2)  # fmt: skip
+    with_drop, _, _ = _ekf_run(config, True, "fastslam")
+    without, _, _ = _ekf_run(config, False, "fastslam")
+    # Measured: 1.1 -> 0 % (seed 2: 1.0 -> 0 %).
+    assert without >= 0.9  # what the test is about
+    assert with_drop < without
+
+
+@pytest.mark.parametrize("name", ["ekf", "fastslam"])
+def test_on_a_static_scene_nothing_is_dropped(name: str) -> None:
     config = SimulationConfig(iterations=200, seed=3)
-    _, size_with, poses_with = _ekf_run(config, True)
-    _, size_without, poses_without = _ekf_run(config, False)
+    _, size_with, poses_with = _ekf_run(config, True, name)
+    _, size_without, poses_without = _ekf_run(config, False, name)
     assert size_with == size_without
     np.testing.assert_array_equal(poses_with, poses_without)

@@ -77,6 +77,13 @@ class MovingLandmarkSettings(Settings):
     hand_over_movers: bool = setting(True)
     """With ``follow_movers``: a point that would start a landmark, near a landmark paired lately and
     missed now, is that landmark having moved (:func:`relpoint.estimators._landmark_motion.hand_over`)."""
+    drop_vanished: bool = setting(True)
+    """Drop a landmark that was paired regularly and is then missed, again and again, while points
+    all around its position are seen (:mod:`relpoint.estimators._vanished`): the place a mover left.
+    Without it, every stop-and-go mover leaves a duplicate landmark behind each time it moves on."""
+    vanished_probability: float = setting(1e-3, above=0, below=1)
+    """With ``drop_vanished``: a landmark vanishes once its current run of misses in view would have
+    less than this probability under its own detection rate (and is at least 5 long)."""
 
 
 def median_by_group(group: npt.NDArray[np.int64], values: FloatArray, groups: int) -> FloatArray:

@@ -124,13 +124,6 @@ class EkfConfig(MovingLandmarkSettings):
     with the pose uncertainty that all pairs share, and pulls the pose and map. Needs
     ``CONSENSUS_MIN_PAIRS`` pairs: with fewer, a pair that disagrees cannot be told from a
     consensus that is wrong."""
-    drop_vanished: bool = setting(True)
-    """Drop a landmark that was paired regularly and is then missed, again and again, while points
-    all around its position are seen (:mod:`relpoint.estimators._vanished`): the place a mover left.
-    Without it, every stop-and-go mover leaves a duplicate landmark behind each time it moves on."""
-    vanished_probability: float = setting(1e-3, above=0, below=1)
-    """With ``drop_vanished``: a landmark vanishes once its current run of misses in view would have
-    less than this probability under its own detection rate (and is at least 5 long)."""
     mover_radius_sigmas: float = setting(0.0, low=0, high=1e6)
     """A point that matches no landmark within this many ``observation_sigma`` of a landmark seen
     lately and not matched now is that landmark moving: it leaves the map and is followed as a

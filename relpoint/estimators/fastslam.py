@@ -55,6 +55,17 @@ from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._landmark_motion import MotionTest, MovingLandmarkSettings, hand_over, shared_motion_removed
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
+from relpoint.estimators._vanished import (
+    MIN_MISSES,
+    MIN_PAIRED,
+    NEIGHBOUR_SPACINGS,
+    SUCCESSION_WINDOW,
+    SensorView,
+    in_view,
+    nearest_in_group,
+    point_spacing,
+    run_log_probability,
+)
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
@@ -83,6 +94,21 @@ _PARTICLE_ARRAYS = (
     "_vote_n",
     "_drift",
     "_moving",
+    "_suspect",
+    "_suspect_misses",
+)
+#: Attributes indexed by particle and landmark slot: dropping a landmark closes its slot's gap in each.
+_SLOT_ARRAYS = (
+    "means",
+    "covs",
+    "_seen",
+    "_last",
+    "_vote_id",
+    "_vote_n",
+    "_drift",
+    "_moving",
+    "_suspect",
+    "_suspect_misses",
 )
 
 
@@ -235,6 +261,13 @@ class FastSlam(Estimator[PointObservation]):
         self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
         self._drift = np.zeros((n, self._capacity, 3))  # smoothed innovation of each landmark (world, m)
         self._moving = np.zeros((n, self._capacity), dtype=bool)
+        # Vanished landmarks (relpoint.estimators._vanished): a landmark a new one may have replaced
+        # is a suspect from that iteration on, and its misses in view are counted until it is paired
+        # again or dropped.
+        self._suspect = np.full((n, self._capacity), -1, dtype=np.int64)
+        self._suspect_misses = np.zeros((n, self._capacity), dtype=np.int64)
+        self._view = SensorView() if cfg.drop_vanished else None
+        self._log_vanished = math.log(cfg.vanished_probability)
         self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
         self._stamp_ns: int | None = None
         self._moved = False
@@ -243,6 +276,8 @@ class FastSlam(Estimator[PointObservation]):
         self._Sigma = np.zeros((n, 12, 12))
         self._odometry: OdometryMeasurement | None = None
         self._stats = Counter[str]()
+        if cfg.drop_vanished:
+            self._stats["vanished"] = 0  # landmarks the best particle dropped as vanished (run.json)
         # Fix frame (``rigid``): None once the particles are in the fixes' frame (or with ``ignore``).
         self._frame: FixFrame | None = FixFrame(min_spread=cfg.fix_min_spread) if cfg.fix_alignment == "rigid" else None
         self._frame_fit: FrameFit | None = None
@@ -299,7 +334,9 @@ class FastSlam(Estimator[PointObservation]):
         self._update_landmarks(points, assoc, observation.ids)
         if self._mover_test is not None and self.config.hand_over_movers:
             self._hand_over(points, assoc, near, observation.ids)
-        self._add_landmarks(points, assoc, observation.ids)
+        started = self._add_landmarks(points, assoc, observation.ids)
+        if self._view is not None:
+            self._drop_vanished(points, assoc, *started)
         self._resample_if_degenerate()
         self._stats["iterations"] += 1
         if self._frame is not None:
@@ -599,11 +636,14 @@ class FastSlam(Estimator[PointObservation]):
         self._vote_n[p, j] += np.where(same | empty, 1, -1)
         self._vote_id[p, j] = np.where(empty, ids, self._vote_id[p, j])
 
-    def _add_landmarks(self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None) -> None:
-        """Start a landmark ``m = p + R z`` with covariance ``R Q R^T`` for every unexplained point."""
+    def _add_landmarks(
+        self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Start a landmark ``m = p + R z`` with covariance ``R Q R^T`` for every unexplained point;
+        return the particle and slot of each (sorted by particle)."""
         p, i = np.nonzero(assoc == -1)
         if len(p) == 0:
-            return
+            return p, p
         # Slot of each new landmark: the particle's count plus its rank among the particle's new points.
         rank = np.arange(len(p)) - np.searchsorted(p, p, side="left")
         slots = self.counts[p] + rank
@@ -617,8 +657,66 @@ class FastSlam(Estimator[PointObservation]):
         self._last[p, slots] = self._stats["iterations"]
         self._vote_id[p, slots] = -1 if ids is None else np.asarray(ids)[i]
         self._vote_n[p, slots] = 0 if ids is None else 1
+        self._suspect[p, slots] = -1
+        self._suspect_misses[p, slots] = 0
         self.counts += np.bincount(p, minlength=self.config.particles)
         self._stats["started"] += len(p)
+        return p, slots
+
+    def _drop_vanished(self, points: FloatArray, assoc: np.ndarray, new_p: np.ndarray, new_slots: np.ndarray) -> None:
+        """Drop, in each particle, the landmarks that have vanished (:mod:`relpoint.estimators._vanished`).
+
+        A landmark the particle last paired at most ``SUCCESSION_WINDOW`` iterations ago and not now,
+        nearest to where one of the particle's new landmarks started (within the search radius), is a
+        suspect; a suspect paired again is cleared. A suspect in view of ``points`` (sensor frame)
+        and not paired counts a miss (in iterations where its particle pairs at least ``MIN_PAIRED``
+        points); after ``MIN_MISSES`` misses with a chance below ``vanished_probability`` under its
+        detection rate (seen as many times as it was paired) it is dropped from its particle's map.
+        """
+        assert self._view is not None
+        iteration = self._stats["iterations"]
+        self._view.add(points)
+        if len(new_p):
+            used = np.arange(self._capacity)[None, :] < self.counts[:, None]
+            recent = used & (self._last < iteration) & (self._last >= iteration - SUCCESSION_WINDOW)
+            rp, rj = np.nonzero(recent)
+            parent = nearest_in_group(new_p, self.means[new_p, new_slots], rp, self.means[rp, rj], self._search_radius)
+            pp, pj = rp[parent[parent >= 0]], rj[parent[parent >= 0]]
+            fresh = self._suspect[pp, pj] < 0
+            self._suspect[pp[fresh], pj[fresh]] = iteration
+            self._suspect_misses[pp[fresh], pj[fresh]] = 0
+        sp, sj = np.nonzero(self._suspect >= 0)  # slots beyond a particle's count are always -1
+        if len(sp) == 0:
+            return
+        again = self._last[sp, sj] == iteration
+        self._suspect[sp[again], sj[again]] = -1
+        counted = ~again & (np.count_nonzero(assoc >= 0, axis=1)[sp] >= MIN_PAIRED)
+        sp, sj = sp[counted], sj[counted]
+        local = np.einsum("kji,kj->ki", self.rotations[sp], self.means[sp, sj] - self.positions[sp])
+        view = self._view.inside(local)
+        view[view] = in_view(local[view], points, NEIGHBOUR_SPACINGS * point_spacing(points))
+        mp, mj = sp[view], sj[view]
+        self._suspect_misses[mp, mj] += 1
+        misses = self._suspect_misses[mp, mj]
+        long_runs = misses >= MIN_MISSES
+        mp, mj, misses = mp[long_runs], mj[long_runs], misses[long_runs]
+        chance = run_log_probability(self._seen[mp, mj], np.zeros(len(mp)), misses)
+        gone = chance < self._log_vanished
+        if gone.any():
+            self._stats["vanished"] += int(np.count_nonzero(mp[gone] == int(np.argmax(self.log_weights))))
+            self._drop(mp[gone], mj[gone])
+
+    def _drop(self, particles: np.ndarray, slots: np.ndarray) -> None:
+        """Remove landmark ``slots[k]`` from particle ``particles[k]``'s map; the later slots move down."""
+        for p in np.unique(particles).tolist():
+            count = int(self.counts[p])
+            keep = np.ones(count, dtype=bool)
+            keep[slots[particles == p]] = False
+            for attr in _SLOT_ARRAYS:
+                array = getattr(self, attr)
+                array[p, : int(keep.sum())] = array[p, :count][keep]
+            self.counts[p] = int(keep.sum())
+            self._suspect[p, self.counts[p] : count] = -1  # the freed slots' stale copies
 
     def _ensure_capacity(self, size: int) -> None:
         if size <= self._capacity:
@@ -634,6 +732,8 @@ class FastSlam(Estimator[PointObservation]):
         self._vote_n = np.concatenate([self._vote_n, np.zeros((n, extra), dtype=np.int64)], axis=1)
         self._drift = np.concatenate([self._drift, np.zeros((n, extra, 3))], axis=1)
         self._moving = np.concatenate([self._moving, np.zeros((n, extra), dtype=bool)], axis=1)
+        self._suspect = np.concatenate([self._suspect, np.full((n, extra), -1, dtype=np.int64)], axis=1)
+        self._suspect_misses = np.concatenate([self._suspect_misses, np.zeros((n, extra), dtype=np.int64)], axis=1)
         self._capacity = capacity
 
     # ---------------------------------------------------------------------------------- resampling
