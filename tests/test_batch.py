@@ -254,6 +254,55 @@ def test_pool_workers_start_warm() -> None:
     assert loaded == ["relpoint_app.worker_warmup", "relpoint.estimators.fastslam", "fastslam kernels"]
 
 
+def test_filter_jobs_and_their_workers_need_no_scipy(tmp_path: Path) -> None:
+    """A pool worker starts without scipy, and a small EKF or FastSLAM job (run, write, evaluate) imports
+    none: scipy's import is a fifth of a second of start-up in every batch."""
+    import subprocess
+    import sys
+
+    from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
+
+    log = tmp_path / "fig8.mcap"
+    write_simulation(simulate(SimulationConfig(iterations=60, density=25.0, seed=1)), log)
+    code = (
+        "import sys\n"
+        "import relpoint_app.worker_warmup\n"
+        "assert not [m for m in sys.modules if m.startswith('scipy')], 'warm-up'\n"
+        "from relpoint_app.batch_plan import load_plan\n"
+        "from relpoint_app.batch_jobs import run_job\n"
+        f"plan = load_plan({str(tmp_path / 'plan.toml')!r})\n"
+        "rows = [run_job(job) for job in plan.jobs]\n"
+        "assert [row['status'] for row in rows] == ['ok', 'ok'], rows\n"
+        "scipy = sorted(m for m in sys.modules if m.startswith('scipy'))\n"
+        "assert not scipy, scipy\n"
+    )
+    (tmp_path / "plan.toml").write_text(
+        f"logs = [{str(log)!r}]\nresults = {str(tmp_path / 'results')!r}\n"
+        "[estimators.ekf]\n[estimators.fastslam]\nparticles = 5\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.mark.parametrize(
+    ("args", "local"),
+    [
+        (["batch", "plan.toml"], True),
+        (["-q", "batch", "plan.toml", "--jobs", "2"], True),
+        (["batch", "plan.toml", "--scheduler", "tcp://127.0.0.1:8786"], False),
+        (["batch", "plan.toml", "--scheduler=tcp://127.0.0.1:8786"], False),
+        (["batch", "--help"], False),
+        (["run", "batch"], False),
+        (["-q"], False),
+    ],
+)
+def test_the_fork_server_starts_early_only_for_the_local_pool(args: list[str], local: bool) -> None:
+    from relpoint_app.batch_start import runs_local_pool
+
+    assert runs_local_pool(args) is local
+
+
 def lambda_free_call(function: Any) -> Any:
     """Call ``function`` in the worker (the pool pickles both by name)."""
     return function()
