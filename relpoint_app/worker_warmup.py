@@ -25,8 +25,11 @@ log = logging.getLogger(__name__)
 def warm_up(estimators: bool = False) -> None:
     """Import the job modules and load every built-in estimator's compiled kernels into this process;
     with ``estimators``, import every estimator's modules too."""
-    import relpoint_app.batch_jobs  # noqa: F401  (the imports every job makes)
     from relpoint.estimators import BUILTIN, ESTIMATORS
+    from relpoint_app.batch_jobs import JOB_MODULES
+
+    for module in JOB_MODULES:
+        importlib.import_module(module)
 
     for name, builtin in BUILTIN.items():
         try:
