@@ -4,7 +4,7 @@ The local pool's fork server imports this module once (:mod:`relpoint_app.batch_
 worker forked from it has the job modules imported and the estimators' compiled kernels loaded
 before its first job; a Dask worker gets the same with ``dask worker --preload
 relpoint_app.worker_warmup`` (or ``LocalCluster(preload=[...])``), and imports the estimator modules
-as well (:func:`dask_setup`). Without it each worker pays about 0.4 s of imports and kernel loading
+as well (:func:`dask_setup`). Without it each worker pays about 0.3 s of imports and kernel loading
 in its first jobs.
 
 The fork server leaves each estimator's own modules to the first job that runs it (10-45 ms in each
