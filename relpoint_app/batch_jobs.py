@@ -49,10 +49,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: What a job imports (in the worker, when it first runs; the fork server's warm-up imports them
-#: beforehand): not at this module's import, which the ``relpoint batch`` command makes too.
+#: beforehand): not at this module's import, which the ``relpoint batch`` command makes too. A
+#: plan's simulated logs import the simulator's writer when they are made.
 JOB_MODULES = (
-    "formats.log", "formats.reference_trajectories", "relpoint.evaluation", "relpoint.simulation",
-    "relpoint_app.evaluator", "relpoint_app.runner", "relpoint_app.simulation",
+    "formats.log", "formats.reference_trajectories", "relpoint.evaluation", "relpoint_app.evaluator",
+    "relpoint_app.runner",
 )  # fmt: skip
 
 #: Files whose presence (with a matching ``job.json``) marks a job as complete.
