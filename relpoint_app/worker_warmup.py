@@ -47,8 +47,15 @@ def warm_up(estimators: bool = False) -> None:
 
 def dask_setup(worker: Any) -> None:
     """Dask's hook for a preloaded module: a cluster worker outlives many batches, so it imports the
-    estimators now rather than in its first jobs."""
+    estimators now rather than in its first jobs, and makes what a job's first use would make: the
+    message codecs of relpoint's outputs and numpy's masked arrays (``numpy.median`` imports them)."""
     warm_up(estimators=True)
+    import numpy.ma  # noqa: F401
+
+    from formats import ros2
+
+    for typename in ros2.OWN_TYPES:
+        ros2.own_typestore().get_msgdef(typename)
 
 
 warm_up()
