@@ -96,19 +96,6 @@ def test_matrix_to_quat_matches_scipy_bit_for_bit() -> None:
         matrix_to_quat(np.diag([1.0, 1.0, -1.0])[None])
 
 
-def test_one_rotation_at_a_time_matches_scipy_bit_for_bit() -> None:
-    """The scalar paths for one matrix and one rotation vector (every iteration of a run takes them)."""
-    rng = np.random.default_rng(4)
-    rotations = _rotations(rng)[::7]
-    quats = Rotation.from_matrix(rotations).as_quat(canonical=True)
-    for R, quat in zip(rotations, quats, strict=True):
-        np.testing.assert_array_equal(matrix_to_quat(R[None])[0], quat)
-    for scale in (1e-9, 1e-4, 1e-3, 2e-3, 0.1, 1.0, 3.1, 10.0):
-        for rotvec in rng.normal(size=(300, 3)) * scale:
-            np.testing.assert_array_equal(so3_exp(rotvec), Rotation.from_rotvec(rotvec).as_matrix())
-    np.testing.assert_array_equal(so3_exp(np.zeros(3)), np.eye(3))
-
-
 def test_quat_to_matrix_matches_scipy_bit_for_bit() -> None:
     rng = np.random.default_rng(2)
     quats = rng.normal(size=(5000, 4)) * rng.choice([1e-3, 1.0, 100.0], size=(5000, 1))

@@ -28,8 +28,8 @@ Cost
     ``P`` lives in one preallocated block that grows by doubling; the filter works on a view of its
     used corner, so a new landmark costs O(N), not a copy of ``P``. ``W`` comes from LAPACK's
     triangular solves (through scipy, imported then) once the state holds :data:`TRIANGULAR_STATES`
-    entries; a smaller one multiplies by ``L^-1`` from numpy, as fast there, and the filter runs
-    without scipy (a fifth of a second of start-up in every batch worker).
+    entries; a smaller one takes numpy's general solver, as fast there, and the filter runs without
+    scipy (a fifth of a second of start-up in every batch worker).
 """
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ class EkfConfig(MovingLandmarkSettings):
 #: Rows and columns the covariance block holds before it first grows (it doubles when full).
 INITIAL_CAPACITY = 256
 #: State size (6 or 12 pose entries plus 3 per landmark) from which the update solves with LAPACK's
-#: triangular solvers (scipy); below it by numpy's inverse of ``L``, which costs no more there.
+#: triangular solvers (scipy); below it numpy's general solver, which costs no more there.
 TRIANGULAR_STATES = 600
 
 #: A landmark seen within this many iterations that a point near it does not match may have moved
@@ -756,10 +756,10 @@ class EkfSlam(Estimator[PointObservation]):
                 L = np.linalg.cholesky(S)
             except np.linalg.LinAlgError as error:
                 raise np.linalg.LinAlgError("EKF innovation covariance is not positive definite") from error
-            L_inv = np.linalg.inv(L)  # (q, q): cheap at these sizes, and two products beat a general solve
-            Wt = (L_inv @ HP).T
+            W = np.linalg.solve(L, np.concatenate([HP, innovation[:, None]], axis=1))  # [L^-1 H P | L^-1 nu]
+            Wt = W[:, :-1].T
             self._reduce_covariance(Wt)
-            self._inject(Wt @ (L_inv @ innovation))
+            self._inject(Wt @ W[:, -1])
             return
         from scipy import linalg  # here, not at import: a small filter runs without scipy
         from scipy.linalg import blas

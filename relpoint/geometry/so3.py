@@ -44,59 +44,25 @@ def so3_exp(rotvecs: npt.ArrayLike) -> FloatArray:
     start-up time.
     """
     v = np.asarray(rotvecs, dtype=np.float64)
-    if v.shape == (3,):
-        return _so3_exp_one(*v.tolist())
     angle = np.linalg.norm(v, axis=-1, keepdims=True)
     small = angle <= 1e-3
-    angle2 = angle * angle
-    # scipy's guard: the sine branch divides by angle + 1 where the series is taken instead.
-    scale = np.where(small, 0.5 - angle2 / 48 + angle2 * angle2 / 3840, np.sin(angle / 2) / (angle + small))
+    angle2 = angle**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(small, 0.5 - angle2 / 48 + angle2**2 / 3840, np.sin(angle / 2) / angle)
     return _quat_matrices(np.concatenate([v * scale, np.cos(angle / 2)], axis=-1))
 
 
-def _so3_exp_one(vx: float, vy: float, vz: float) -> FloatArray:
-    """:func:`so3_exp` of one rotation vector in Python floats: the same operations in the same order,
-    five times faster than on arrays of one (the filters call it every iteration)."""
-    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    angle2 = angle * angle
-    scale = 0.5 - angle2 / 48 + angle2 * angle2 / 3840 if angle <= 1e-3 else math.sin(angle / 2) / angle
-    x, y, z, w = vx * scale, vy * scale, vz * scale, math.cos(angle / 2)
+def _quat_matrices(quats_xyzw: FloatArray) -> FloatArray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4), by ``Rotation.as_matrix``'s formula."""
+    x, y, z, w = np.moveaxis(quats_xyzw, -1, 0)
     x2, y2, z2, w2 = x * x, y * y, z * z, w * w
     xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    return np.array([
-        [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
-        [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
-        [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
-    ])  # fmt: skip
-
-
-def _quat_matrices(quats_xyzw: FloatArray) -> FloatArray:
-    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4), by ``Rotation.as_matrix``'s formula.
-
-    Every product of two components comes from one outer product, and each element sums the same
-    products in the same order as the formula (``a + (-1) b`` is ``a - b`` to the bit).
-    """
-    batch = quats_xyzw.shape[:-1]
-    products = (quats_xyzw[..., :, None] * quats_xyzw[..., None, :]).reshape(*batch, 16)
-    squares = products[..., _SQUARES]  # xx, yy, zz
-    diagonal = squares[..., None, 0] * _SIGNS[:, 0]
-    diagonal = diagonal + squares[..., None, 1] * _SIGNS[:, 1]
-    diagonal = diagonal + squares[..., None, 2] * _SIGNS[:, 2]
-    diagonal = diagonal + products[..., 15:16]  # + ww
-    off = 2 * (products[..., _OFF_FIRST] + products[..., _OFF_SECOND] * _OFF_SIGNS)
-    matrices = np.empty((*batch, 9))
-    matrices[..., 0::4] = diagonal
-    matrices[..., _OFF_PLACES] = off
-    return matrices.reshape(*batch, 3, 3)
-
-
-#: Indices into the 16 products ``q_i q_j`` (x, y, z, w = 0..3) and the signs of the matrix formula.
-_SQUARES = np.array([0, 5, 10])
-_SIGNS = np.array([[1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])  # row: element, column: xx, yy, zz
-_OFF_FIRST = np.array([1, 2, 1, 6, 2, 6])  # xy, xz, xy, yz, xz, yz
-_OFF_SECOND = np.array([11, 7, 11, 3, 7, 3])  # zw, yw, zw, xw, yw, xw
-_OFF_SIGNS = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
-_OFF_PLACES = np.array([1, 2, 3, 5, 6, 7])
+    elements = [
+        x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw),
+        2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw),
+        2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2,
+    ]  # fmt: skip
+    return np.stack(elements, axis=-1).reshape(*quats_xyzw.shape[:-1], 3, 3)
 
 
 def so3_right_jacobian(rotvecs: npt.ArrayLike) -> FloatArray:
@@ -137,8 +103,6 @@ def matrix_to_quat(rotations: npt.ArrayLike) -> FloatArray:
     R = np.array(rotations, dtype=np.float64)
     if len(R) == 0:
         return np.zeros((0, 4))
-    if len(R) == 1 and (quat := _matrix_to_quat_one(R[0].tolist())) is not None:
-        return np.array([quat])
     if np.any(np.linalg.det(R) <= 0):
         raise ValueError("a rotation matrix has a non-positive determinant")
     gramians = R @ np.swapaxes(R, -1, -2)
@@ -168,36 +132,6 @@ def matrix_to_quat(rotations: npt.ArrayLike) -> FloatArray:
     flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
     quats[flip] *= -1.0
     return quats
-
-
-def _matrix_to_quat_one(m: list[list[float]]) -> tuple[float, float, float, float] | None:
-    """:func:`matrix_to_quat` of one rotation matrix in Python floats, the same operations in the same
-    order (ten times faster than on arrays of one: a run converts every pose it returns); None for a
-    matrix that is not a rotation to 1e-12 (the array path projects it, or refuses it)."""
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
-    rows = ((m00, m01, m02), (m10, m11, m12), (m20, m21, m22))
-    for i in range(3):
-        for j in range(3):
-            gram = rows[i][0] * rows[j][0] + rows[i][1] * rows[j][1] + rows[i][2] * rows[j][2]
-            if not abs(gram - (i == j)) <= 1e-12 + 1e-5 * (i == j):  # np.isclose(gram, eye, atol=1e-12)
-                return None
-    if m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20) <= 0.0:
-        return None
-    trace = m00 + m11 + m22
-    largest = max(m00, m11, m22, trace)
-    if m00 == largest:  # np.argmax: the first of equal values
-        q = [1 - trace + 2 * m00, m10 + m01, m20 + m02, m21 - m12]
-    elif m11 == largest:
-        q = [m01 + m10, 1 - trace + 2 * m11, m21 + m12, m02 - m20]
-    elif m22 == largest:
-        q = [m02 + m20, m12 + m21, 1 - trace + 2 * m22, m10 - m01]
-    else:
-        q = [m21 - m12, m02 - m20, m10 - m01, 1 + trace]
-    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    x, y, z, w = (c / norm for c in q)
-    if w < 0 or (w == 0 and (x < 0 or (x == 0 and (y < 0 or (y == 0 and z < 0))))):
-        x, y, z, w = -x, -y, -z, -w
-    return x, y, z, w
 
 
 def so3_log(rotations: npt.ArrayLike) -> FloatArray:
