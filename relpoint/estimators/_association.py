@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import numpy.typing as npt
+from scipy import linalg
 
 from relpoint.geometry import FloatArray
 from relpoint.statistics import chi2_gate
@@ -101,8 +102,6 @@ def jcbb_search(
     assignment: (k,) landmark index per observation, -1 when unpaired.
     gave_up: True when a budget ran out before the search was complete.
     """
-    from scipy import linalg  # here, not at import: nearest-neighbour association runs without scipy
-
     k = d2.shape[0]
     assignment = np.full(k, -1, dtype=np.int64)
     if d2.size == 0:

@@ -26,10 +26,7 @@ Cost
     products of the general form, and the algorithm's own cost: about 80 % of the time at a
     thousand landmarks and 100 points per iteration (``benchmarks/ekf_speed.py --profile``).
     ``P`` lives in one preallocated block that grows by doubling; the filter works on a view of its
-    used corner, so a new landmark costs O(N), not a copy of ``P``. ``W`` comes from LAPACK's
-    triangular solves (through scipy, imported then) once the state holds :data:`TRIANGULAR_STATES`
-    entries; a smaller one takes numpy's general solver, as fast there, and the filter runs without
-    scipy (a fifth of a second of start-up in every batch worker).
+    used corner, so a new landmark costs O(N), not a copy of ``P``.
 """
 
 from __future__ import annotations
@@ -41,6 +38,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy import linalg
+from scipy.linalg import blas
 
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators._association import (
@@ -194,9 +193,6 @@ class EkfConfig(MovingLandmarkSettings):
 
 #: Rows and columns the covariance block holds before it first grows (it doubles when full).
 INITIAL_CAPACITY = 256
-#: State size (6 or 12 pose entries plus 3 per landmark) from which the update solves with LAPACK's
-#: triangular solvers (scipy); below it numpy's general solver, which costs no more there.
-TRIANGULAR_STATES = 600
 
 #: A landmark seen within this many iterations that a point near it does not match may have moved
 #: (a moving point can fall between the two gates for an iteration or two before it starts one).
@@ -751,19 +747,6 @@ class EkfSlam(Estimator[PointObservation]):
         stays exactly symmetric).
         """
         S = 0.5 * (S + S.T)
-        if HP.shape[1] < TRIANGULAR_STATES:
-            try:
-                L = np.linalg.cholesky(S)
-            except np.linalg.LinAlgError as error:
-                raise np.linalg.LinAlgError("EKF innovation covariance is not positive definite") from error
-            W = np.linalg.solve(L, np.concatenate([HP, innovation[:, None]], axis=1))  # [L^-1 H P | L^-1 nu]
-            Wt = W[:, :-1].T
-            self._reduce_covariance(Wt)
-            self._inject(Wt @ W[:, -1])
-            return
-        from scipy import linalg  # here, not at import: a small filter runs without scipy
-        from scipy.linalg import blas
-
         try:
             L = linalg.cholesky(S, lower=True, check_finite=False)
         except linalg.LinAlgError as error:
