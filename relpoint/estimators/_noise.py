@@ -30,7 +30,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray, kabsch
@@ -48,30 +47,6 @@ RANGE_FRACTION = 0.005
 #: The simulator's default noise (m), which the distance settings' defaults were chosen for; the
 #: fallback when the first observations cannot be registered.
 SIMULATOR_SIGMA = 0.3
-#: Most point pairs whose distances :class:`_Nearest` compares directly; larger sets go to a k-d tree.
-BRUTE_FORCE_PAIRS = 250_000
-
-
-class _Nearest:
-    """Nearest neighbours among ``points`` (N, 3): ``scipy.spatial.cKDTree(points).query``'s distances
-    and indices, by comparing every pair when there are few (the common case, and scipy is then not
-    imported: it costs start-up time), through a k-d tree otherwise."""
-
-    def __init__(self, points: FloatArray) -> None:
-        self.points = points
-        self._tree: Any = None
-
-    def query(self, queries: FloatArray) -> tuple[FloatArray, npt.NDArray[np.intp]]:
-        """Distance (m) to the nearest point and its index, for each query (M, 3)."""
-        if len(self.points) * len(queries) > BRUTE_FORCE_PAIRS:
-            if self._tree is None:
-                from scipy.spatial import cKDTree  # here, not at import: scipy costs start-up time
-
-                self._tree = cKDTree(self.points)
-            return self._tree.query(queries)  # type: ignore[no-any-return]
-        squared = ((queries[:, None, :] - self.points[None, :, :]) ** 2).sum(axis=2)
-        nearest = np.argmin(squared, axis=1)
-        return np.sqrt(squared[np.arange(len(queries)), nearest]), nearest
 
 
 def register(
@@ -84,15 +59,17 @@ def register(
     ``initial`` ``(R, t)`` (default: identity). Returns ``(R, t, residuals)`` with the trimmed pairs'
     residual lengths (m), or None when fewer than three pairs hold.
     """
+    from scipy.spatial import cKDTree  # here, not at import: scipy costs start-up time
+
     if len(first) < 3 or len(second) < 3:
         return None
-    tree_first = _Nearest(first)
+    tree_first = cKDTree(first)
     R, t = initial if initial is not None else (np.eye(3), np.zeros(3))
     residual = np.empty(0)
     for _ in range(iterations):
         moved = second @ R.T + t
         distance, nearest = tree_first.query(moved)
-        back = _Nearest(moved).query(first[nearest])[1]
+        back = cKDTree(moved).query(first[nearest])[1]
         mutual = back == np.arange(len(moved))
         if mutual.sum() < 3:
             return None

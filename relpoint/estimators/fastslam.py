@@ -46,6 +46,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
@@ -58,7 +59,7 @@ from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
 from relpoint.settings import setting
-from relpoint.statistics import chi2_gate, log_sum_exp
+from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
 
 logger = logging.getLogger(__name__)
@@ -292,7 +293,7 @@ class FastSlam(Estimator[PointObservation]):
                 self._frame_cov += (self.config.fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
         self._step_stamp_ns = observation.stamp_ns
         self.log_weights = self.log_weights + log_likelihood
-        self.log_weights -= log_sum_exp(self.log_weights)
+        self.log_weights -= logsumexp(self.log_weights)
         if self._mover_test is not None:
             self._classify_motion(points, assoc)
         self._update_landmarks(points, assoc, observation.ids)
@@ -343,7 +344,7 @@ class FastSlam(Estimator[PointObservation]):
             S_inv = np.linalg.inv(S)
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
-        self.log_weights -= log_sum_exp(self.log_weights)
+        self.log_weights -= logsumexp(self.log_weights)
         # Eq. 31-32: x_v = x_c + C (C + P_fix)^-1 (x_b - x_c), P_v = C - C (C + P_fix)^-1 C. The shift
         # moves the particle's pose and the landmarks it saw lately together, as one local frame.
         K = C @ S_inv

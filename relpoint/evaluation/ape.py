@@ -13,7 +13,7 @@ import numpy as np
 
 from relpoint.errors import UsageError
 from relpoint.evaluation.association import MatchedPoses
-from relpoint.geometry import FloatArray, so3_log
+from relpoint.geometry import FloatArray
 
 
 class PoseRelation(str, enum.Enum):
@@ -50,9 +50,11 @@ class PoseRelation(str, enum.Enum):
 
 def rotation_angles(rotations: FloatArray) -> FloatArray:
     """Rotation angles in radians (N,) of rotation matrices (N, 3, 3), as evo's ``so3_log_angle``."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
     if len(rotations) == 0:
         return np.zeros(0)
-    return np.linalg.norm(so3_log(rotations), axis=1)
+    return np.linalg.norm(Rotation.from_matrix(rotations).as_rotvec(), axis=1)
 
 
 def relation_errors(error_rotations: FloatArray, error_translations: FloatArray, relation: PoseRelation) -> FloatArray:

@@ -30,19 +30,17 @@ from relpoint.geometry.se3 import (
 )
 from relpoint.geometry.so3 import (
     FloatArray,
-    matrix_to_quat,
     quat_to_matrix,
     quaternion_xyzw,
     skew,
     smallest_rotation,
     so3_exp,
-    so3_log,
     so3_right_jacobian,
 )
 
 __all__ = [
     "FloatArray", "RigidFit", "apply_transform", "body_twist", "check_points", "fit_rigid", "homogeneous",
-    "integrate_twist", "invert_pose", "kabsch", "matrix_to_position_quat", "matrix_to_quat", "pose_matrix", "quat_to_matrix",
-    "quaternion_xyzw", "rigid_consensus", "rigid_inverse", "skew", "smallest_rotation", "so3_exp", "so3_log", "so3_right_jacobian",
+    "integrate_twist", "invert_pose", "kabsch", "matrix_to_position_quat", "pose_matrix", "quat_to_matrix",
+    "quaternion_xyzw", "rigid_consensus", "rigid_inverse", "skew", "smallest_rotation", "so3_exp", "so3_right_jacobian",
     "transform_points", "transform_soa32", "twist_step",
 ]  # fmt: skip

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.geometry.so3 import FloatArray, matrix_to_quat, quat_to_matrix, skew, so3_exp, so3_right_jacobian
+from relpoint.geometry.so3 import FloatArray, skew, so3_exp, so3_right_jacobian
 
 F32 = npt.NDArray[np.float32]
 
@@ -29,11 +29,12 @@ def check_points(points: npt.ArrayLike, name: str = "points") -> FloatArray:
 
 def pose_matrix(position: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> FloatArray:
     """4x4 pose from a position (3,) and a quaternion (x, y, z, w); also batched: (N,3),(N,4) -> (N,4,4)."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     position = np.asarray(position, dtype=np.float64)
     quat = np.asarray(quat_xyzw, dtype=np.float64)
     batch_shape = position.shape[:-1]
     matrices = np.zeros((*batch_shape, 4, 4))
-    matrices[..., :3, :3] = quat_to_matrix(quat.reshape(-1, 4)).reshape(*batch_shape, 3, 3)
+    matrices[..., :3, :3] = Rotation.from_quat(quat.reshape(-1, 4)).as_matrix().reshape(*batch_shape, 3, 3)
     matrices[..., :3, 3] = position
     matrices[..., 3, 3] = 1.0
     return matrices
@@ -50,14 +51,11 @@ def homogeneous(rotations: npt.ArrayLike, positions: npt.ArrayLike) -> FloatArra
 
 
 def matrix_to_position_quat(T: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Split a pose (4,4) or poses (N,4,4) into positions (…,3) and quaternions (…,4), ``w >= 0``.
-
-    The quaternions are ``Rotation.from_matrix(R).as_quat(canonical=True)``'s, bit for bit (the tests
-    check it), computed here so that writing a trajectory does not import scipy.
-    """
+    """Split a pose (4,4) or poses (N,4,4) into positions (…,3) and quaternions (…,4), ``w >= 0``."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
     T = np.asarray(T, dtype=np.float64)
     batch_shape = T.shape[:-2]
-    quat = matrix_to_quat(T[..., :3, :3].reshape(-1, 3, 3))
+    quat = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat(canonical=True)
     return T[..., :3, 3].copy(), quat.reshape(*batch_shape, 4)
 
 
