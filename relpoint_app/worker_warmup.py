@@ -21,6 +21,10 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
+#: Libraries every point estimator's job imports (the filters' linear algebra and chi-square gates,
+#: every run's pose conversions): imported once here rather than in each worker's first job.
+SHARED_LIBRARIES = ("scipy.linalg", "scipy.special", "scipy.spatial.transform")
+
 
 def warm_up(estimators: bool = False) -> None:
     """Import the job modules and load every built-in estimator's compiled kernels into this process;
@@ -28,7 +32,7 @@ def warm_up(estimators: bool = False) -> None:
     from relpoint.estimators import BUILTIN, ESTIMATORS
     from relpoint_app.batch_jobs import JOB_MODULES
 
-    for module in JOB_MODULES:
+    for module in (*JOB_MODULES, *SHARED_LIBRARIES):
         importlib.import_module(module)
 
     for name, builtin in BUILTIN.items():
