@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from pathlib import Path
-from typing import Any
-
-import yaml
+from typing import TYPE_CHECKING, Any
 
 from relpoint.errors import UsageError
+
+if TYPE_CHECKING:
+    import yaml
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -45,17 +47,25 @@ def _read_text(path: Path, what: str) -> str:
         raise UsageError(f"{what} {path} is not UTF-8 text (byte {error.start})", "save it as UTF-8") from None
 
 
-class _BoundedLoader(yaml.SafeLoader):
-    """A safe YAML loader that refuses documents whose aliases expand beyond :data:`MAX_YAML_NODES`."""
+@functools.cache
+def _bounded_loader() -> type[yaml.SafeLoader]:
+    """A safe YAML loader that refuses documents whose aliases expand beyond :data:`MAX_YAML_NODES`
+    (made when first needed: PyYAML is imported for YAML files only)."""
+    import yaml
 
-    def compose_document(self) -> yaml.Node:
-        node = super().compose_document()
-        _check_expanded_size(node)
-        return node
+    class BoundedLoader(yaml.SafeLoader):
+        def compose_document(self) -> yaml.Node:
+            node = super().compose_document()
+            _check_expanded_size(node)
+            return node
+
+    return BoundedLoader
 
 
 def _check_expanded_size(root: yaml.Node) -> None:
     """Count the nodes a document expands to (an alias counts every time it is used), up to the bound."""
+    import yaml
+
     count = 0
     stack: list[yaml.Node] = [root]
     while stack:
@@ -85,14 +95,20 @@ def read_document(path: str | os.PathLike[str], what: str = "config file") -> di
     if suffix not in _SUFFIXES:
         raise UsageError(f"{what} {path} must end in .toml, .yaml or .yml")
     text = _read_text(path, what)
+    if suffix == ".toml":
+        unparsable: tuple[type[BaseException], ...] = (tomllib.TOMLDecodeError, RecursionError)
+    else:
+        import yaml  # here, not at import: a TOML file does not need PyYAML
+
+        unparsable = (yaml.YAMLError, RecursionError)
     try:
         if suffix == ".toml":
             data: Any = tomllib.loads(text)
         else:
-            data = yaml.load(text, Loader=_BoundedLoader)
+            data = yaml.load(text, Loader=_bounded_loader())
     except UsageError as error:
         raise UsageError(f"{what} {path}: {error.message}", error.hint) from None
-    except (tomllib.TOMLDecodeError, yaml.YAMLError, RecursionError) as error:
+    except unparsable as error:
         first = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise UsageError(f"{what} {path} is not valid {suffix[1:].upper()}: {first[:200]}") from None
     if data is None:

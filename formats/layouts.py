@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Nodetype
@@ -169,6 +168,8 @@ def storage_paths(path: Path, layout: Layout) -> list[Path]:
 
 
 def _rosbag2_metadata(path: Path) -> dict[str, Any]:
+    import yaml  # here, not at import: only a rosbag2 directory has a metadata.yaml
+
     try:
         document = yaml.safe_load((path / ROSBAG2_METADATA).read_text(encoding="utf-8"))
         info = document["rosbag2_bagfile_information"]
@@ -306,6 +307,8 @@ def decompress_bag(path: Path, into: Path) -> Path:
     compressed. rosbags would otherwise decompress every file again each time the bag is opened, and a
     command opens a log two or three times (the summary pass, then the messages it needs).
     """
+    import yaml  # here, not at import: only a rosbag2 directory has a metadata.yaml
+
     metadata = _rosbag2_metadata(path)
     names = []
     for name in metadata.get("relative_file_paths") or []:

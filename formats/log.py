@@ -15,7 +15,6 @@ rosbags' CDR serialiser and the typestore's standard message definitions.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import os
@@ -55,6 +54,7 @@ from formats.layouts import (
     detect_layout,
     open_reader,
 )
+from formats.topics import Topics
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -65,24 +65,6 @@ SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
 ROS1_ENCODING = "ros1"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-
-
-@dataclass(frozen=True)
-class Topics:
-    """Topic name of every role in a log; the defaults are the log format's."""
-
-    points: str = "/points"
-    ground_truth_pose: str = "/ground_truth/pose"
-    ground_truth_landmarks: str = "/ground_truth/landmarks"
-    odometry: str = "/odom"
-    fix: str = "/fix"
-    depth: str = "/camera/depth/image"
-    camera_info: str = "/camera/depth/camera_info"
-    color: str = "/camera/color/image"
-
-    def roles(self) -> dict[str, str]:
-        """Role name -> topic."""
-        return dataclasses.asdict(self)
 
 
 #: Message type each role must carry.

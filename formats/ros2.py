@@ -4,6 +4,11 @@ Message classes and their ``ros2msg`` definition texts come from rosbags' bundle
 standard ROS 2 Humble messages (identical to Jazzy for every type used here), so nothing is typed by
 hand. Serialisation and deserialisation use the same typestore's CDR codec: it returns ``uint8[]``
 fields as numpy arrays, so point clouds and images decode without copies.
+
+The types relpoint writes and reads by name (:data:`OWN_TYPES` and the types they contain) come from
+:mod:`formats._ros2_types`, rosbags' own code for just those types, generated from the bundled store
+by :func:`own_types_module` (a test checks it is current): the bundled store defines 170 message
+classes over five distributions, a tenth of a second at the first message of every process.
 """
 
 from __future__ import annotations
@@ -41,6 +46,10 @@ PATH = "nav_msgs/msg/Path"
 UNKNOWN_ROTATION_VARIANCE = 1e9
 
 
+#: The message types relpoint writes and reads by name.
+OWN_TYPES = (POINT_CLOUD2, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, ODOMETRY, IMAGE, CAMERA_INFO, TF_MESSAGE, PATH)
+
+
 @functools.cache
 def typestore() -> Any:
     """The standard ROS 2 typestore (cached)."""
@@ -48,9 +57,52 @@ def typestore() -> Any:
 
 
 @functools.cache
+def own_typestore() -> Any:
+    """A typestore of :data:`OWN_TYPES` and the types they contain, as the standard one defines them (cached)."""
+    from rosbags.typesys.store import Typestore
+
+    from formats import _ros2_types
+
+    return Typestore(_ros2_types)
+
+
+def typestore_of(typename: str) -> Any:
+    """The cheapest typestore that defines ``typename``: :func:`own_typestore`, else the standard one."""
+    own = own_typestore()
+    return own if typename in own.fielddefs else typestore()
+
+
+def own_types_module() -> str:
+    """The text of :mod:`formats._ros2_types`: rosbags' generated code of :data:`OWN_TYPES` and the types
+    they contain, from the standard typestore.
+
+    Regenerate with ``python -c "from formats import ros2; print(ros2.own_types_module(), end='')"
+    > formats/_ros2_types.py``.
+    """
+    from rosbags.interfaces import Nodetype
+    from rosbags.typesys.codegen import generate_python_code
+
+    standard = typestore()
+    needed: dict[str, Any] = {}
+
+    def add(typename: str) -> None:
+        if typename not in needed:
+            needed[typename] = standard.fielddefs[typename]
+            for _, description in standard.fielddefs[typename][1]:
+                while description[0] in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+                    description = description[1][0]
+                if description[0] == Nodetype.NAME:
+                    add(description[1])
+
+    for typename in OWN_TYPES:
+        add(typename)
+    return generate_python_code(dict(sorted(needed.items())))
+
+
+@functools.cache
 def message_definition(typename: str) -> str:
     """The rosbag2-style ``ros2msg`` definition text of ``typename`` (with its dependencies)."""
-    return typestore().generate_msgdef(typename, ros_version=2)[0]
+    return typestore_of(typename).generate_msgdef(typename, ros_version=2)[0]
 
 
 def normalise_typename(name: str) -> str:
@@ -61,13 +113,13 @@ def normalise_typename(name: str) -> str:
 
 def serialize(message: Any, typename: str) -> bytes:
     """CDR (little-endian) bytes of ``message``."""
-    return bytes(typestore().serialize_cdr(message, typename))
+    return bytes(typestore_of(typename).serialize_cdr(message, typename))
 
 
 def deserialize(raw: bytes | memoryview, typename: str) -> Any:
     """Decode CDR bytes of ``typename``; raises :class:`InputError` on malformed data."""
     try:
-        return typestore().deserialize_cdr(raw, typename)
+        return typestore_of(typename).deserialize_cdr(raw, typename)
     except Exception as error:  # rosbags raises assorted errors on malformed CDR
         raise InputError(f"a {typename} message cannot be decoded ({type(error).__name__}: {error})") from None
 
@@ -76,7 +128,7 @@ def deserialize(raw: bytes | memoryview, typename: str) -> Any:
 
 
 def _types() -> Any:
-    return typestore().types
+    return own_typestore().types
 
 
 def _stamp(stamp_ns: int) -> Any:

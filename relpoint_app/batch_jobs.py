@@ -32,24 +32,29 @@ import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from formats.atomic import atomic_directory, remove_temporaries, write_text
-from formats.log import LogReader, Topics, metadata_json
 from formats.outputs import RUN_FILES
-from formats.reference_trajectories import ground_truth_landmarks, load_landmark_map, load_trajectory, log_trajectory
-from relpoint import pipeline
+from formats.topics import Topics
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
-from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
-from relpoint.simulation import simulate
 from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
 from relpoint_app.batch_start import pool_context
-from relpoint_app.evaluator import evaluation_json
-from relpoint_app.runner import execute_run
-from relpoint_app.simulation import write_simulation
+
+if TYPE_CHECKING:
+    from formats.log import LogReader
+    from relpoint import pipeline
 
 log = logging.getLogger(__name__)
+
+#: What a job imports (in the worker, when it first runs; the fork server's warm-up imports them
+#: beforehand): not at this module's import, which the ``relpoint batch`` command makes too. A
+#: plan's simulated logs import the simulator's writer when they are made.
+JOB_MODULES = (
+    "formats.log", "formats.reference_trajectories", "relpoint.evaluation", "relpoint_app.evaluator",
+    "relpoint_app.runner",
+)  # fmt: skip
 
 #: Files whose presence (with a matching ``job.json``) marks a job as complete.
 JOB_FILES = (*RUN_FILES, "evaluation.json", "job.log", "job.json")
@@ -218,6 +223,8 @@ def _empty_row(job: Job) -> dict[str, Any]:
 
 def _run(job: Job, reader: LogReader, out_dir: Path) -> pipeline.RunResult:
     """``relpoint run``: the estimator over the log, written to ``out_dir`` (which it replaces)."""
+    from relpoint_app.runner import execute_run
+
     spec = ESTIMATORS[job.estimator]
     config = spec.build_config(dict(job.parameters))
     log.info("running %s over %s", spec.name, job.log)
@@ -238,6 +245,15 @@ def _evaluate(job: Job, reader: LogReader, out_dir: Path) -> dict[str, float]:
 
     The reference comes from the job's open log (``reader``), the estimate from what the run wrote.
     """
+    from formats.reference_trajectories import (
+        ground_truth_landmarks,
+        load_landmark_map,
+        load_trajectory,
+        log_trajectory,
+    )
+    from relpoint.evaluation import AlignMode, evaluate_trajectory, landmark_metrics
+    from relpoint_app.evaluator import evaluation_json
+
     topics = Topics(**dict(job.topics))
     inputs = {"estimate": str(job.output), "reference": str(job.log), "reference_topic": None,
               "estimate_topic": None, "parent": None, "child": None}  # fmt: skip
@@ -274,6 +290,8 @@ def run_job(job: Job) -> dict[str, Any]:
     job, in its process) and ``error``.
     A failed job's directory holds only ``job.log`` (with the traceback) and ``job.json``.
     """
+    from formats.log import LogReader
+
     start, start_cpu = time.perf_counter(), time.process_time()
     row = _empty_row(job)
     header = (
@@ -330,6 +348,9 @@ def completed_row(job: Job) -> dict[str, Any] | None:
 
 def run_simulation(step: SimulationStep) -> dict[str, Any]:
     """``relpoint simulate -o LOG``: write a simulated log atomically; returns {name, log, status, error}."""
+    from relpoint.simulation import simulate
+    from relpoint_app.simulation import write_simulation
+
     start = time.perf_counter()
     try:
         with _single_threaded():
@@ -343,6 +364,8 @@ def run_simulation(step: SimulationStep) -> dict[str, Any]:
 
 def simulation_complete(step: SimulationStep) -> bool:
     """Whether ``step.output`` is a log simulated with exactly ``step.config``."""
+    from formats.log import LogReader, metadata_json
+
     if not step.output.is_file():
         return False
     try:

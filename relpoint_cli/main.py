@@ -5,9 +5,15 @@ from __future__ import annotations
 import contextlib
 import importlib
 import logging
+import os
 import signal
 import sys
 from typing import Any
+
+from relpoint_app.batch_start import start_fork_server_early
+
+if __name__ == "__main__" or os.path.basename(sys.argv[0]) == "relpoint":  # the command line, not an import
+    start_fork_server_early(sys.argv[1:])  # first: ``relpoint batch`` warms its workers up from here on
 
 import click
 

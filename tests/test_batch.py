@@ -238,20 +238,74 @@ def _warm_modules() -> list[str]:
     """In a pool worker: which warm-up modules and kernels the worker had before its first job."""
     import sys
 
+    names = ("relpoint_app.worker_warmup", "relpoint_app.batch_jobs", "relpoint.estimators._fastslam_kernels",
+             "relpoint.estimators.relative_point._kernels", "relpoint.estimators.fastslam",
+             "relpoint.estimators.relative_point.estimator")  # fmt: skip
+    loaded = [name for name in names if name in sys.modules]
     from relpoint.estimators import _fastslam_kernels
 
-    loaded = [name for name in ("relpoint_app.worker_warmup", "relpoint.estimators.fastslam") if name in sys.modules]
     if _fastslam_kernels.COMPILED_AHEAD or _fastslam_kernels.associate.signatures:  # prebuilt, or compiled
         loaded.append("fastslam kernels")
     return loaded
 
 
 def test_pool_workers_start_warm() -> None:
+    """Job modules and compiled kernels loaded; the estimators' own modules are left to their first job."""
     from relpoint_app.batch_jobs import LocalPool
 
     with LocalPool(1) as pool:
         [(_, loaded)] = list(pool.map_unordered(lambda_free_call, [_warm_modules]))
-    assert loaded == ["relpoint_app.worker_warmup", "relpoint.estimators.fastslam", "fastslam kernels"]
+    assert loaded == ["relpoint_app.worker_warmup", "relpoint_app.batch_jobs", "relpoint.estimators._fastslam_kernels",
+                      "relpoint.estimators.relative_point._kernels", "fastslam kernels"]  # fmt: skip
+
+
+def test_filter_jobs_import_no_library_the_warm_up_did_not(tmp_path: Path) -> None:
+    """An EKF or FastSLAM job (run, write, evaluate) in a warmed-up worker imports no part of scipy that
+    the warm-up did not: each worker would pay for it in its first job (a fifth of a second)."""
+    import subprocess
+    import sys
+
+    from relpoint.simulation import SimulationConfig, simulate
+    from relpoint_app.simulation import write_simulation
+
+    log = tmp_path / "fig8.mcap"
+    write_simulation(simulate(SimulationConfig(iterations=60, density=25.0, seed=1)), log)
+    code = (
+        "import sys\n"
+        "import relpoint_app.worker_warmup\n"
+        "warm = set(sys.modules)\n"
+        "from relpoint_app.batch_plan import load_plan\n"
+        "from relpoint_app.batch_jobs import run_job\n"
+        f"plan = load_plan({str(tmp_path / 'plan.toml')!r})\n"
+        "rows = [run_job(job) for job in plan.jobs]\n"
+        "assert [row['status'] for row in rows] == ['ok', 'ok'], rows\n"
+        "scipy = sorted(m for m in set(sys.modules) - warm if m.startswith('scipy'))\n"
+        "assert not scipy, scipy\n"
+    )
+    (tmp_path / "plan.toml").write_text(
+        f"logs = [{str(log)!r}]\nresults = {str(tmp_path / 'results')!r}\n"
+        "[estimators.ekf]\n[estimators.fastslam]\nparticles = 5\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.mark.parametrize(
+    ("args", "local"),
+    [
+        (["batch", "plan.toml"], True),
+        (["-q", "batch", "plan.toml", "--jobs", "2"], True),
+        (["batch", "plan.toml", "--scheduler", "tcp://127.0.0.1:8786"], False),
+        (["batch", "plan.toml", "--scheduler=tcp://127.0.0.1:8786"], False),
+        (["batch", "--help"], False),
+        (["run", "batch"], False),
+        (["-q"], False),
+    ],
+)
+def test_the_fork_server_starts_early_only_for_the_local_pool(args: list[str], local: bool) -> None:
+    from relpoint_app.batch_start import runs_local_pool
+
+    assert runs_local_pool(args) is local
 
 
 def lambda_free_call(function: Any) -> Any:

@@ -42,6 +42,22 @@ def test_every_estimator_is_built_as_config_and_rng_and_declares_its_input_kind(
         assert isinstance(fitted, spec.estimator_class) and fitted.config.observation_sigma == 0.05
 
 
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_builtin_declares_the_kernels_its_estimator_uses(name: str) -> None:
+    """The batch warm-up loads the declared kernel modules in place of the estimators' own."""
+    import importlib
+    import types
+
+    from relpoint._aot_kernels import KernelSet
+
+    module = importlib.import_module(BUILTIN[name].module)
+    used = {
+        value.__name__ for value in vars(module).values()
+        if isinstance(value, types.ModuleType) and isinstance(getattr(value, "kernels", None), KernelSet)
+    }  # fmt: skip
+    assert used == ({BUILTIN[name].kernels} if BUILTIN[name].kernels else set())
+
+
 def test_registry_lists_builtins_and_registered_specs_and_refuses_unknown_names() -> None:
     registry = EstimatorRegistry()
     assert list(registry) == list(BUILTIN) and len(registry) == len(BUILTIN)

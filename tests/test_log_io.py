@@ -255,3 +255,18 @@ def test_passes_at_the_same_time_read_independently(small_log: Path, monkeypatch
         ]
     assert [a for a, _ in together] == alone and [b for _, b in together] == alone
     assert len(opened) == 2  # the second pass, started while the first ran, had a reader of its own
+
+
+def test_own_message_types_are_the_standard_ones() -> None:
+    """``formats/_ros2_types.py`` is rosbags' code for relpoint's types as the bundled Humble store defines
+    them (regenerate it as :func:`formats.ros2.own_types_module` says when rosbags changes)."""
+    generated = Path(ros2.__file__).with_name("_ros2_types.py").read_text()
+    assert generated == ros2.own_types_module()
+    own, standard = ros2.own_typestore(), ros2.typestore()
+    assert set(ros2.OWN_TYPES) <= set(own.fielddefs)
+    for typename in own.fielddefs:
+        assert own.fielddefs[typename] == standard.fielddefs[typename]
+        assert own.generate_msgdef(typename, ros_version=2) == standard.generate_msgdef(typename, ros_version=2)
+    message = ros2.odometry_to_msg(OdometryMeasurement(123_456_789, [1.0, 0.1, -0.2], [0.01, -0.02, 0.3], np.eye(6)))
+    assert ros2.serialize(message, ros2.ODOMETRY) == bytes(standard.serialize_cdr(message, ros2.ODOMETRY))
+    assert ros2.typestore_of("sensor_msgs/msg/Imu") is standard

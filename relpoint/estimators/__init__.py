@@ -18,18 +18,26 @@ from relpoint.estimators.spec import EstimatorSpec
 
 @dataclass(frozen=True)
 class BuiltinEstimator:
-    """Where a built-in estimator's spec lives (``module.SPEC``) and the input roles it declares there."""
+    """Where a built-in estimator's spec lives (``module.SPEC``), the input roles it declares there, and
+    the module of its compiled kernels, if any (whose ``prepare()`` loads or compiles them)."""
 
     module: str
     needs: frozenset[str]
     uses: frozenset[str] = frozenset()
+    kernels: str | None = None
 
 
 #: The built-in estimators; ``tests/test_estimators_registry.py`` checks these against each ``SPEC``.
 BUILTIN = {
-    "relpoint": BuiltinEstimator("relpoint.estimators.relative_point.estimator", frozenset({POINTS})),
+    "relpoint": BuiltinEstimator(
+        "relpoint.estimators.relative_point.estimator", frozenset({POINTS}),
+        kernels="relpoint.estimators.relative_point._kernels",
+    ),
     "ekf": BuiltinEstimator("relpoint.estimators.ekf", frozenset({POINTS}), frozenset({ODOMETRY, FIX})),
-    "fastslam": BuiltinEstimator("relpoint.estimators.fastslam", frozenset({POINTS}), frozenset({ODOMETRY, FIX})),
+    "fastslam": BuiltinEstimator(
+        "relpoint.estimators.fastslam", frozenset({POINTS}), frozenset({ODOMETRY, FIX}),
+        kernels="relpoint.estimators._fastslam_kernels",
+    ),
     "dense": BuiltinEstimator("relpoint.estimators.dense.estimator", frozenset({DEPTH}), frozenset({"color"})),
 }
 

@@ -35,16 +35,15 @@ Cauchy loss enters by iteratively reweighted least squares.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
-import scipy.sparse as sparse
-from scipy.linalg import solveh_banded
-from scipy.sparse.csgraph import reverse_cuthill_mckee
-from scipy.sparse.linalg import spsolve
-from scipy.spatial.transform import Rotation
 
 from relpoint.geometry import FloatArray, skew
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -86,6 +85,8 @@ _THREE = np.arange(3)
 
 def _block_diagonal(blocks: FloatArray) -> sparse.csr_matrix:
     """Sparse matrix with the (G, 6, 6) ``blocks`` along its diagonal."""
+    from scipy import sparse  # here, not at import: scipy costs start-up time
+
     n = 6 * len(blocks)
     rows = np.repeat(np.arange(n), 6)
     cols = (rows // 6 * 6).reshape(-1, 6) + _SIX
@@ -100,6 +101,9 @@ def _solve_positive_definite(S: sparse.csr_matrix, rhs: FloatArray, order: IntAr
     several times less than a general sparse LU here. A wide band (long loops) falls back to
     SuperLU.
     """
+    from scipy.linalg import solveh_banded  # here, not at import: scipy costs start-up time
+    from scipy.sparse.linalg import spsolve
+
     n = S.shape[0]
     permuted = S[order][:, order].tocoo()
     upper = permuted.row <= permuted.col
@@ -154,6 +158,10 @@ def adjust_network(
     iterations:
         Largest number of Levenberg-Marquardt iterations.
     """
+    from scipy import sparse  # here, not at import: scipy costs start-up time
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+    from scipy.spatial.transform import Rotation
+
     n_groups, n_points = len(R_world_group), len(positions)
     R = np.array(R_world_group, dtype=np.float64)
     t = np.array(t_world_group, dtype=np.float64)
@@ -280,7 +288,7 @@ def smooth_corrections(
     vectors and displacements, applied to its pose in ``before``; the others keep their pose in
     ``after``. ``before`` and ``after`` are ``T_world_sensor``.
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
 
     fitted_rows = np.flatnonzero(fitted)
     smoothed = after.copy()

@@ -43,7 +43,6 @@ import math
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
 from relpoint.geometry import FloatArray
 
@@ -75,6 +74,8 @@ def vote_offset(
     it (ties: the smallest offset), or ``None`` if fewer than :func:`required_support` agree or a
     rival offset comes within ``ambiguity`` of its support.
     """
+    from scipy.spatial import cKDTree  # here, not at import: scipy costs start-up time
+
     if len(young) < support or len(old) == 0:
         return None
     candidates = cKDTree(old).query_ball_point(young, radius)

@@ -7,7 +7,6 @@ from collections.abc import Iterator
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
@@ -125,6 +124,8 @@ class FinalAdjustment(EstimatorState):
             )
             return trajectory
         report["kept"] = "adjusted"
+        from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
         orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
         return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
 
