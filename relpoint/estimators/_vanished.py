@@ -129,31 +129,6 @@ def run_log_probability(seen: np.ndarray, missed: np.ndarray, run: np.ndarray) -
     return lgamma(b + run) - lgamma(b) + lgamma(a + b) - lgamma(a + b + run) if len(a) else np.zeros(0)
 
 
-def nearest_in_group(
-    groups: np.ndarray, positions: FloatArray, candidate_groups: np.ndarray, candidates: FloatArray, reach: float
-) -> np.ndarray:
-    """For each position (k, 3) of group ``groups`` (k,), the index of the nearest of ``candidates``
-    (c, 3) in the same group (``candidate_groups`` (c,), sorted) within ``reach`` (m), or -1.
-
-    FastSLAM's per-particle version of :meth:`VanishedLandmarks._adopt`: a group is a particle.
-    """
-    result = np.full(len(groups), -1, dtype=np.int64)
-    start = np.searchsorted(candidate_groups, groups, side="left")
-    count = np.searchsorted(candidate_groups, groups, side="right") - start
-    total = int(count.sum())
-    if total == 0:
-        return result
-    owner = np.repeat(np.arange(len(groups)), count)
-    offset = np.arange(total) - np.repeat(np.cumsum(count) - count, count)
-    index = start[owner] + offset
-    d2 = np.sum((positions[owner] - candidates[index]) ** 2, axis=1)
-    order = np.lexsort((d2, owner))
-    first = order[np.searchsorted(owner[order], np.flatnonzero(count), side="left")]
-    close = d2[first] <= reach * reach
-    result[owner[first[close]]] = index[first[close]]
-    return result
-
-
 class SensorView:
     """The directions and ranges at which the sensor sees points, learned from its observations.
 

@@ -62,7 +62,6 @@ from relpoint.estimators._vanished import (
     SUCCESSION_WINDOW,
     SensorView,
     in_view,
-    nearest_in_group,
     point_spacing,
     run_log_probability,
 )
@@ -336,7 +335,7 @@ class FastSlam(Estimator[PointObservation]):
             self._hand_over(points, assoc, near, observation.ids)
         started = self._add_landmarks(points, assoc, observation.ids)
         if self._view is not None:
-            self._drop_vanished(points, assoc, *started)
+            self._drop_vanished(points, assoc, near, *started)
         self._resample_if_degenerate()
         self._stats["iterations"] += 1
         if self._frame is not None:
@@ -638,12 +637,12 @@ class FastSlam(Estimator[PointObservation]):
 
     def _add_landmarks(
         self, points: FloatArray, assoc: np.ndarray, ids: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Start a landmark ``m = p + R z`` with covariance ``R Q R^T`` for every unexplained point;
-        return the particle and slot of each (sorted by particle)."""
+        return the particle, slot and point of each (sorted by particle)."""
         p, i = np.nonzero(assoc == -1)
         if len(p) == 0:
-            return p, p
+            return p, p, i
         # Slot of each new landmark: the particle's count plus its rank among the particle's new points.
         rank = np.arange(len(p)) - np.searchsorted(p, p, side="left")
         slots = self.counts[p] + rank
@@ -661,14 +660,17 @@ class FastSlam(Estimator[PointObservation]):
         self._suspect_misses[p, slots] = 0
         self.counts += np.bincount(p, minlength=self.config.particles)
         self._stats["started"] += len(p)
-        return p, slots
+        return p, slots, i
 
-    def _drop_vanished(self, points: FloatArray, assoc: np.ndarray, new_p: np.ndarray, new_slots: np.ndarray) -> None:
+    def _drop_vanished(
+        self, points: FloatArray, assoc: np.ndarray, near: tuple[np.ndarray, np.ndarray], new_p: np.ndarray,
+        new_slots: np.ndarray, new_points: np.ndarray,
+    ) -> None:  # fmt: skip
         """Drop, in each particle, the landmarks that have vanished (:mod:`relpoint.estimators._vanished`).
 
         A landmark the particle last paired at most ``SUCCESSION_WINDOW`` iterations ago and not now,
-        nearest to where one of the particle's new landmarks started (within the search radius), is a
-        suspect; a suspect paired again is cleared. A suspect in view of ``points`` (sensor frame)
+        nearest to where one of the particle's new landmarks started (within the search radius: among
+        the association's candidates ``near`` of the point that started it), is a suspect; a suspect paired again is cleared. A suspect in view of ``points`` (sensor frame)
         and not paired counts a miss (in iterations where its particle pairs at least ``MIN_PAIRED``
         points); after ``MIN_MISSES`` misses with a chance below ``vanished_probability`` under its
         detection rate (seen as many times as it was paired) it is dropped from its particle's map.
@@ -677,11 +679,7 @@ class FastSlam(Estimator[PointObservation]):
         iteration = self._stats["iterations"]
         self._view.add(points)
         if len(new_p):
-            used = np.arange(self._capacity)[None, :] < self.counts[:, None]
-            recent = used & (self._last < iteration) & (self._last >= iteration - SUCCESSION_WINDOW)
-            rp, rj = np.nonzero(recent)
-            parent = nearest_in_group(new_p, self.means[new_p, new_slots], rp, self.means[rp, rj], self._search_radius)
-            pp, pj = rp[parent[parent >= 0]], rj[parent[parent >= 0]]
+            pp, pj = self._replaced(near, new_p, new_slots, new_points, iteration)
             fresh = self._suspect[pp, pj] < 0
             self._suspect[pp[fresh], pj[fresh]] = iteration
             self._suspect_misses[pp[fresh], pj[fresh]] = 0
@@ -705,6 +703,31 @@ class FastSlam(Estimator[PointObservation]):
         if gone.any():
             self._stats["vanished"] += int(np.count_nonzero(mp[gone] == int(np.argmax(self.log_weights))))
             self._drop(mp[gone], mj[gone])
+
+    def _replaced(
+        self, near: tuple[np.ndarray, np.ndarray], new_p: np.ndarray, new_slots: np.ndarray, new_points: np.ndarray,
+        iteration: int,
+    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Particle and slot of the landmark each new landmark may have replaced: the nearest one of its
+        particle within the search radius, last paired in the last ``SUCCESSION_WINDOW`` iterations and
+        not in this one (one per new landmark at most; none for some)."""
+        offsets, slots = near
+        per_point = offsets[new_points + 1] - offsets[new_points]
+        total = int(per_point.sum())
+        if total == 0:
+            return new_p[:0], new_p[:0]
+        owner = np.repeat(np.arange(len(new_p)), per_point)
+        j = slots[np.repeat(offsets[new_points] - np.cumsum(per_point) + per_point, per_point) + np.arange(total)]
+        p = new_p[owner]
+        last = self._last[p, j]
+        ok = (j < self.counts[p]) & (last < iteration) & (last >= iteration - SUCCESSION_WINDOW)
+        owner, p, j = owner[ok], p[ok], j[ok]
+        d2 = np.sum((self.means[p, j] - self.means[p, new_slots[owner]]) ** 2, axis=1)
+        close = d2 <= self._search_radius**2
+        owner, p, j, d2 = owner[close], p[close], j[close], d2[close]
+        order = np.lexsort((d2, owner))
+        first = order[np.unique(owner[order], return_index=True)[1]]
+        return p[first], j[first]
 
     def _drop(self, particles: np.ndarray, slots: np.ndarray) -> None:
         """Remove landmark ``slots[k]`` from particle ``particles[k]``'s map; the later slots move down."""
