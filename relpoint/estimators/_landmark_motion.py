@@ -100,6 +100,18 @@ def median_by_group(group: npt.NDArray[np.int64], values: FloatArray, groups: in
     return medians
 
 
+def candidate_slots(
+    near: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]], points: npt.NDArray[np.int64]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Every (entry, candidate slot) pair of the association's candidates ``near`` (CSR ``offsets,
+    slots`` per point) for the points ``points`` (k,): the entry's index into ``points`` and the slot."""
+    offsets, slots = near
+    per_point = offsets[points + 1] - offsets[points]
+    owner = np.repeat(np.arange(len(points)), per_point)
+    first = np.repeat(offsets[points] - np.cumsum(per_point) + per_point, per_point)
+    return owner, slots[first + np.arange(len(owner))]
+
+
 def hand_over(
     assoc: npt.NDArray[np.int64],
     near: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]],
@@ -134,14 +146,10 @@ def hand_over(
     lately = (last_seen >= iteration - HAND_OVER_MEMORY) & (last_seen < iteration)
     steady = (paired >= min_pairs) & (paired > lately.sum(axis=1))
     p, i = np.nonzero((assoc == -1) & steady[:, None])
-    offsets, slots = near
-    per_point = offsets[i + 1] - offsets[i]
-    if per_point.sum() == 0:
+    owner, j = candidate_slots(near, i)
+    if len(j) == 0:
         return empty, empty, empty
-    # Every (particle, new point, candidate slot) triple.
-    first = np.repeat(offsets[i] - np.cumsum(per_point) + per_point, per_point)
-    j = slots[first + np.arange(per_point.sum())]
-    p, i = np.repeat(p, per_point), np.repeat(i, per_point)
+    p, i = p[owner], i[owner]
     live = j < counts[p]
     p, i, j = p[live], i[live], j[live]
     recent = lately[p, j]

@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.special import betaln
 
 from relpoint.geometry import FloatArray
 
@@ -124,9 +125,8 @@ def run_log_probability(seen: np.ndarray, missed: np.ndarray, run: np.ndarray) -
     believed to be seen every time: after 7 misses the chance is 1/36, where the plug-in rate 2/3
     would give 1/2187.
     """
-    a, b = seen + 1.0, missed + 1.0
-    lgamma = np.vectorize(math.lgamma, otypes=[float])
-    return lgamma(b + run) - lgamma(b) + lgamma(a + b) - lgamma(a + b + run) if len(a) else np.zeros(0)
+    a, b = np.asarray(seen) + 1.0, np.asarray(missed) + 1.0
+    return betaln(a, b + run) - betaln(a, b)
 
 
 class SensorView:
@@ -208,6 +208,14 @@ class SensorView:
         return ((a >= az_low + az_margin) & (a <= az_high - az_margin) & (e >= el_low + el_margin)
                 & (e <= el_high - el_margin) & (r < RANGE_SHARE * reach))  # fmt: skip
 
+    def in_sight(self, positions: FloatArray, points: FloatArray) -> np.ndarray:
+        """Which positions (n, 3) are in view of this observation's ``points`` (p, 3), both in the
+        sensor frame (m): inside the learned view, with at least :data:`MIN_NEIGHBOURS` of the points
+        within :data:`NEIGHBOUR_SPACINGS` of their median spacing."""
+        view = self.inside(positions)
+        view[view] = in_view(positions[view], points, NEIGHBOUR_SPACINGS * point_spacing(points))
+        return view
+
 
 class VanishedLandmarks:
     """Per-landmark counts of iterations seen, missed in view, and missed in a row; in map order.
@@ -272,8 +280,7 @@ class VanishedLandmarks:
         self._adopt(landmarks, paired)
         if n == 0 or np.count_nonzero(paired) < MIN_PAIRED:
             return np.zeros(0, dtype=np.int64)
-        view = self.view.inside(in_sensor)
-        view[view] = in_view(in_sensor[view], points, NEIGHBOUR_SPACINGS * point_spacing(points))
+        view = self.view.in_sight(in_sensor, points)
         missed = view & ~paired & ~exempt
         if np.count_nonzero(missed) >= np.count_nonzero(view & paired):
             return np.zeros(0, dtype=np.int64)  # most of the view unpaired: the pose is off
@@ -283,7 +290,7 @@ class VanishedLandmarks:
         chance = run_log_probability(self.seen[long_runs], self.missed[long_runs] - self.streak[long_runs],
                                      self.streak[long_runs])  # fmt: skip
         unlikely = long_runs[chance < self.log_threshold]
-        return unlikely[self._replaced(landmarks, unlikely)]
+        return unlikely[np.isin(unlikely, self.parent)]  # replaced: the parent of a landmark (_adopt)
 
     def _adopt(self, landmarks: FloatArray, paired: np.ndarray) -> None:
         """Give each landmark started in this iteration its parent: the nearest older landmark within
@@ -299,8 +306,3 @@ class VanishedLandmarks:
         nearest = np.argmin(d2, axis=1)
         close = d2[np.arange(len(new)), nearest] <= self.reach**2
         self.parent[new[close]] = older[nearest[close]]
-
-    def _replaced(self, landmarks: FloatArray, candidates: np.ndarray) -> np.ndarray:
-        """Which ``candidates`` are the parent of a landmark (:meth:`_adopt`)."""
-        del landmarks
-        return np.isin(candidates, self.parent)

@@ -52,17 +52,20 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
-from relpoint.estimators._landmark_motion import MotionTest, MovingLandmarkSettings, hand_over, shared_motion_removed
+from relpoint.estimators._landmark_motion import (
+    MotionTest,
+    MovingLandmarkSettings,
+    candidate_slots,
+    hand_over,
+    shared_motion_removed,
+)
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators._vanished import (
     MIN_MISSES,
     MIN_PAIRED,
-    NEIGHBOUR_SPACINGS,
     SUCCESSION_WINDOW,
     SensorView,
-    in_view,
-    point_spacing,
     run_log_probability,
 )
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
@@ -77,38 +80,22 @@ logger = logging.getLogger(__name__)
 VARIANTS = ("2.0", "1.0")
 FIX_ALIGNMENTS = ("rigid", "ignore")
 _LOG_2PI = math.log(2.0 * math.pi)
+_SLOT_ARRAYS = {
+    "means": 0.0,
+    "covs": 0.0,
+    "_seen": 0,
+    "_last": 0,
+    "_vote_id": -1,
+    "_vote_n": 0,
+    "_drift": 0.0,
+    "_moving": False,
+    "_suspect": -1,
+    "_suspect_misses": 0,
+}
+"""Attributes indexed by particle and landmark slot, with the value of an empty slot: capacity grows
+and a dropped landmark's gap closes in each of them."""
 #: Attributes indexed by particle; resampling copies each of them.
-_PARTICLE_ARRAYS = (
-    "positions",
-    "rotations",
-    "twists",
-    "_Sigma",
-    "counts",
-    "means",
-    "covs",
-    "_seen",
-    "_last",
-    "_frame_cov",
-    "_vote_id",
-    "_vote_n",
-    "_drift",
-    "_moving",
-    "_suspect",
-    "_suspect_misses",
-)
-#: Attributes indexed by particle and landmark slot: dropping a landmark closes its slot's gap in each.
-_SLOT_ARRAYS = (
-    "means",
-    "covs",
-    "_seen",
-    "_last",
-    "_vote_id",
-    "_vote_n",
-    "_drift",
-    "_moving",
-    "_suspect",
-    "_suspect_misses",
-)
+_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", *_SLOT_ARRAYS)
 
 
 #: The default search radius in units of the observation noise (5 m at the simulator's 0.3 m).
@@ -691,8 +678,7 @@ class FastSlam(Estimator[PointObservation]):
         counted = ~again & (np.count_nonzero(assoc >= 0, axis=1)[sp] >= MIN_PAIRED)
         sp, sj = sp[counted], sj[counted]
         local = np.einsum("kji,kj->ki", self.rotations[sp], self.means[sp, sj] - self.positions[sp])
-        view = self._view.inside(local)
-        view[view] = in_view(local[view], points, NEIGHBOUR_SPACINGS * point_spacing(points))
+        view = self._view.in_sight(local, points)
         mp, mj = sp[view], sj[view]
         self._suspect_misses[mp, mj] += 1
         misses = self._suspect_misses[mp, mj]
@@ -711,13 +697,7 @@ class FastSlam(Estimator[PointObservation]):
         """Particle and slot of the landmark each new landmark may have replaced: the nearest one of its
         particle within the search radius, last paired in the last ``SUCCESSION_WINDOW`` iterations and
         not in this one (one per new landmark at most; none for some)."""
-        offsets, slots = near
-        per_point = offsets[new_points + 1] - offsets[new_points]
-        total = int(per_point.sum())
-        if total == 0:
-            return new_p[:0], new_p[:0]
-        owner = np.repeat(np.arange(len(new_p)), per_point)
-        j = slots[np.repeat(offsets[new_points] - np.cumsum(per_point) + per_point, per_point) + np.arange(total)]
+        owner, j = candidate_slots(near, new_points)
         p = new_p[owner]
         last = self._last[p, j]
         ok = (j < self.counts[p]) & (last < iteration) & (last >= iteration - SUCCESSION_WINDOW)
@@ -739,24 +719,17 @@ class FastSlam(Estimator[PointObservation]):
                 array = getattr(self, attr)
                 array[p, : int(keep.sum())] = array[p, :count][keep]
             self.counts[p] = int(keep.sum())
-            self._suspect[p, self.counts[p] : count] = -1  # the freed slots' stale copies
+            self._suspect[p, self.counts[p] : count] = _SLOT_ARRAYS["_suspect"]  # the freed slots' stale copies
 
     def _ensure_capacity(self, size: int) -> None:
         if size <= self._capacity:
             return
         capacity = max(size, 2 * self._capacity)
         extra = capacity - self._capacity
-        n = self.config.particles
-        self.means = np.concatenate([self.means, np.zeros((n, extra, 3))], axis=1)
-        self.covs = np.concatenate([self.covs, np.zeros((n, extra, 3, 3))], axis=1)
-        self._seen = np.concatenate([self._seen, np.zeros((n, extra), dtype=np.int64)], axis=1)
-        self._last = np.concatenate([self._last, np.zeros((n, extra), dtype=np.int64)], axis=1)
-        self._vote_id = np.concatenate([self._vote_id, np.full((n, extra), -1, dtype=np.int64)], axis=1)
-        self._vote_n = np.concatenate([self._vote_n, np.zeros((n, extra), dtype=np.int64)], axis=1)
-        self._drift = np.concatenate([self._drift, np.zeros((n, extra, 3))], axis=1)
-        self._moving = np.concatenate([self._moving, np.zeros((n, extra), dtype=bool)], axis=1)
-        self._suspect = np.concatenate([self._suspect, np.full((n, extra), -1, dtype=np.int64)], axis=1)
-        self._suspect_misses = np.concatenate([self._suspect_misses, np.zeros((n, extra), dtype=np.int64)], axis=1)
+        for attr, empty in _SLOT_ARRAYS.items():
+            array = getattr(self, attr)
+            grown = np.full((array.shape[0], extra, *array.shape[2:]), empty, dtype=array.dtype)
+            setattr(self, attr, np.concatenate([array, grown], axis=1))
         self._capacity = capacity
 
     # ---------------------------------------------------------------------------------- resampling
