@@ -12,6 +12,8 @@ from scipy.spatial.transform import Rotation
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import (
     adjust_network,
+    carry_corrections,
+    drifting_points,
     inconsistent_relocations,
     smooth_corrections,
 )
@@ -142,7 +144,10 @@ def test_basis_frame_is_invariant_under_rigid_motion(seed: int, m: int) -> None:
     points = rng.uniform(-40, 40, (m, 3))
     basis = choose_basis(points, 1.0)
     assert basis is not None
-    moved = np.stack([points, apply_transform(random_pose(rng, 100.0), points), apply_transform(random_pose(rng, 100.0), points)], axis=1)
+    moved = np.stack(
+        [points, apply_transform(random_pose(rng, 100.0), points), apply_transform(random_pose(rng, 100.0), points)],
+        axis=1,
+    )
     relative, valid = relative_coordinates(moved, basis, 1.0)
     assert valid.all()
     assert np.allclose(relative[:, 1:], relative[:, :1], atol=1e-8)
@@ -291,6 +296,56 @@ def test_corrections_are_smoothed_over_the_fitted_neighbours() -> None:
     assert np.allclose(smoothed[~inside], after[~inside])
     angle = Rotation.from_matrix(smoothed[:70, :3, :3] @ np.transpose(truth[:70, :3, :3], (0, 2, 1))).magnitude()
     assert angle.max() < 0.002
+
+
+def test_carried_corrections_come_from_the_nearest_solved_iteration_before() -> None:
+    # Iterations 0, 3 and 7 solved (each moved by its own correction); the others take the correction
+    # of the nearest solved one before them, so a path keeps its local shape between keyframes.
+    k = 10
+    before = np.repeat(np.eye(4)[None], k, axis=0)
+    before[:, 0, 3] = np.arange(k, dtype=float)
+    solved = np.zeros(k, bool)
+    solved[[0, 3, 7]] = True
+    after = before.copy()
+    turn = Rotation.from_rotvec([0, 0, 0.1]).as_matrix()
+    after[3, :3, :3] = turn
+    after[3, :3, 3] += (0.0, 0.5, 0.0)
+    after[7, :3, 3] += (0.0, 0.0, 1.0)
+    carried = carry_corrections(before, after, solved)
+    np.testing.assert_allclose(carried[solved], after[solved])
+    np.testing.assert_allclose(carried[1:3], before[1:3])
+    correction = after[3] @ np.linalg.inv(before[3])
+    np.testing.assert_allclose(carried[4:7], correction @ before[4:7])
+    np.testing.assert_allclose(carried[8:, :3, 3], before[8:, :3, 3] + (0.0, 0.0, 1.0))
+
+
+@pytest.mark.parametrize("noise", [0.01, 0.3])
+def test_drifting_residuals_are_told_from_static_noise_at_any_noise_level(noise: float) -> None:
+    # 300 static points with white noise at their own level (noise to 3 noise), 60 observations each,
+    # and 10 points drifting 4 of their noises along a line over their observations; 6 that slide by
+    # half a noise, like a keypoint whose corner shifts with the viewpoint, are not movers.
+    rng = np.random.default_rng(11)
+    n_static, n_moving, n_sliding, n_obs = 300, 10, 6, 60
+    n_points = n_static + n_moving + n_sliding
+    point = np.repeat(np.arange(n_points), n_obs)
+    level = noise * rng.uniform(1.0, 3.0, n_points)
+    residual = rng.normal(0.0, 1.0, (len(point), 3)) * level[point, None]
+    ramp = np.tile(np.linspace(-0.5, 0.5, n_obs), n_points)
+    direction = rng.normal(size=(n_points, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    span = np.zeros(n_points)
+    span[n_static : n_static + n_moving] = 4.0
+    span[n_static + n_moving :] = 0.5
+    residual += (span * level)[point, None] * ramp[:, None] * direction[point]
+    by_time = np.argsort(np.tile(np.arange(n_obs), n_points), kind="stable")  # interleaved, as iterations deliver them
+    drifting = drifting_points(point[by_time], residual[by_time], n_points, block=8, probability=1e-3, min_motion=1.0)
+    assert drifting[n_static : n_static + n_moving].all()
+    assert np.count_nonzero(drifting[:n_static]) <= 2  # 0.3 expected at 1e-3
+    assert not drifting[n_static + n_moving :].any()
+    # Seen fewer than two blocks' worth: not judged.
+    few = np.repeat(np.arange(3), 10)
+    assert not drifting_points(few, rng.normal(size=(30, 3)) + np.repeat([[0, 0, 0], [9, 9, 9], [0, 0, 0]], 10, axis=0), 3,
+                               block=8, probability=1e-3, min_motion=1.0).any()  # fmt: skip
 
 
 def test_dynamic_threshold_never_falls_below_the_noise_floor() -> None:
@@ -988,12 +1043,16 @@ def test_local_matching_kernel_equals_numpy() -> None:
         T_true[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
         carried = _kernels.transform_by_age(T_true, reference, age)
         keep = rng.random(m) < 0.8
-        points = np.concatenate([carried[keep] + rng.normal(0, 0.1, (int(keep.sum()), 3)), rng.uniform(-20, 20, (5, 3))])
+        points = np.concatenate(
+            [carried[keep] + rng.normal(0, 0.1, (int(keep.sum()), 3)), rng.uniform(-20, 20, (5, 3))]
+        )
         points = points[rng.permutation(len(points))]
         T_guess = np.eye(4) if trial % 3 == 0 else T_true @ random_pose(rng, 0.3) if trial % 3 == 1 else T_true
         bound, angle, predict = float(rng.uniform(0.5, 2.0)), float(rng.choice([0.0, 0.05])), bool(trial % 5)
         row, T, measured, far = _kernels.match_recent(reference, age, points, T_guess, bound, angle, predict, 0.05)
-        row_ref, T_ref, measured_ref, far_ref = numpy_match_recent(reference, age, points, T_guess, bound, angle, predict)
+        row_ref, T_ref, measured_ref, far_ref = numpy_match_recent(
+            reference, age, points, T_guess, bound, angle, predict
+        )
         assert np.array_equal(row, row_ref) and measured == measured_ref and far == far_ref
         assert np.allclose(T, T_ref, atol=1e-12)
 
@@ -1050,7 +1109,9 @@ def test_anchor_kernels_equal_numpy() -> None:
         assert source.tobytes() == relative[anchors].tobytes() and target.tobytes() == expected_target.tobytes()
         assert weights.tobytes() == expected_weights.tobytes()
         ids = np.flatnonzero(s["pos_weight"] > 0)
-        positions, weights = _kernels.pose_anchors(s["pos_sum"], s["pos_weight"], s["pos_sq"], s["verified"], ids, 0.04, 0.5)
+        positions, weights = _kernels.pose_anchors(
+            s["pos_sum"], s["pos_weight"], s["pos_sq"], s["verified"], ids, 0.04, 0.5
+        )
         expected = 1.0 / (_kernels.gather_spread(s["pos_sum"], s["pos_weight"], s["pos_sq"], ids) ** 2 + 0.04)
         expected *= np.where(s["verified"][ids] >= 0, 1.0, 0.5)
         assert positions.tobytes() == _kernels.gather_positions(s["pos_sum"], s["pos_weight"], ids).tobytes()
@@ -1134,7 +1195,9 @@ def test_merge_check_kernels_equal_numpy() -> None:
         mapped = ids[s["alive"][ids] & (s["pos_weight"][ids] > 0) & ~s["dynamic"][ids]]
         flagged = np.flatnonzero(s["alive"] & s["dynamic"])
         at = world_sum[flagged] / np.maximum(n_obs[flagged], 1)[:, None]
-        d2 = np.sum((_kernels.gather_positions(s["pos_sum"], s["pos_weight"], mapped)[:, None, :] - at[None]) ** 2, axis=2)
+        d2 = np.sum(
+            (_kernels.gather_positions(s["pos_sum"], s["pos_weight"], mapped)[:, None, :] - at[None]) ** 2, axis=2
+        )
         expected = bool(np.any((d2 <= bound2) & (s["uid"][flagged][None, :] < s["uid"][mapped][:, None])))
         found = _kernels.flagged_within(
             world_sum, n_obs, s["alive"], s["dynamic"], s["uid"], 60, s["pos_sum"], s["pos_weight"], ids, bound2
@@ -1145,10 +1208,16 @@ def test_merge_check_kernels_equal_numpy() -> None:
         offsets = np.concatenate([[0], np.cumsum([len(c) for c in lists])]).astype(np.int64)
         near = []
         for p, c in zip(points, lists, strict=True):
-            d2 = np.sum((_kernels.gather_positions(s["pos_sum"], s["pos_weight"], c) - s["pos_sum"][p] / s["pos_weight"][p]) ** 2, axis=1)
+            d2 = np.sum(
+                (_kernels.gather_positions(s["pos_sum"], s["pos_weight"], c) - s["pos_sum"][p] / s["pos_weight"][p])
+                ** 2,
+                axis=1,
+            )
             near.append(np.any((c != p) & (s["uid"][c] < s["uid"][p]) & ((d2 <= bound2) | (s["pos_weight"][c] <= 0))))
         candidates = np.concatenate(lists).astype(np.int64)
-        assert _kernels.older_within(s["pos_sum"], s["pos_weight"], s["uid"], points, candidates, offsets, bound2) == any(near)
+        assert _kernels.older_within(
+            s["pos_sum"], s["pos_weight"], s["uid"], points, candidates, offsets, bound2
+        ) == any(near)
 
 
 def test_group_creation_kernels_equal_numpy() -> None:
@@ -1213,20 +1282,29 @@ def test_bookkeeping_kernels_equal_numpy() -> None:
         e_last[ids] = iteration
         e_n[ids] += 1
         _kernels.record_observations(obs, obs_iter, first_iter, last_iter, run_start, n_obs, ids, points, iteration)
-        assert all(np.array_equal(a, b) for a, b in zip((obs, obs_iter, first_iter, last_iter, run_start, n_obs), expected, strict=True))
+        assert all(
+            np.array_equal(a, b)
+            for a, b in zip((obs, obs_iter, first_iter, last_iter, run_start, n_obs), expected, strict=True)
+        )
         s = random_store_arrays(rng, c)
         listed = rng.permutation(c)[:25]
         done = ~s["alive"][listed] | (s["pos_weight"][listed] > 0) | s["dynamic"][listed]
         stale = s["alive"][listed] & ~done & (iteration - last_iter[listed] > 3)
         due = ~done & ~stale & (last_iter[listed] == iteration) & (iteration - run_start[listed] >= 2)
-        found = _kernels.creation_triage(listed, s["alive"], s["pos_weight"], s["dynamic"], last_iter, run_start, iteration, 3, 2)
-        assert all(np.array_equal(a, b) for a, b in zip(found, (listed[stale], listed[done | stale], listed[due]), strict=True))
+        found = _kernels.creation_triage(
+            listed, s["alive"], s["pos_weight"], s["dynamic"], last_iter, run_start, iteration, 3, 2
+        )
+        assert all(
+            np.array_equal(a, b) for a, b in zip(found, (listed[stale], listed[done | stale], listed[due]), strict=True)
+        )
         previous, current = np.unique(rng.integers(0, c, 12)), np.unique(rng.integers(0, c, 12))
         n_later, attempt = rng.integers(0, 2, c), rng.integers(-1, iteration + 1, c)
         live = previous[s["alive"][previous]]
         left = live[(last_iter[live] == iteration - 1) & (iteration - run_start[live] >= 2)]
         due = np.concatenate([left, current[iteration - run_start[current] + 1 >= 3]])
-        due = due[(n_later[due] == 0) & (s["pos_weight"][due] > 0) & ~s["dynamic"][due] & (iteration - attempt[due] >= 3)]
+        due = due[
+            (n_later[due] == 0) & (s["pos_weight"][due] > 0) & ~s["dynamic"][due] & (iteration - attempt[due] >= 3)
+        ]
         found = _kernels.regroup_due(
             previous, current, s["alive"], last_iter, run_start, n_later, s["pos_weight"], s["dynamic"], attempt,
             iteration, 2, 3,
@@ -1297,11 +1375,16 @@ def test_open_group_kernel_equals_numpy() -> None:
         if np.any(store.last_iter[members] != 5) or np.any(store.dynamic[members[list(basis)]]):
             outcome = _kernels.OPEN_GROUP_CLOSES
         else:
-            relative, valid = _kernels.basis_coordinates(np.ascontiguousarray(store.obs[members, 5 % 8][:, None]), *basis, 0.5)
+            relative, valid = _kernels.basis_coordinates(
+                np.ascontiguousarray(store.obs[members, 5 % 8][:, None]), *basis, 0.5
+            )
             outcome = _kernels.OPEN_GROUP_AVERAGED if valid[0] else _kernels.OPEN_GROUP_SKIPS
             if valid[0]:
                 expected += relative[:, 0]
-        assert _kernels.extend_open_group(store.obs, store.last_iter, store.dynamic, members, *basis, 5, 0.5, rel_sum) == outcome
+        assert (
+            _kernels.extend_open_group(store.obs, store.last_iter, store.dynamic, members, *basis, 5, 0.5, rel_sum)
+            == outcome
+        )
         assert rel_sum.tobytes() == expected.tobytes()
         outcomes.add(outcome)
     assert _kernels.OPEN_GROUP_CLOSES in outcomes and _kernels.OPEN_GROUP_AVERAGED in outcomes

@@ -950,7 +950,9 @@ def _prediction_shift(T_new: np.ndarray, T_before: np.ndarray, reference: np.nda
     """
     inverse_t = np.empty(3)
     for a in range(3):
-        inverse_t[a] = -(T_before[0, a] * T_before[0, 3] + T_before[1, a] * T_before[1, 3] + T_before[2, a] * T_before[2, 3])
+        inverse_t[a] = -(
+            T_before[0, a] * T_before[0, 3] + T_before[1, a] * T_before[1, 3] + T_before[2, a] * T_before[2, 3]
+        )
     trace = 0.0
     squared = 0.0
     for a in range(3):
@@ -966,7 +968,9 @@ def _prediction_shift(T_new: np.ndarray, T_before: np.ndarray, reference: np.nda
 
 
 @kernel("f8[:, ::1], f8[:, ::1], i8[::1], f8, f8")
-def _match_far(predicted: np.ndarray, points: np.ndarray, row: np.ndarray, match_bound: float, match_angle: float) -> int:
+def _match_far(
+    predicted: np.ndarray, points: np.ndarray, row: np.ndarray, match_bound: float, match_angle: float
+) -> int:
     """Second round of local matching, in place on ``row`` (N,): returns the number of new pairs.
 
     The points nobody matched (``row == -1``) and the references (R, 3, predicted into the current
@@ -1401,7 +1405,9 @@ def group_selection(
 
 
 @kernel("f8[:, ::1], i8[::1], i8[::1], f8")
-def basis_preferring_verified(points: np.ndarray, members: np.ndarray, verified: np.ndarray, min_spread: float) -> tuple[int, int, int]:
+def basis_preferring_verified(
+    points: np.ndarray, members: np.ndarray, verified: np.ndarray, min_spread: float
+) -> tuple[int, int, int]:
     """Basis rows of ``points`` (M, 3) by :func:`spread_basis`, among the members verified static when they allow one.
 
     ``members`` (M,) are the points' ids, ``verified`` the store's last verification per point (-1

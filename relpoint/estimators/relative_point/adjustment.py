@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.geometry import FloatArray, skew
+from relpoint.geometry import FloatArray, invert_pose, skew
 
 if TYPE_CHECKING:
     from scipy import sparse
@@ -60,6 +60,7 @@ class Adjustment:
     positions: (P, 3) adjusted point positions in ``world``, metres.
     cost_before, cost_after: the objective at the start and at the end.
     iterations: Levenberg-Marquardt iterations run (accepted or not).
+    converged: whether it stopped because the objective no longer fell, not at ``iterations``.
     """
 
     R_world_group: FloatArray
@@ -68,6 +69,7 @@ class Adjustment:
     cost_before: float
     cost_after: float
     iterations: int
+    converged: bool = False
 
 
 def _objective(residual: FloatArray, weight: FloatArray, robust: float, prior: float, shift: FloatArray) -> float:
@@ -179,6 +181,7 @@ def adjust_network(
     cost = cost_before = _objective(residual, weight, robust, prior, X - X0)
     damping = 1e-4
     done = 0
+    converged = False
     for done in range(1, iterations + 1):  # noqa: B007 - the count is reported
         # Cauchy loss by reweighting: rho'(e) / e = 1 / (1 + e^2 / c^2).
         omega = weight / (1.0 + np.einsum("ni,ni->n", residual, residual) / robust**2) if robust > 0 else weight
@@ -237,13 +240,20 @@ def adjust_network(
         else:
             damping *= 10.0
             if damping > 1e4:
+                converged = True  # no step lowers the objective: a minimum to numerical precision
                 break
-    return Adjustment(R, t, X, cost_before, cost, done)
+    return Adjustment(R, t, X, cost_before, cost, done, converged)
 
 
 def inconsistent_relocations(
-    before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_], seen: FloatArray, *, floor: float,
-    window: int = 5, factor: float = 4.0,
+    before: FloatArray,
+    after: FloatArray,
+    fitted: npt.NDArray[np.bool_],
+    seen: FloatArray,
+    *,
+    floor: float,
+    window: int = 5,
+    factor: float = 4.0,
 ) -> npt.NDArray[np.bool_]:
     """Iterations whose relocation disagrees with their neighbours' (K,) bool.
 
@@ -277,9 +287,7 @@ def inconsistent_relocations(
     return inconsistent
 
 
-def smooth_corrections(
-    before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_], window: int
-) -> FloatArray:
+def smooth_corrections(before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_], window: int) -> FloatArray:
     """Poses (K, 4, 4) whose corrections are the median of the fitted iterations' within ``window``.
 
     The correction of iteration ``k`` is a rotation ``R_after R_before^T`` about the sensor and a
@@ -307,3 +315,78 @@ def smooth_corrections(
         smoothed[row, :3, :3] = turn @ before[row, :3, :3]
         smoothed[row, :3, 3] = before[row, :3, 3] + np.median(displacement[lo:hi], axis=0)
     return smoothed
+
+
+def carry_corrections(before: FloatArray, after: FloatArray, fitted: npt.NDArray[np.bool_]) -> FloatArray:
+    """Poses (K, 4, 4): ``after`` where ``fitted``, elsewhere ``before`` moved by the correction
+    ``after @ inv(before)`` of the nearest fitted iteration before it (after it, for those before the
+    first). ``before`` and ``after`` are ``T_world_sensor``; all poses of ``after`` unchanged if none is fitted."""
+    fitted_rows = np.flatnonzero(fitted)
+    if len(fitted_rows) == 0:
+        return after.copy()
+    k = np.arange(len(before))
+    nearest = fitted_rows[np.clip(np.searchsorted(fitted_rows, k, side="right") - 1, 0, None)]
+    correction = after[nearest] @ invert_pose(before[nearest])
+    carried = correction @ before
+    carried[fitted_rows] = after[fitted_rows]
+    return carried
+
+
+def drifting_points(
+    point: IntArray, residual: FloatArray, n_points: int, *, block: int, probability: float, min_motion: float
+) -> BoolArray:
+    """Points whose residuals drift over their observations: moving points a run kept as static ones.
+
+    Parameters
+    ----------
+    point:
+        (N,) point row of each residual, the residuals of each point in time order.
+    residual:
+        (N, 3) each observation placed by its pose minus its point's position (``world``, metres).
+    n_points:
+        Number of points (rows ``0 .. n_points - 1``).
+    block:
+        Observations per block; points seen less than twice that are not judged.
+    probability:
+        Upper-tail probability of the test below which a point drifts.
+    min_motion:
+        Distance (in the point's own noises) that some block mean must lie from the point's mean.
+
+    Each point's residuals are cut into consecutive blocks (the last one takes the remainder) and
+    judged by a one-way analysis of variance: for a static point with white noise the
+    between-block mean square over the within-block mean square follows F(3 (b - 1), 3 (n - b)) for
+    ``n`` observations in ``b`` blocks, whatever its noise level, so points of every range and sensor
+    are judged alike. A point drifts when that is unlikely (``probability``) and the motion is large
+    enough to matter (``min_motion``): a static keypoint sliding by a noise as the viewpoint changes
+    is not a mover. Returns (n_points,) bool.
+    """
+    from scipy.stats import f as f_distribution  # here, not at import: scipy costs start-up time
+
+    order = np.argsort(point, kind="stable")
+    rows, r = point[order], residual[order]
+    count = np.bincount(rows, minlength=n_points)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    blocks = np.maximum(count // block, 1)
+    rank = np.arange(len(rows)) - start[rows]
+    label = start[rows] + np.minimum(rank // block, blocks[rows] - 1)  # unique per (point, block)
+    labels, member, members = np.unique(label, return_inverse=True, return_counts=True)
+    block_mean = np.zeros((len(labels), 3))
+    np.add.at(block_mean, member, r)
+    block_mean /= members[:, None]
+    block_point = np.empty(len(labels), np.int64)
+    block_point[member] = rows
+    point_mean = np.zeros((n_points, 3))
+    np.add.at(point_mean, rows, r)
+    point_mean /= np.maximum(count, 1)[:, None]
+    within = np.bincount(rows, np.sum((r - block_mean[member]) ** 2, axis=1), minlength=n_points)
+    offset = np.linalg.norm(block_mean - point_mean[block_point], axis=1)
+    between = np.bincount(block_point, members * offset**2, minlength=n_points)
+    farthest = np.zeros(n_points)
+    np.maximum.at(farthest, block_point, offset)
+    judged = blocks >= 2
+    d_between = np.maximum(3 * (blocks - 1), 1)
+    d_within = np.maximum(3 * (count - blocks), 1)
+    noise2 = within / d_within  # per-axis variance within blocks, m^2
+    ratio = (between / d_between) / np.maximum(noise2, 1e-300)
+    unlikely = f_distribution.sf(ratio, d_between, d_within) < probability
+    return judged & unlikely & (farthest >= min_motion * np.sqrt(noise2))

@@ -86,7 +86,11 @@ def gap_threshold(deviations: FloatArray, gap_ratio: float, noise_factor: float 
 
 
 def detect_dynamic(
-    observations: FloatArray, *, gap_ratio: float = 0.5, noise_factor: float = 1.6, min_static: int = 3,
+    observations: FloatArray,
+    *,
+    gap_ratio: float = 0.5,
+    noise_factor: float = 1.6,
+    min_static: int = 3,
     floor: float = 0.0,
 ) -> DynamicResult:
     """Find the points that do not move rigidly with the majority.

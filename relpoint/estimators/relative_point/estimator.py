@@ -156,8 +156,10 @@ class RelativePointEstimator(
         self._next_creation_try: dict[int, int] = {}
         self.adjustment_report: dict[str, Any] | None = None
         # Per iteration: uids and sensor-frame observations of mapped points, to locate it again
-        # after the final adjustment; and where merged points' uids went.
+        # after the final adjustment; all its observations, for the final bundle adjustment; and
+        # where merged points' uids went.
         self._support: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
+        self._observations: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
         self._merged_uid: dict[int, int] = {}
         self.counts: dict[str, int] = dict.fromkeys(
             (
@@ -166,7 +168,7 @@ class RelativePointEstimator(
                 "first_groups_retired", "groups_pruned", "merges", "dynamic_flagged", "dynamic_comparisons",
                 "dropped_points", "reabsorbed", "far_matches", "loop_closures", "dynamic_by_grouping",
                 "dynamic_by_binning", "dynamic_by_references", "dynamic_by_spread", "dynamic_by_world",
-                "dynamic_by_adjustment",
+                "dynamic_by_adjustment", "dynamic_by_bundle",
             ),
             0,
         )  # fmt: skip
@@ -192,6 +194,7 @@ class RelativePointEstimator(
             self.counts["degenerate_iterations"] += 1
             self.charting.chart(k, np.zeros(0, np.int64))
             self._support.append(None)
+            self._observations.append(None)
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)
 
         self._motion_measured = False
@@ -219,7 +222,6 @@ class RelativePointEstimator(
         self._housekeeping(k)
         self._refresh_index()
         return self._finish(k, observation.stamp_ns, T_world_sensor)
-
 
     def landmark_map(self) -> LandmarkMap:
         """Mapped points (static: least-squares global position) and points reported moving (mean position);
@@ -280,7 +282,6 @@ class RelativePointEstimator(
         }
 
     # -- the phases of one iteration -------------------------------------------------------------
-
 
     def _housekeeping(self, k: int) -> None:
         """Bounded upkeep: retire redundant first groups and thin points in too many groups."""

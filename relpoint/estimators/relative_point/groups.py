@@ -226,7 +226,9 @@ class GroupMap:
         """Give every row of the point store a group list."""
         extra = self.store.capacity - len(self._refs_count)
         if extra > 0:
-            self._refs_table = np.concatenate([self._refs_table, np.zeros((extra, self._refs_table.shape[1]), np.int64)])
+            self._refs_table = np.concatenate(
+                [self._refs_table, np.zeros((extra, self._refs_table.shape[1]), np.int64)]
+            )
             self._refs_count = np.concatenate([self._refs_count, np.zeros(extra, np.int64)])
 
     def _widen_refs(self) -> None:

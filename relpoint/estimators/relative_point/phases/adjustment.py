@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
-from relpoint.estimators.relative_point.adjustment import adjust_network, inconsistent_relocations, smooth_corrections
+from relpoint.estimators.relative_point.adjustment import (
+    Adjustment,
+    adjust_network,
+    carry_corrections,
+    drifting_points,
+    inconsistent_relocations,
+    smooth_corrections,
+)
 from relpoint.estimators.relative_point.dynamics import tail_bound
 from relpoint.estimators.relative_point.groups import ROOT
 from relpoint.estimators.relative_point.lsf import _median
@@ -28,6 +36,54 @@ ADJUSTMENT_TOLERANCE = 0.05
 
 #: Iterations on either side whose relocations set an iteration's correction after the final adjustment.
 RELOCATION_WINDOW = 10
+
+#: Cauchy scale of the bundle adjustment, in observation noises (per axis, measured as the median
+#: residual before it over ``CHI3_MEDIAN``): a static point's residual is about 1.5 noises, so it keeps
+#: about 80 % of its weight, while a mismatched or moving point the detection missed pulls with bounded
+#: force.
+BUNDLE_ROBUST_SIGMAS = 3.0
+
+#: Median length of a 3-D residual with unit noise per axis (the chi distribution with 3 degrees of freedom).
+CHI3_MEDIAN = 1.5382
+
+#: Most iterations the bundle adjustment solves; a longer log solves every ``stride``-th (its keyframes)
+#: and the others take the nearest keyframe's correction.
+BUNDLE_MAX_POSES = 400
+
+#: A point whose bundle-adjustment residuals drift over time (:func:`.adjustment.drifting_points`) is a
+#: mover kept as a static point: judged over blocks of this many observations, flagged when a static
+#: point would drift so much with this probability or less and some block mean lies this many of its
+#: noises from its mean (0 probability: not judged).
+BUNDLE_DRIFT_BLOCK = 8
+BUNDLE_DRIFT_PROBABILITY = 1e-3
+BUNDLE_DRIFT_MOTION = 1.0
+
+#: Observations an iteration needs in the bundle adjustment (fewer leave its pose undetermined; it then
+#: takes the correction of its neighbours).
+BUNDLE_MIN_OBSERVATIONS = 3
+
+
+class _Bundle(NamedTuple):
+    """One bundle adjustment: its solution, the iterations and point rows it solved, and each of its
+    observations' index into them with the observation itself (sensor frame, m)."""
+
+    result: Adjustment
+    poses: IntArray
+    points: IntArray
+    pose_row: IntArray
+    point_row: IntArray
+    observed: FloatArray
+
+
+def _lookup(row_of: dict[int, int], uids: IntArray) -> IntArray:
+    """The rows (N,) of ``uids`` in ``row_of`` (uid -> row), -1 where absent."""
+    known = np.fromiter(row_of.keys(), np.int64, len(row_of))
+    rows = np.fromiter(row_of.values(), np.int64, len(row_of))
+    order = np.argsort(known)
+    known, rows = known[order], rows[order]
+    slot = np.clip(np.searchsorted(known, uids), 0, max(len(known) - 1, 0))
+    found = known[slot] == uids if len(known) else np.zeros(len(uids), bool)
+    return np.where(found, rows[slot] if len(rows) else -1, -1)
 
 
 class FinalAdjustment(EstimatorState):
@@ -107,6 +163,9 @@ class FinalAdjustment(EstimatorState):
         T_after[0] = T_before[0]  # the first iteration defines ``world``
         self.adjustment_report["relocated_iterations"] = int(np.count_nonzero(fitted))
         self.adjustment_report["relocations_rejected"] = int(np.count_nonzero(outliers))
+        network_positions = self.store.pos_sum.copy()
+        if self.config.bundle_adjustment:
+            T_after = self._bundle_adjust(T_after, row_of)
         residual_after = self._support_residual(T_after)
         report = self.adjustment_report
         report["support_residual_before"] = round(residual_before, 4)
@@ -114,6 +173,7 @@ class FinalAdjustment(EstimatorState):
         if residual_after > (1.0 + ADJUSTMENT_TOLERANCE) * residual_before:
             # The adjusted map explains the log's own observations worse than the incremental one:
             # keep the incremental map and trajectory (the points flagged dynamic stay flagged).
+            self.store.pos_sum[:] = network_positions  # the groups' contributions, before the bundle's
             for group, T_world_group in incremental_poses:
                 self.groups.move(group, T_world_group)
             self._refresh_index()
@@ -129,9 +189,122 @@ class FinalAdjustment(EstimatorState):
         orientation = Rotation.from_matrix(T_after[:, :3, :3]).as_quat(canonical=True)
         return Trajectory(trajectory.stamps_ns, T_after[:, :3, 3], orientation)
 
-    def _supported_points(
-        self, row_of: dict[int, int]
-    ) -> Iterator[tuple[int, npt.NDArray[np.float32], IntArray]]:
+    def _bundle_adjust(self, T_world_sensor: FloatArray, row_of: dict[int, int]) -> FloatArray:
+        """Solve every iteration's pose and every static point's position jointly from the log's observations.
+
+        The network adjustment solves the relative maps, each an average over its interval, and the
+        relocation fits each iteration's pose to that map alone; neither is the least-squares
+        solution of the observations themselves. This is: over every observation ``z`` (sensor
+        frame, m) of a static mapped point ``X`` (``world``, m) by an iteration's pose
+        ``T_world_sensor = (R, t)``, it minimises the Cauchy-robust sum of ``|R z + t - X|^2`` with
+        :func:`.adjustment.adjust_network` (each iteration a "group" whose relative map is its own
+        observations, weight one each), starting from ``T_world_sensor`` (K, 4, 4) and the adjusted
+        map. The first iteration stays where it is: it defines ``world``. An iteration with fewer than
+        ``BUNDLE_MIN_OBSERVATIONS`` usable observations takes the correction of the nearest solved one
+        (:func:`carry_corrections`). The points take their solved positions in the store. Returns
+        the poses (K, 4, 4).
+        """
+        store = self.store
+        entries = [(k, entry) for k, entry in enumerate(self._observations) if entry is not None]
+        if not entries:
+            return T_world_sensor
+        iteration = np.concatenate([np.full(len(uids), k) for k, (uids, _) in entries])
+        uids = np.concatenate([uids for _, (uids, _) in entries])
+        observed = np.concatenate([points for _, (_, points) in entries]).astype(np.float64)
+        row = _lookup(row_of, uids)
+        usable = row >= 0
+        usable[usable] = (store.pos_weight[row[usable]] > 0) & ~store.dynamic[row[usable]]
+        counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
+        usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+        stride = -(-np.count_nonzero(counts >= BUNDLE_MIN_OBSERVATIONS) // BUNDLE_MAX_POSES)
+        usable &= iteration % max(stride, 1) == 0
+        if not usable.any():
+            return T_world_sensor
+        # The noise from the data: a 3-D Gaussian residual's median length is 1.54 per-axis noises.
+        placed = (
+            np.einsum("nij,nj->ni", T_world_sensor[iteration[usable], :3, :3], observed[usable])
+            + T_world_sensor[iteration[usable], :3, 3]
+        )
+        sigma = float(np.median(np.linalg.norm(placed - store.positions(row[usable]), axis=1))) / CHI3_MEDIAN
+        bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
+        drifting = np.zeros(0, np.int64)
+        if BUNDLE_DRIFT_PROBABILITY > 0 and bundle.result.converged:
+            # An unconverged solution's residuals still carry its error: they are not judged.
+            drifting = self._drifting(bundle)
+            if len(drifting):
+                self._flag_dynamic(drifting, "bundle")
+                usable &= ~np.isin(row, drifting)
+                counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
+                usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+                bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
+        result, poses, points = bundle.result, bundle.poses, bundle.points
+        solved = T_world_sensor.copy()
+        solved[poses, :3, :3] = result.R_world_group
+        solved[poses, :3, 3] = result.t_world_group
+        fitted = np.zeros(len(T_world_sensor), bool)
+        fitted[poses] = True
+        store.pos_sum[points] = result.positions * store.pos_weight[points, None]
+        self._refresh_index()
+        assert self.adjustment_report is not None
+        self.adjustment_report["bundle"] = {
+            "iterations_solved": len(poses),
+            "points": len(points),
+            "observations": len(bundle.pose_row),
+            "dynamic_flagged": len(drifting),
+            "steps": result.iterations,
+            "cost_before": round(result.cost_before, 3),
+            "cost_after": round(result.cost_after, 3),
+        }
+        return carry_corrections(T_world_sensor, solved, fitted)
+
+    def _bundle_solve(
+        self,
+        T_world_sensor: FloatArray,
+        iteration: IntArray,
+        row: IntArray,
+        observed: FloatArray,
+        usable: npt.NDArray[np.bool_],
+        sigma: float,
+    ) -> _Bundle:
+        """One bundle adjustment over the ``usable`` observations (``observed`` (N, 3), sensor frame, m,
+        of point ``row`` at ``iteration``), starting from ``T_world_sensor`` and the store's positions."""
+        poses, pose_row = np.unique(iteration[usable], return_inverse=True)
+        points, point_row = np.unique(row[usable], return_inverse=True)
+        result = adjust_network(
+            pose_row,
+            point_row,
+            observed[usable],
+            np.ones(len(pose_row)),
+            T_world_sensor[poses, :3, :3],
+            T_world_sensor[poses, :3, 3],
+            self.store.positions(points),
+            poses == 0,
+            prior=self.config.adjustment_prior,
+            robust=BUNDLE_ROBUST_SIGMAS * sigma,
+            iterations=self.config.adjustment_iterations,
+        )
+        return _Bundle(result, poses, points, pose_row, point_row, observed[usable])
+
+    @staticmethod
+    def _drifting(bundle: _Bundle) -> IntArray:
+        """Store rows of the solved points whose residuals drift over time (:func:`.adjustment.drifting_points`)."""
+        result, pose_row, point_row = bundle.result, bundle.pose_row, bundle.point_row
+        residual = (
+            np.einsum("nij,nj->ni", result.R_world_group[pose_row], bundle.observed)
+            + result.t_world_group[pose_row]
+            - result.positions[point_row]
+        )
+        drifting = drifting_points(
+            point_row,
+            residual,
+            len(bundle.points),
+            block=BUNDLE_DRIFT_BLOCK,
+            probability=BUNDLE_DRIFT_PROBABILITY,
+            min_motion=BUNDLE_DRIFT_MOTION,
+        )
+        return bundle.points[drifting]
+
+    def _supported_points(self, row_of: dict[int, int]) -> Iterator[tuple[int, npt.NDArray[np.float32], IntArray]]:
         """Per iteration that kept observations: ``(k, observed, rows)``, its kept sensor-frame
         observations (M, 3) of static mapped points and their rows in the point store (``row_of``:
         uid -> row)."""
@@ -183,7 +356,10 @@ class FinalAdjustment(EstimatorState):
         return flagged
 
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
-        """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not located)."""
+        """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not
+        located), and, for the bundle adjustment, all of them."""
+        if self.config.final_adjustment and self.config.bundle_adjustment:
+            self._observations.append((self.store.uid[ids], points.astype(np.float32)))
         if not self.config.final_adjustment or mapped is None or k == 0:
             # The first iteration defines ``world``; a coasted one had no usable fit.
             self._support.append(None)

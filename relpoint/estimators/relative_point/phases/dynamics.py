@@ -62,7 +62,9 @@ class DynamicSweep(EstimatorState):
         beyond = self._beyond_bulk(observations, result.static, result.threshold)
         return members[~result.static], beyond, members[result.static]
 
-    def _beyond_bulk(self, observations: FloatArray, static: npt.NDArray[np.bool_], threshold: float) -> npt.NDArray[np.bool_]:
+    def _beyond_bulk(
+        self, observations: FloatArray, static: npt.NDArray[np.bool_], threshold: float
+    ) -> npt.NDArray[np.bool_]:
         """Which points outside the binning's static majority stand out of the bulk (one per such point).
 
         Every point's distance deviation (m) against up to ``dynamic_references`` members of the
@@ -127,8 +129,9 @@ class DynamicSweep(EstimatorState):
             tracks, _ = store.observations(full, np.arange(k - length + 1, k + 1))
             # A short window estimates each deviation from few iterations: a wider noise margin.
             margin = 1.6 if length == window else 1.6 * math.sqrt(window / length)
-            result = detect_dynamic(tracks, gap_ratio=config.dynamic_gap_ratio, noise_factor=margin,
-                                    floor=self._pair_noise(1))
+            result = detect_dynamic(
+                tracks, gap_ratio=config.dynamic_gap_ratio, noise_factor=margin, floor=self._pair_noise(1)
+            )
             self.counts["dynamic_comparisons"] += result.comparisons
             if result.decided:
                 # A short window shows fast movers, but it is too short to vouch for the rest.

@@ -61,7 +61,11 @@ class LoopClosing(EstimatorState):
         old, old_positions = old[near], old_positions[near]
         tolerance = 0.5 * config.global_match_bound
         offset = vote_offset(
-            young, old_positions, radius=config.loop_search, tolerance=tolerance, support=config.loop_support,
+            young,
+            old_positions,
+            radius=config.loop_search,
+            tolerance=tolerance,
+            support=config.loop_support,
             ambiguity=config.loop_ambiguity,
         )
         if offset is None or float(np.linalg.norm(offset)) <= tolerance:  # within reach of global matching
