@@ -13,8 +13,8 @@ from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import (
     adjust_network,
     carry_corrections,
-    drifting_points,
     inconsistent_relocations,
+    residual_drift,
     smooth_corrections,
 )
 from relpoint.estimators.relative_point.charting import PointCharting
@@ -338,14 +338,19 @@ def test_drifting_residuals_are_told_from_static_noise_at_any_noise_level(noise:
     span[n_static + n_moving :] = 0.5
     residual += (span * level)[point, None] * ramp[:, None] * direction[point]
     by_time = np.argsort(np.tile(np.arange(n_obs), n_points), kind="stable")  # interleaved, as iterations deliver them
-    drifting = drifting_points(point[by_time], residual[by_time], n_points, block=8, probability=1e-3, min_motion=1.0)
+    probability, motion = residual_drift(point[by_time], residual[by_time], n_points, block=8)
+    drifting = (probability < 1e-3) & (motion >= 1.0)
     assert drifting[n_static : n_static + n_moving].all()
     assert np.count_nonzero(drifting[:n_static]) <= 2  # 0.3 expected at 1e-3
     assert not drifting[n_static + n_moving :].any()
-    # Seen fewer than two blocks' worth: not judged.
-    few = np.repeat(np.arange(3), 10)
-    assert not drifting_points(few, rng.normal(size=(30, 3)) + np.repeat([[0, 0, 0], [9, 9, 9], [0, 0, 0]], 10, axis=0), 3,
-                               block=8, probability=1e-3, min_motion=1.0).any()  # fmt: skip
+    # A static point's probability is uniform: about 5 % of them fall below 0.05.
+    assert 0.02 < np.mean(probability[:n_static] < 0.05) < 0.09
+    # Seen fewer than six times: not judged. Six times, moving 8 noises between its halves: drifting.
+    few = np.repeat(np.arange(2), [5, 6])
+    jump = rng.normal(size=(11, 3))
+    jump[8:] += 8.0
+    probability, motion = residual_drift(few, jump, 2, block=8)
+    assert probability[0] == 1.0 and probability[1] < 1e-3 and motion[1] > 1.0
 
 
 def test_dynamic_threshold_never_falls_below_the_noise_floor() -> None:

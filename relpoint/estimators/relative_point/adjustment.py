@@ -332,10 +332,10 @@ def carry_corrections(before: FloatArray, after: FloatArray, fitted: npt.NDArray
     return carried
 
 
-def drifting_points(
-    point: IntArray, residual: FloatArray, n_points: int, *, block: int, probability: float, min_motion: float
-) -> BoolArray:
-    """Points whose residuals drift over their observations: moving points a run kept as static ones.
+def residual_drift(
+    point: IntArray, residual: FloatArray, n_points: int, *, block: int
+) -> tuple[FloatArray, FloatArray]:
+    """How far each point's residuals drift over its observations, and how unlikely that is if it is static.
 
     Parameters
     ----------
@@ -346,19 +346,22 @@ def drifting_points(
     n_points:
         Number of points (rows ``0 .. n_points - 1``).
     block:
-        Observations per block; points seen less than twice that are not judged.
-    probability:
-        Upper-tail probability of the test below which a point drifts.
-    min_motion:
-        Distance (in the point's own noises) that some block mean must lie from the point's mean.
+        Observations per block; a point seen less than twice that many times is cut into two blocks.
 
     Each point's residuals are cut into consecutive blocks (the last one takes the remainder) and
     judged by a one-way analysis of variance: for a static point with white noise the
     between-block mean square over the within-block mean square follows F(3 (b - 1), 3 (n - b)) for
     ``n`` observations in ``b`` blocks, whatever its noise level, so points of every range and sensor
-    are judged alike. A point drifts when that is unlikely (``probability``) and the motion is large
-    enough to matter (``min_motion``): a static keypoint sliding by a noise as the viewpoint changes
-    is not a mover. Returns (n_points,) bool.
+    are judged alike.
+
+    Returns
+    -------
+    probability:
+        (n_points,) the F distribution's upper-tail probability of the point's ratio (small: it
+        drifts); 1 for a point seen fewer than six times (not judged).
+    motion:
+        (n_points,) the largest distance of a block mean from the point's mean, in the point's own
+        noises (per axis, within blocks).
     """
     from scipy.stats import f as f_distribution  # here, not at import: scipy costs start-up time
 
@@ -366,9 +369,10 @@ def drifting_points(
     rows, r = point[order], residual[order]
     count = np.bincount(rows, minlength=n_points)
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    blocks = np.maximum(count // block, 1)
+    size = np.clip(count // 2, 1, block)
+    blocks = np.maximum(count // size, 1)
     rank = np.arange(len(rows)) - start[rows]
-    label = start[rows] + np.minimum(rank // block, blocks[rows] - 1)  # unique per (point, block)
+    label = start[rows] + np.minimum(rank // size[rows], blocks[rows] - 1)  # unique per (point, block)
     labels, member, members = np.unique(label, return_inverse=True, return_counts=True)
     block_mean = np.zeros((len(labels), 3))
     np.add.at(block_mean, member, r)
@@ -383,10 +387,8 @@ def drifting_points(
     between = np.bincount(block_point, members * offset**2, minlength=n_points)
     farthest = np.zeros(n_points)
     np.maximum.at(farthest, block_point, offset)
-    judged = blocks >= 2
     d_between = np.maximum(3 * (blocks - 1), 1)
     d_within = np.maximum(3 * (count - blocks), 1)
-    noise2 = within / d_within  # per-axis variance within blocks, m^2
-    ratio = (between / d_between) / np.maximum(noise2, 1e-300)
-    unlikely = f_distribution.sf(ratio, d_between, d_within) < probability
-    return judged & unlikely & (farthest >= min_motion * np.sqrt(noise2))
+    noise = np.sqrt(np.maximum(within / d_within, 1e-300))  # per axis, within blocks, m
+    probability = f_distribution.sf((between / d_between) / noise**2, d_between, d_within)
+    return np.where(count >= 6, probability, 1.0), farthest / noise

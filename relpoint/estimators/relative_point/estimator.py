@@ -168,7 +168,7 @@ class RelativePointEstimator(
                 "first_groups_retired", "groups_pruned", "merges", "dynamic_flagged", "dynamic_comparisons",
                 "dropped_points", "reabsorbed", "far_matches", "loop_closures", "dynamic_by_grouping",
                 "dynamic_by_binning", "dynamic_by_references", "dynamic_by_spread", "dynamic_by_world",
-                "dynamic_by_adjustment", "dynamic_by_bundle",
+                "dynamic_by_adjustment", "dynamic_by_bundle", "dynamic_released",
             ),
             0,
         )  # fmt: skip

@@ -14,8 +14,8 @@ from relpoint.estimators.relative_point.adjustment import (
     Adjustment,
     adjust_network,
     carry_corrections,
-    drifting_points,
     inconsistent_relocations,
+    residual_drift,
     smooth_corrections,
 )
 from relpoint.estimators.relative_point.dynamics import tail_bound
@@ -50,13 +50,15 @@ CHI3_MEDIAN = 1.5382
 #: and the others take the nearest keyframe's correction.
 BUNDLE_MAX_POSES = 400
 
-#: A point whose bundle-adjustment residuals drift over time (:func:`.adjustment.drifting_points`) is a
+#: A point whose bundle-adjustment residuals drift over time (:func:`.adjustment.residual_drift`) is a
 #: mover kept as a static point: judged over blocks of this many observations, flagged when a static
 #: point would drift so much with this probability or less and some block mean lies this many of its
-#: noises from its mean (0 probability: not judged).
+#: noises from its mean (0 probability: not judged). A point flagged dynamic is static again when
+#: its drift is more likely than ``BUNDLE_RELEASE_PROBABILITY``: no sign of motion at all.
 BUNDLE_DRIFT_BLOCK = 8
 BUNDLE_DRIFT_PROBABILITY = 1e-3
 BUNDLE_DRIFT_MOTION = 1.0
+BUNDLE_RELEASE_PROBABILITY = 0.05
 
 #: Observations an iteration needs in the bundle adjustment (fewer leave its pose undetermined; it then
 #: takes the correction of its neighbours).
@@ -227,13 +229,39 @@ class FinalAdjustment(EstimatorState):
         )
         sigma = float(np.median(np.linalg.norm(placed - store.positions(row[usable]), axis=1))) / CHI3_MEDIAN
         bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
-        drifting = np.zeros(0, np.int64)
-        if BUNDLE_DRIFT_PROBABILITY > 0 and bundle.result.converged:
-            # An unconverged solution's residuals still carry its error: they are not judged.
-            drifting = self._drifting(bundle)
+        drifting = released = np.zeros(0, np.int64)
+        if BUNDLE_DRIFT_PROBABILITY > 0:
+            # Points flagged dynamic with enough observations are judged in a solve that takes them
+            # in: a static point flagged while movers outnumbered the static points around it, or
+            # displaced by drift when seen again after a loop, is released if its residuals do not
+            # drift (an unconverged solve leaves larger residuals: it releases fewer).
+            flagged = (row >= 0) & (iteration % max(stride, 1) == 0)
+            flagged[flagged] = (store.pos_weight[row[flagged]] > 0) & store.dynamic[row[flagged]]
+            candidates = np.flatnonzero(np.bincount(row[flagged], minlength=1) >= 2 * BUNDLE_DRIFT_BLOCK)
+            if len(candidates):
+                trial = usable | np.isin(row, candidates)
+                trial_counts = np.bincount(iteration[trial], minlength=len(T_world_sensor))
+                trial &= trial_counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+                judged = self._bundle_solve(T_world_sensor, iteration, row, observed, trial, sigma)
+                probability, _ = self._drift(judged)
+                released = judged.points[
+                    (probability > BUNDLE_RELEASE_PROBABILITY) & np.isin(judged.points, candidates)
+                ]
+                if len(released):
+                    store.dynamic[released] = False
+                    store.moving[released] = False
+                    self.counts["dynamic_flagged"] -= len(released)
+                    self.counts["dynamic_released"] += len(released)
+                    usable |= np.isin(row, released) & trial
+            if bundle.result.converged:
+                # An unconverged solution's residuals still carry its error: static points are
+                # flagged only from a converged one.
+                probability, motion = self._drift(bundle)
+                drifting = bundle.points[(probability < BUNDLE_DRIFT_PROBABILITY) & (motion >= BUNDLE_DRIFT_MOTION)]
             if len(drifting):
                 self._flag_dynamic(drifting, "bundle")
                 usable &= ~np.isin(row, drifting)
+            if len(drifting) or len(released):
                 counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
                 usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
                 bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
@@ -251,6 +279,7 @@ class FinalAdjustment(EstimatorState):
             "points": len(points),
             "observations": len(bundle.pose_row),
             "dynamic_flagged": len(drifting),
+            "dynamic_released": len(released),
             "steps": result.iterations,
             "cost_before": round(result.cost_before, 3),
             "cost_after": round(result.cost_after, 3),
@@ -286,23 +315,15 @@ class FinalAdjustment(EstimatorState):
         return _Bundle(result, poses, points, pose_row, point_row, observed[usable])
 
     @staticmethod
-    def _drifting(bundle: _Bundle) -> IntArray:
-        """Store rows of the solved points whose residuals drift over time (:func:`.adjustment.drifting_points`)."""
+    def _drift(bundle: _Bundle) -> tuple[FloatArray, FloatArray]:
+        """:func:`.adjustment.residual_drift` of the solved points (in ``bundle.points`` order)."""
         result, pose_row, point_row = bundle.result, bundle.pose_row, bundle.point_row
         residual = (
             np.einsum("nij,nj->ni", result.R_world_group[pose_row], bundle.observed)
             + result.t_world_group[pose_row]
             - result.positions[point_row]
         )
-        drifting = drifting_points(
-            point_row,
-            residual,
-            len(bundle.points),
-            block=BUNDLE_DRIFT_BLOCK,
-            probability=BUNDLE_DRIFT_PROBABILITY,
-            min_motion=BUNDLE_DRIFT_MOTION,
-        )
-        return bundle.points[drifting]
+        return residual_drift(point_row, residual, len(bundle.points), block=BUNDLE_DRIFT_BLOCK)
 
     def _supported_points(self, row_of: dict[int, int]) -> Iterator[tuple[int, npt.NDArray[np.float32], IntArray]]:
         """Per iteration that kept observations: ``(k, observed, rows)``, its kept sensor-frame
