@@ -156,10 +156,11 @@ class RelativePointEstimator(
         self._next_creation_try: dict[int, int] = {}
         self.adjustment_report: dict[str, Any] | None = None
         # Per iteration: uids and sensor-frame observations of mapped points, to locate it again
-        # after the final adjustment; all its observations, for the final bundle adjustment; and
-        # where merged points' uids went.
+        # after the final adjustment; every observation of the bundle adjustment's keyframes (every
+        # ``_keyframe_stride``-th iteration); and where merged points' uids went.
         self._support: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
-        self._observations: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
+        self._observations: dict[int, tuple[IntArray, npt.NDArray[np.float32]]] = {}
+        self._keyframe_stride = 1
         self._merged_uid: dict[int, int] = {}
         self.counts: dict[str, int] = dict.fromkeys(
             (
@@ -194,7 +195,6 @@ class RelativePointEstimator(
             self.counts["degenerate_iterations"] += 1
             self.charting.chart(k, np.zeros(0, np.int64))
             self._support.append(None)
-            self._observations.append(None)
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)
 
         self._motion_measured = False

@@ -63,5 +63,6 @@ class EstimatorState:
     _newly_mapped: list[IntArray]
     _next_creation_try: dict[int, int]
     _support: list[tuple[IntArray, npt.NDArray[np.float32]] | None]
-    _observations: list[tuple[IntArray, npt.NDArray[np.float32]] | None]
+    _observations: dict[int, tuple[IntArray, npt.NDArray[np.float32]]]
+    _keyframe_stride: int
     _merged_uid: dict[int, int]

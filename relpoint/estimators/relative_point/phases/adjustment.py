@@ -46,9 +46,9 @@ BUNDLE_ROBUST_SIGMAS = 3.0
 #: Median length of a 3-D residual with unit noise per axis (the chi distribution with 3 degrees of freedom).
 CHI3_MEDIAN = 1.5382
 
-#: Most iterations the bundle adjustment solves; a longer log solves every ``stride``-th (its keyframes)
-#: and the others take the nearest keyframe's correction.
-BUNDLE_MAX_POSES = 400
+#: Most iterations the bundle adjustment keeps and solves (its keyframes); a longer log keeps every
+#: ``2^j``-th, between half and all of this many, and the others take the nearest keyframe's correction.
+BUNDLE_MAX_POSES = 800
 
 #: A point whose bundle-adjustment residuals drift over time (:func:`.adjustment.residual_drift`) is a
 #: mover kept as a static point: judged over blocks of this many observations, flagged when a static
@@ -201,13 +201,14 @@ class FinalAdjustment(EstimatorState):
         ``T_world_sensor = (R, t)``, it minimises the Cauchy-robust sum of ``|R z + t - X|^2`` with
         :func:`.adjustment.adjust_network` (each iteration a "group" whose relative map is its own
         observations, weight one each), starting from ``T_world_sensor`` (K, 4, 4) and the adjusted
-        map. The first iteration stays where it is: it defines ``world``. An iteration with fewer than
-        ``BUNDLE_MIN_OBSERVATIONS`` usable observations takes the correction of the nearest solved one
+        map. The first iteration stays where it is: it defines ``world``. Only the keyframes are solved
+        (every iteration up to ``BUNDLE_MAX_POSES``); the other iterations, and those with fewer than
+        ``BUNDLE_MIN_OBSERVATIONS`` usable observations, take the correction of the nearest solved one
         (:func:`carry_corrections`). The points take their solved positions in the store. Returns
         the poses (K, 4, 4).
         """
         store = self.store
-        entries = [(k, entry) for k, entry in enumerate(self._observations) if entry is not None]
+        entries = sorted(self._observations.items())
         if not entries:
             return T_world_sensor
         iteration = np.concatenate([np.full(len(uids), k) for k, (uids, _) in entries])
@@ -218,8 +219,6 @@ class FinalAdjustment(EstimatorState):
         usable[usable] = (store.pos_weight[row[usable]] > 0) & ~store.dynamic[row[usable]]
         counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
         usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
-        stride = -(-np.count_nonzero(counts >= BUNDLE_MIN_OBSERVATIONS) // BUNDLE_MAX_POSES)
-        usable &= iteration % max(stride, 1) == 0
         if not usable.any():
             return T_world_sensor
         # The noise from the data: a 3-D Gaussian residual's median length is 1.54 per-axis noises.
@@ -235,7 +234,7 @@ class FinalAdjustment(EstimatorState):
             # in: a static point flagged while movers outnumbered the static points around it, or
             # displaced by drift when seen again after a loop, is released if its residuals do not
             # drift (an unconverged solve leaves larger residuals: it releases fewer).
-            flagged = (row >= 0) & (iteration % max(stride, 1) == 0)
+            flagged = row >= 0
             flagged[flagged] = (store.pos_weight[row[flagged]] > 0) & store.dynamic[row[flagged]]
             candidates = np.flatnonzero(np.bincount(row[flagged], minlength=1) >= 2 * BUNDLE_DRIFT_BLOCK)
             if len(candidates):
@@ -379,8 +378,14 @@ class FinalAdjustment(EstimatorState):
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
         """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not
         located), and, for the bundle adjustment, all of them."""
-        if self.config.final_adjustment and self.config.bundle_adjustment:
-            self._observations.append((self.store.uid[ids], points.astype(np.float32)))
+        if self.config.final_adjustment and self.config.bundle_adjustment and k % self._keyframe_stride == 0:
+            self._observations[k] = (self.store.uid[ids], points.astype(np.float32))
+            if len(self._observations) > BUNDLE_MAX_POSES:
+                # Memory and the solve follow the keyframes, not the log: every other one goes.
+                self._keyframe_stride *= 2
+                self._observations = {
+                    i: kept for i, kept in self._observations.items() if i % self._keyframe_stride == 0
+                }
         if not self.config.final_adjustment or mapped is None or k == 0:
             # The first iteration defines ``world``; a coasted one had no usable fit.
             self._support.append(None)
