@@ -130,7 +130,7 @@ def test_dynamic_points_are_flagged_and_kept_out_of_the_static_map() -> None:
     assert summary["landmarks_dynamic"] == np.count_nonzero(flagged)
     # Every flag is counted under the test that raised it.
     witnesses = [key for key in summary if key.startswith("dynamic_by_")]
-    assert len(witnesses) == 6 and sum(summary[key] for key in witnesses) == summary["dynamic_flagged"] > 0
+    assert len(witnesses) == 7 and sum(summary[key] for key in witnesses) == summary["dynamic_flagged"] > 0
 
 
 def test_points_flagged_within_the_bulk_are_left_out_not_reported_moving() -> None:
@@ -350,10 +350,15 @@ def test_final_adjustment_lowers_map_and_trajectory_error() -> None:
     # Moving points the detection missed stand out once the groups sit where the whole network puts
     # them: flagged here, reported dynamic where they stand out of the bulk and left out otherwise,
     # and the ones reported are moving (measured: 12 flagged, 5 of them reported, all moving).
+    # The bundle adjustment after it may flag more (drifting residuals) and release some (none).
     landmarks = estimator.landmark_map()
     newly = landmarks.dynamic & ~np.isin(landmarks.gt_id, list(flagged_before))
-    left_out = estimator.summary()["landmarks_unreliable"] - unreliable_before
-    assert report["dynamic_flagged"] == np.count_nonzero(newly) + left_out >= 8
+    after = estimator.summary()
+    bundle = report["bundle"]
+    assert report["dynamic_flagged"] >= 8
+    assert (after["landmarks_dynamic"] + after["landmarks_unreliable"]) - (
+        np.count_nonzero(before.dynamic) + unreliable_before
+    ) == report["dynamic_flagged"] + bundle["dynamic_flagged"] - bundle["dynamic_released"]
     assert np.count_nonzero(newly) >= 3
     assert np.mean(simulation.landmarks.dynamic[landmarks.gt_id[newly]]) >= 0.9
     assert report["relocated_iterations"] >= 0.97 * len(poses)

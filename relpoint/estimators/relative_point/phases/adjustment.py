@@ -249,7 +249,6 @@ class FinalAdjustment(EstimatorState):
                 if len(released):
                     store.dynamic[released] = False
                     store.moving[released] = False
-                    self.counts["dynamic_flagged"] -= len(released)
                     self.counts["dynamic_released"] += len(released)
                     usable |= np.isin(row, released) & trial
             if bundle.result.converged:
