@@ -88,6 +88,25 @@ def _lookup(row_of: dict[int, int], uids: IntArray) -> IntArray:
     return np.where(found, rows[slot] if len(rows) else -1, -1)
 
 
+def _all_positions(pos_sum: FloatArray, pos_weight: FloatArray) -> FloatArray:
+    """Every store row's global position (rows, 3), ``world``, m (meaningless where unmapped)."""
+    return pos_sum / np.maximum(pos_weight, 1e-300)[:, None]
+
+
+def _solution(T_base: FloatArray, positions: FloatArray, bundle: _Bundle) -> tuple[FloatArray, FloatArray]:
+    """Poses (K, 4, 4) and positions (rows, 3) after ``bundle``: its solved keyframes and points; the
+    other iterations moved by the nearest keyframe's correction of ``T_base``, the other points as in
+    ``positions``."""
+    solved = T_base.copy()
+    solved[bundle.poses, :3, :3] = bundle.result.R_world_group
+    solved[bundle.poses, :3, 3] = bundle.result.t_world_group
+    fitted = np.zeros(len(T_base), bool)
+    fitted[bundle.poses] = True
+    moved = positions.copy()
+    moved[bundle.points] = bundle.result.positions
+    return carry_corrections(T_base, solved, fitted), moved
+
+
 class FinalAdjustment(EstimatorState):
     """The final adjustment when the log ends: the whole network solved jointly, every iteration located
     again on it, and kept only where it does not place the observations worse.
@@ -227,7 +246,10 @@ class FinalAdjustment(EstimatorState):
             + T_world_sensor[iteration[usable], :3, 3]
         )
         sigma = float(np.median(np.linalg.norm(placed - store.positions(row[usable]), axis=1))) / CHI3_MEDIAN
-        bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
+        positions = _all_positions(store.pos_sum, store.pos_weight)
+        bundle = self._bundle_solve(T_world_sensor, positions, iteration, row, observed, usable, sigma)
+        # The later solves (with the flagged points judged, without the drifting ones) go on from it.
+        T_start, X_start = _solution(T_world_sensor, positions, bundle)
         drifting = released = np.zeros(0, np.int64)
         if BUNDLE_DRIFT_PROBABILITY > 0:
             # Points flagged dynamic with enough observations are judged in a solve that takes them
@@ -241,7 +263,7 @@ class FinalAdjustment(EstimatorState):
                 trial = usable | np.isin(row, candidates)
                 trial_counts = np.bincount(iteration[trial], minlength=len(T_world_sensor))
                 trial &= trial_counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
-                judged = self._bundle_solve(T_world_sensor, iteration, row, observed, trial, sigma)
+                judged = self._bundle_solve(T_start, X_start, iteration, row, observed, trial, sigma)
                 probability, _ = self._drift(judged)
                 released = judged.points[
                     (probability > BUNDLE_RELEASE_PROBABILITY) & np.isin(judged.points, candidates)
@@ -262,18 +284,13 @@ class FinalAdjustment(EstimatorState):
             if len(drifting) or len(released):
                 counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
                 usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
-                bundle = self._bundle_solve(T_world_sensor, iteration, row, observed, usable, sigma)
-        result, poses, points = bundle.result, bundle.poses, bundle.points
-        solved = T_world_sensor.copy()
-        solved[poses, :3, :3] = result.R_world_group
-        solved[poses, :3, 3] = result.t_world_group
-        fitted = np.zeros(len(T_world_sensor), bool)
-        fitted[poses] = True
+                bundle = self._bundle_solve(T_start, X_start, iteration, row, observed, usable, sigma)
+        result, points = bundle.result, bundle.points
         store.pos_sum[points] = result.positions * store.pos_weight[points, None]
         self._refresh_index()
         assert self.adjustment_report is not None
         self.adjustment_report["bundle"] = {
-            "iterations_solved": len(poses),
+            "iterations_solved": len(bundle.poses),
             "points": len(points),
             "observations": len(bundle.pose_row),
             "dynamic_flagged": len(drifting),
@@ -282,11 +299,12 @@ class FinalAdjustment(EstimatorState):
             "cost_before": round(result.cost_before, 3),
             "cost_after": round(result.cost_after, 3),
         }
-        return carry_corrections(T_world_sensor, solved, fitted)
+        return _solution(T_world_sensor, X_start, bundle)[0]
 
     def _bundle_solve(
         self,
         T_world_sensor: FloatArray,
+        positions: FloatArray,
         iteration: IntArray,
         row: IntArray,
         observed: FloatArray,
@@ -294,7 +312,8 @@ class FinalAdjustment(EstimatorState):
         sigma: float,
     ) -> _Bundle:
         """One bundle adjustment over the ``usable`` observations (``observed`` (N, 3), sensor frame, m,
-        of point ``row`` at ``iteration``), starting from ``T_world_sensor`` and the store's positions."""
+        of point ``row`` at ``iteration``), starting from ``T_world_sensor`` (K, 4, 4) and ``positions``
+        (one per store row, ``world``, m)."""
         poses, pose_row = np.unique(iteration[usable], return_inverse=True)
         points, point_row = np.unique(row[usable], return_inverse=True)
         result = adjust_network(
@@ -304,7 +323,7 @@ class FinalAdjustment(EstimatorState):
             np.ones(len(pose_row)),
             T_world_sensor[poses, :3, :3],
             T_world_sensor[poses, :3, 3],
-            self.store.positions(points),
+            positions[points],
             poses == 0,
             prior=self.config.adjustment_prior,
             robust=BUNDLE_ROBUST_SIGMAS * sigma,
