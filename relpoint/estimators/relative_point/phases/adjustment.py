@@ -60,6 +60,10 @@ BUNDLE_DRIFT_PROBABILITY = 1e-3
 BUNDLE_DRIFT_MOTION = 1.0
 BUNDLE_RELEASE_PROBABILITY = 0.05
 
+#: Most observations of a keyframe the bundle adjustment takes (those of its points seen most often): in
+#: a dense map the solve would grow with the square of the points in view.
+BUNDLE_POINTS_PER_POSE = 32
+
 #: Observations an iteration needs in the bundle adjustment (fewer leave its pose undetermined; it then
 #: takes the correction of its neighbours).
 BUNDLE_MIN_OBSERVATIONS = 3
@@ -86,6 +90,22 @@ def _lookup(row_of: dict[int, int], uids: IntArray) -> IntArray:
     slot = np.clip(np.searchsorted(known, uids), 0, max(len(known) - 1, 0))
     found = known[slot] == uids if len(known) else np.zeros(len(uids), bool)
     return np.where(found, rows[slot] if len(rows) else -1, -1)
+
+
+def _most_seen(
+    iteration: IntArray, row: IntArray, candidates: npt.NDArray[np.bool_], per_iteration: int
+) -> npt.NDArray[np.bool_]:
+    """Of the ``candidates`` observations (point ``row`` at ``iteration``), each iteration's
+    ``per_iteration`` of the points seen most often over all of them (ties: lower row). The same
+    points win in every iteration that sees them, so the iterations stay tied together through them."""
+    seen = np.bincount(row[candidates], minlength=int(row.max(initial=0)) + 1)
+    order = np.flatnonzero(candidates)
+    order = order[np.lexsort((row[order], -seen[row[order]], iteration[order]))]
+    ordered_iterations = iteration[order]
+    rank = np.arange(len(order)) - np.searchsorted(ordered_iterations, ordered_iterations)
+    keep = np.zeros(len(row), bool)
+    keep[order[rank < per_iteration]] = True
+    return keep
 
 
 def _all_positions(pos_sum: FloatArray, pos_weight: FloatArray) -> FloatArray:
@@ -234,6 +254,9 @@ class FinalAdjustment(EstimatorState):
         uids = np.concatenate([uids for _, (uids, _) in entries])
         observed = np.concatenate([points for _, (_, points) in entries]).astype(np.float64)
         row = _lookup(row_of, uids)
+        mapped = row >= 0
+        mapped[mapped] = store.pos_weight[row[mapped]] > 0
+        row = np.where(_most_seen(iteration, row, mapped, BUNDLE_POINTS_PER_POSE), row, -1)
         usable = row >= 0
         usable[usable] = (store.pos_weight[row[usable]] > 0) & ~store.dynamic[row[usable]]
         counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
