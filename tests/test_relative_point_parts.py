@@ -447,9 +447,16 @@ def _perturbed(rng: np.random.Generator, poses: np.ndarray, points: np.ndarray):
     return R, t, points + rng.normal(0.0, 1.0, points.shape)
 
 
-def test_adjustment_recovers_a_perturbed_network_of_relative_maps() -> None:
+@pytest.mark.parametrize(
+    "shape",
+    [
+        (12, 12, 6),  # 72 pose unknowns, 234 point unknowns: the points are eliminated
+        (40, 12, 1),  # 240 pose unknowns, 153 point unknowns (a bundle adjustment's keyframes): the poses are
+    ],
+)
+def test_adjustment_recovers_a_perturbed_network_of_relative_maps(shape: tuple[int, int, int]) -> None:
     rng = np.random.default_rng(5)
-    poses, points, group, point, relative = _chain_network(rng)
+    poses, points, group, point, relative = _chain_network(rng, *shape)
     R, t, X = _perturbed(rng, poses, points)
     fixed = np.zeros(len(poses), bool)
     fixed[0] = True

@@ -28,8 +28,10 @@ the points eliminated by the Schur complement: a point's block of the normal equ
 of the identity, so the reduced system over the 6 G pose unknowns is formed exactly, and it is as
 sparse as the groups' sharing of points. Groups share points mostly with groups of nearby time,
 so in reverse Cuthill-McKee order the system is banded and is solved by a banded Cholesky
-factorisation (:func:`scipy.linalg.solveh_banded`); a wide band falls back to sparse LU. The
-Cauchy loss enters by iteratively reweighted least squares.
+factorisation (:func:`scipy.linalg.solveh_banded`); a wide band falls back to sparse LU. When the
+points have fewer unknowns than the free poses (a bundle adjustment over many keyframes of a sparse
+map), the poses are eliminated instead (their 6 x 6 blocks inverted) and the reduced system is over
+the points. The Cauchy loss enters by iteratively reweighted least squares.
 """
 
 from __future__ import annotations
@@ -176,6 +178,8 @@ def adjust_network(
         return rotated, rotated + t[group] - X[point]
 
     keep = np.repeat(free, 6)
+    # The reduced system is over the poses (points eliminated) unless the points are fewer.
+    eliminate_poses = 3 * n_points < 6 * int(np.count_nonzero(free))
     order: IntArray | None = None  # a bandwidth-reducing order of the reduced system (same every iteration)
     rotated, residual = residuals(R, t, X)
     cost = cost_before = _objective(residual, weight, robust, prior, X - X0)
@@ -211,20 +215,34 @@ def adjust_network(
             ),
             shape=(6 * n_groups, 3 * n_points),
         )
-        S = _block_diagonal(A_diag) - B_sparse @ sparse.diags(np.repeat(1.0 / C_damped, 3)) @ B_sparse.T
-        BCg = np.zeros((n_groups, 6))
-        np.add.at(BCg, group, np.einsum("nij,nj->ni", B, g_point[point] / C_damped[point, None]))
-        rhs = (g_pose - BCg).ravel()
-        step_pose = np.zeros(6 * n_groups)
-        if keep.any():
-            reduced = S.tocsr()[keep][:, keep]
+        step_pose = np.zeros((n_groups, 6))
+        if eliminate_poses:
+            # Fewer point unknowns than pose unknowns (a bundle adjustment over many keyframes): the
+            # poses go instead, T = C - B^T A^-1 B over the points (A's blocks are 6 x 6, one a pose).
+            A_inverse = np.linalg.inv(A_diag[free])
+            B_free = B_sparse[keep]
+            T = sparse.diags(np.repeat(C_damped, 3)) - B_free.T @ _block_diagonal(A_inverse) @ B_free
+            A_inverse_g = np.einsum("gij,gj->gi", A_inverse, g_pose[free])
+            rhs = g_point.ravel() - B_free.T @ A_inverse_g.ravel()
+            T = T.tocsr()
             if order is None:
-                order = reverse_cuthill_mckee(reduced, symmetric_mode=True)
-            step_pose[keep] = _solve_positive_definite(reduced, rhs[keep], order)
-        step_pose = step_pose.reshape(n_groups, 6)
-        BT_step = np.zeros((n_points, 3))
-        np.add.at(BT_step, point, np.einsum("nji,nj->ni", B, step_pose[group]))
-        step_point = (g_point - BT_step) / C_damped[:, None]
+                order = reverse_cuthill_mckee(T, symmetric_mode=True)
+            step_point = _solve_positive_definite(T, rhs, order).reshape(n_points, 3)
+            coupled = (B_free @ step_point.ravel()).reshape(-1, 6)
+            step_pose[free] = np.einsum("gij,gj->gi", A_inverse, g_pose[free] - coupled)
+        else:
+            S = _block_diagonal(A_diag) - B_sparse @ sparse.diags(np.repeat(1.0 / C_damped, 3)) @ B_sparse.T
+            BCg = np.zeros((n_groups, 6))
+            np.add.at(BCg, group, np.einsum("nij,nj->ni", B, g_point[point] / C_damped[point, None]))
+            rhs = (g_pose - BCg).ravel()
+            if keep.any():
+                reduced = S.tocsr()[keep][:, keep]
+                if order is None:
+                    order = reverse_cuthill_mckee(reduced, symmetric_mode=True)
+                step_pose[free] = _solve_positive_definite(reduced, rhs[keep], order).reshape(-1, 6)
+            BT_step = np.zeros((n_points, 3))
+            np.add.at(BT_step, point, np.einsum("nji,nj->ni", B, step_pose[group]))
+            step_point = (g_point - BT_step) / C_damped[:, None]
 
         R_new = np.einsum("gij,gjk->gik", Rotation.from_rotvec(step_pose[:, :3]).as_matrix(), R)
         t_new = t + step_pose[:, 3:]
