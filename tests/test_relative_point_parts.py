@@ -475,6 +475,32 @@ def test_adjustment_recovers_a_perturbed_network_of_relative_maps(shape: tuple[i
     assert np.linalg.norm(held.positions - points, axis=1).max() < 0.15 * start_error
 
 
+def test_adjustment_with_the_poses_eliminated_survives_a_pose_seen_along_a_line() -> None:
+    # 30 poses and 12 points (the poses are eliminated); pose 5 sees only three points on one line
+    # through it, so it cannot turn about that line: the solve must stay finite and still lower the cost.
+    rng = np.random.default_rng(0)
+    points = np.column_stack([np.linspace(1, 12, 12), rng.uniform(-3, 3, 12), rng.uniform(-1, 1, 12)])
+    points[:3] = [[1, 0, 0], [2, 0, 0], [3, 0, 0]]
+    members = [[0, 1, 2] if g == 5 else list(range(12)) for g in range(30)]
+    group = np.repeat(np.arange(30), [len(m) for m in members])
+    point = np.concatenate(members)
+    t = np.zeros((30, 3))
+    t[:, 1] = np.linspace(0, 1, 30)
+    t[5] = 0.0
+    relative = points[point] - t[group]
+    noise = rng.normal(0, 0.01, relative.shape)
+    noise[group == 5] = 0.0
+    fixed = np.zeros(30, bool)
+    fixed[0] = True
+    start = t + np.where(np.arange(30)[:, None] == 5, 0.0, 0.05)
+    result = adjust_network(
+        group, point, relative + noise, np.ones(len(group)), np.repeat(np.eye(3)[None], 30, axis=0), start,
+        points + 0.05, fixed, prior=0.005, robust=0.03, iterations=10,
+    )  # fmt: skip
+    assert np.isfinite(result.positions).all() and np.isfinite(result.R_world_group).all()
+    assert result.cost_after < result.cost_before
+
+
 def test_adjustment_bounds_the_pull_of_a_wrong_relative_position() -> None:
     rng = np.random.default_rng(6)
     poses, points, group, point, relative = _chain_network(rng)

@@ -219,7 +219,11 @@ def adjust_network(
         if eliminate_poses:
             # Fewer point unknowns than pose unknowns (a bundle adjustment over many keyframes): the
             # poses go instead, T = C - B^T A^-1 B over the points (A's blocks are 6 x 6, one a pose).
-            A_inverse = np.linalg.inv(A_diag[free])
+            # A pose seen only along a line cannot turn about it: a ridge far below any observed
+            # curvature keeps its block invertible and that turn at zero.
+            A_free = A_diag[free]
+            ridge = 1e-9 * np.einsum("gii->g", A_free) / 6.0 + 1e-12
+            A_inverse = np.linalg.inv(A_free + ridge[:, None, None] * np.eye(6))
             B_free = B_sparse[keep]
             T = sparse.diags(np.repeat(C_damped, 3)) - B_free.T @ _block_diagonal(A_inverse) @ B_free
             A_inverse_g = np.einsum("gij,gj->gi", A_inverse, g_pose[free])
