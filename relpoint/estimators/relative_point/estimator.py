@@ -72,7 +72,10 @@ Choices the paper leaves open, and where this implementation adds to it:
 * When the log ends (:meth:`RelativePointEstimator.finish`, ``final_adjustment``), every group pose and
   point position is solved jointly by least squares (:mod:`.adjustment`) instead of group by group,
   and every iteration's pose is fitted again to the adjusted map from observations it kept for that
-  (``relocate_points``). ``step`` returns the online poses; the pipeline writes the final ones.
+  (``relocate_points``). Then every keyframe's pose and every static point are solved jointly from
+  the run's own observations (``bundle_adjustment``), whose residuals flag the moving points kept as
+  static and release the static points flagged as moving. ``step`` returns the online poses; the
+  pipeline writes the final ones.
 * Observation ids are never used for association; they only label the output map (``gt_id``).
 """
 

@@ -1,4 +1,4 @@
-"""The final adjustment when the log ends: the whole network solved jointly, every iteration located again on it, and kept only where it does not place the observations worse."""
+"""The final adjustment when the log ends: the whole network solved jointly, every iteration located again on it, the observations themselves solved jointly (bundle adjustment), and kept only where it does not place the observations worse."""
 
 from __future__ import annotations
 
