@@ -64,6 +64,9 @@ BUNDLE_RELEASE_PROBABILITY = 0.05
 #: a dense map the solve would grow with the square of the points in view.
 BUNDLE_POINTS_PER_POSE = 32
 
+#: Most observations a keyframe keeps until the log ends (memory: about 20 bytes each).
+BUNDLE_KEPT_PER_KEYFRAME = 4 * BUNDLE_POINTS_PER_POSE
+
 #: Observations an iteration needs in the bundle adjustment (fewer leave its pose undetermined; it then
 #: takes the correction of its neighbours).
 BUNDLE_MIN_OBSERVATIONS = 3
@@ -418,9 +421,14 @@ class FinalAdjustment(EstimatorState):
 
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
         """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not
-        located), and, for the bundle adjustment, all of them."""
+        located), and, on a keyframe of the bundle adjustment, up to ``BUNDLE_KEPT_PER_KEYFRAME``."""
         if self.config.final_adjustment and self.config.bundle_adjustment and k % self._keyframe_stride == 0:
-            self._observations[k] = (self.store.uid[ids], points.astype(np.float32))
+            kept = np.arange(len(ids))
+            if len(ids) > BUNDLE_KEPT_PER_KEYFRAME:
+                # A dense view keeps its mapped points seen most so far, as the solve will prefer them.
+                seen = self.store.n_obs[ids] + (0 if mapped is None else mapped * (self._iteration + 1))
+                kept = np.sort(np.argsort(-seen, kind="stable")[:BUNDLE_KEPT_PER_KEYFRAME])
+            self._observations[k] = (self.store.uid[ids[kept]], points[kept].astype(np.float32))
             if len(self._observations) > BUNDLE_MAX_POSES:
                 # Memory and the solve follow the keyframes, not the log: every other one goes.
                 self._keyframe_stride *= 2
