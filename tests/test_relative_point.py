@@ -404,6 +404,26 @@ def test_bundle_adjustment_solves_the_observations_and_flags_the_movers_whose_re
     assert error_with < 0.85 * error_without, (error_without, error_with)
 
 
+def test_bundle_adjustment_leaves_dense_views_to_the_network_adjustment() -> None:
+    # About 540 points in view: far above 32 static observations a keyframe, so the bundle adjustment is
+    # not run and says why; the network adjustment's trajectory is what comes back.
+    config = SimulationConfig(iterations=40, noise=NOISE, density=695.0)
+    results = {}
+    for bundle in (True, False):
+        _, estimator, poses = run(config, RelativePointConfig(bundle_adjustment=bundle))
+        trajectory = Trajectory(
+            np.array([p.stamp_ns for p in poses]),
+            np.array([p.position for p in poses]),
+            np.array([p.quat_xyzw for p in poses]),
+        )
+        results[bundle] = (estimator.finish(trajectory), estimator.summary()["final_adjustment"], estimator)
+    (with_bundle, report, estimator), (without_bundle, _, _) = results[True], results[False]
+    assert report["bundle"]["skipped"].startswith("dense views:")
+    kept = [len(uids) for uids, _ in estimator._observations.values()]
+    assert len(kept) == config.iterations and max(kept) == 128  # every keyframe, at most 128 observations each
+    np.testing.assert_array_equal(with_bundle.positions, without_bundle.positions)
+
+
 def test_memory_is_bounded_by_the_map_not_the_iterations() -> None:
     simulation = simulate(SimulationConfig(scenario="stationary", density=25, noise=NOISE, iterations=400, clutter=2.0))
     estimator = RelativePointEstimator(RelativePointConfig(ring_size=32, regroup_after=32, dynamic_window=32))
