@@ -327,11 +327,7 @@ def test_final_adjustment_lowers_map_and_trajectory_error() -> None:
     # 1.19 m on average and the trajectory from 2.15 to 1.27 m; seed 2 gains least, 1.05 to 1.04 m.)
     config = SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=900, dynamic=0.3, seed=0)
     simulation, estimator, poses = run(config)
-    trajectory = Trajectory(
-        np.array([p.stamp_ns for p in poses]),
-        np.array([p.position for p in poses]),
-        np.array([p.quat_xyzw for p in poses]),
-    )
+    trajectory = Trajectory.from_poses(poses)
     rmse_before = np.sqrt(np.mean(static_landmark_errors(simulation, estimator) ** 2))
     unreliable_before = estimator.summary()["landmarks_unreliable"]
     before = estimator.landmark_map()
@@ -367,11 +363,7 @@ def test_final_adjustment_lowers_map_and_trajectory_error() -> None:
         SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=60),
         RelativePointConfig(final_adjustment=False),
     )
-    plain_trajectory = Trajectory(
-        np.array([p.stamp_ns for p in plain_poses]),
-        np.array([p.position for p in plain_poses]),
-        np.array([p.quat_xyzw for p in plain_poses]),
-    )
+    plain_trajectory = Trajectory.from_poses(plain_poses)
     assert plain.finish(plain_trajectory) is plain_trajectory and "final_adjustment" not in plain.summary()
 
 
@@ -384,11 +376,7 @@ def test_bundle_adjustment_solves_the_observations_and_flags_the_movers_whose_re
     results = {}
     for bundle in (False, True):
         simulation, estimator, poses = run(config, RelativePointConfig(bundle_adjustment=bundle))
-        trajectory = Trajectory(
-            np.array([p.stamp_ns for p in poses]),
-            np.array([p.position for p in poses]),
-            np.array([p.quat_xyzw for p in poses]),
-        )
+        trajectory = Trajectory.from_poses(poses)
         final = estimator.finish(trajectory)
         error = np.sqrt(np.mean(np.sum((final.positions - simulation.ground_truth.positions) ** 2, axis=1)))
         landmarks = estimator.landmark_map()
@@ -411,11 +399,7 @@ def test_bundle_adjustment_leaves_dense_views_to_the_network_adjustment() -> Non
     results = {}
     for bundle in (True, False):
         _, estimator, poses = run(config, RelativePointConfig(bundle_adjustment=bundle))
-        trajectory = Trajectory(
-            np.array([p.stamp_ns for p in poses]),
-            np.array([p.position for p in poses]),
-            np.array([p.quat_xyzw for p in poses]),
-        )
+        trajectory = Trajectory.from_poses(poses)
         results[bundle] = (estimator.finish(trajectory), estimator.summary()["final_adjustment"], estimator)
     (with_bundle, report, estimator), (without_bundle, _, _) = results[True], results[False]
     assert report["bundle"]["skipped"].startswith("dense views:")
