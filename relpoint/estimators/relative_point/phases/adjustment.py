@@ -99,6 +99,13 @@ def _lookup(row_of: dict[int, int], uids: IntArray) -> IntArray:
     return np.where(found, rows[slot] if len(rows) else -1, -1)
 
 
+def _in_solvable_iterations(iteration: IntArray, chosen: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """``chosen`` observations (at ``iteration``) left only in iterations with at least
+    ``BUNDLE_MIN_OBSERVATIONS`` of them: fewer leave a pose undetermined."""
+    counts = np.bincount(iteration[chosen], minlength=int(iteration.max(initial=0)) + 1)
+    return chosen & (counts[iteration] >= BUNDLE_MIN_OBSERVATIONS)
+
+
 def _all_positions(pos_sum: FloatArray, pos_weight: FloatArray) -> FloatArray:
     """Every store row's global position (rows, 3), ``world``, m (meaningless where unmapped)."""
     return pos_sum / np.maximum(pos_weight, 1e-300)[:, None]
@@ -247,8 +254,7 @@ class FinalAdjustment(EstimatorState):
         row = _lookup(row_of, uids)
         usable = row >= 0
         usable[usable] = (store.pos_weight[row[usable]] > 0) & ~store.dynamic[row[usable]]
-        counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
-        usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+        usable = _in_solvable_iterations(iteration, usable)
         if not usable.any():
             return T_world_sensor
         per_keyframe = np.count_nonzero(usable) / len(np.unique(iteration[usable]))
@@ -279,9 +285,7 @@ class FinalAdjustment(EstimatorState):
             flagged[flagged] = (store.pos_weight[row[flagged]] > 0) & store.dynamic[row[flagged]]
             candidates = np.flatnonzero(np.bincount(row[flagged], minlength=1) >= 2 * BUNDLE_DRIFT_BLOCK)
             if len(candidates):
-                trial = usable | np.isin(row, candidates)
-                trial_counts = np.bincount(iteration[trial], minlength=len(T_world_sensor))
-                trial &= trial_counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+                trial = _in_solvable_iterations(iteration, usable | np.isin(row, candidates))
                 judged = self._bundle_solve(T_start, X_start, iteration, row, observed, trial, sigma)
                 probability, _ = self._drift(judged)
                 released = judged.points[
@@ -301,12 +305,10 @@ class FinalAdjustment(EstimatorState):
                 self._flag_dynamic(drifting, "bundle")
                 usable &= ~np.isin(row, drifting)
             if len(drifting) or len(released):
-                counts = np.bincount(iteration[usable], minlength=len(T_world_sensor))
-                usable &= counts[iteration] >= BUNDLE_MIN_OBSERVATIONS
+                usable = _in_solvable_iterations(iteration, usable)
                 bundle = self._bundle_solve(T_start, X_start, iteration, row, observed, usable, sigma)
         result, points = bundle.result, bundle.points
         store.pos_sum[points] = result.positions * store.pos_weight[points, None]
-        self._refresh_index()
         self.adjustment_report["bundle"] = {
             "iterations_solved": len(bundle.poses),
             "points": len(points),
