@@ -286,6 +286,22 @@ def test_ekf_with_dense_fixes_is_no_worse_than_without_them_nor_than_the_fixes(r
     assert with_fixes["ate"] <= optimum["fixes_ate"]
 
 
+def test_ekf_places_its_past_positions_on_the_final_map(robustness: Any) -> None:
+    # A filter corrects its current pose when fixes pull it back, not the poses it had returned:
+    # the path bends. Smoothed on the final map, positions move and rotations stay the filter's.
+    cell = next(c for c in robustness.matrix() if c.name == "spiral-fix-0.5m")
+    filtered = robustness.run_one(cell, "ekf", 0, 150, smooth_trajectory=False)
+    smoothed = robustness.run_one(cell, "ekf", 0, 150)
+    report = smoothed["summary"]["smoothing"]
+    assert report["applied"] and report["iterations_placed"] >= 140
+    assert report["noise_m"] >= 0.3  # no less than the filter's observation_sigma (the scene's noise)
+    assert 0.0 < report["mean_shift_m"] < report["max_shift_m"] < 1.0
+    assert "smoothing" not in filtered["summary"]
+    assert smoothed["ate_aligned"] < 0.9 * filtered["ate_aligned"]
+    assert smoothed["ate"] < 0.9 * filtered["ate"]
+    assert smoothed["lm"] == filtered["lm"]  # the map is the filter's
+
+
 def test_duplicate_landmarks_count_entries_beyond_the_first_per_true_landmark(robustness: Any) -> None:
     assert robustness.duplicate_landmarks(np.array([4, 4, 4, 7, -1, -1, 9])) == 2
     assert robustness.duplicate_landmarks(np.array([], dtype=np.int64)) == 0

@@ -61,13 +61,14 @@ from relpoint.estimators._landmark_motion import (
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
+from relpoint.estimators._trajectory_smoothing import PairHistory, relocate, smoothed_poses
 from relpoint.estimators._vanished import VanishedLandmarks
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, rigid_consensus, skew, so3_exp, twist_step
 from relpoint.settings import setting
 from relpoint.statistics import chi2_gate
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -177,6 +178,12 @@ class EkfConfig(MovingLandmarkSettings):
     """JCBB search budget per iteration, in wall-clock seconds (0: nodes only). When either budget
     runs out the best hypothesis so far is used, a warning says so and ``jcbb_gave_up`` in
     ``run.json`` counts the iterations; a run stopped by the clock depends on the machine's speed."""
+    smooth_trajectory: bool = setting(True)
+    """When the log ends, place every past pose again on the final map, from the pairs the filter
+    made at that iteration, and smooth the corrections over time
+    (:mod:`relpoint.estimators._trajectory_smoothing`): what the filter learnt later (a closed loop,
+    the fixes) then corrects the poses it had already returned, not only its map. ``smoothing`` in
+    ``run.json`` reports it. Off: the trajectory is the filter's own, pose by pose."""
 
     def at_noise(self, sigma: float) -> EkfConfig:
         """These settings with ``observation_sigma = sigma`` (m)."""
@@ -261,6 +268,10 @@ class EkfSlam(Estimator[PointObservation]):
             else None
         )
         self._drift = np.zeros((0, 3))  # smoothed innovation of each landmark (world, m)
+        self._uid = np.zeros(0, dtype=np.int64)  # a stable id for each landmark (removals keep the others')
+        self._next_uid = 0
+        self._pairs = PairHistory() if self.config.smooth_trajectory else None
+        self._smoothing: dict[str, Any] | None = None
         self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
         self._vanished = (
@@ -296,6 +307,9 @@ class EkfSlam(Estimator[PointObservation]):
             if self._mover_test is not None and self.config.hand_over_movers:
                 self._hand_over(points, assignment, may_start)
             paired = np.flatnonzero(assignment >= 0)
+            if self._pairs is not None:  # the pairs of static landmarks: what places the pose
+                steady = paired[~self._moving[assignment[paired]]]
+                self._pairs.add(self._stats["iterations"], points[steady], self._uid[assignment[steady]])
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
             fresh = np.flatnonzero(may_start)
@@ -384,7 +398,44 @@ class EkfSlam(Estimator[PointObservation]):
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
+            **({"smoothing": self._smoothing} if self._smoothing is not None else {}),
         }
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        """The trajectory smoothed on the final map (``smooth_trajectory``; see
+        :mod:`relpoint.estimators._trajectory_smoothing`), or ``trajectory`` as it is.
+
+        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``); a run
+        that skipped iterations, or whose pairs place no iteration on the final map, keeps it, and
+        ``smoothing`` in :meth:`summary` says why.
+        """
+        if self._pairs is None:
+            return trajectory
+        iterations = self._stats["iterations"]
+        if len(trajectory) != iterations:
+            self._smoothing = {"applied": False, "reason": "the run skipped iterations"}
+            return trajectory
+        static = ~self._moving
+        positions = self.landmark_map().positions[: len(self._landmarks)]
+        relocation = relocate(
+            *self._pairs.arrays(), iterations, self._uid[static], positions[static],
+            min_noise=float(np.sqrt(self._R_obs[0, 0])),
+        )  # fmt: skip
+        fitted = int(relocation.fitted.sum())
+        if fitted == 0:
+            self._smoothing = {"applied": False, "reason": "no iteration has enough pairs on the final map"}
+            return trajectory
+        poses, smoothing = smoothed_poses(trajectory.matrices(), relocation)
+        shift = np.linalg.norm(poses[:, :3, 3] - trajectory.positions, axis=1)
+        self._smoothing = {
+            "applied": True,
+            "iterations_placed": fitted,
+            "noise_m": round(relocation.noise, 6),
+            "walk_position_m": round(smoothing.position_step, 6),
+            "mean_shift_m": round(float(shift.mean()), 6),
+            "max_shift_m": round(float(shift.max()), 6),
+        }
+        return Trajectory.from_matrices(trajectory.stamps_ns, poses)
 
     # ------------------------------------------------------------------------------------- accessors
 
@@ -810,6 +861,8 @@ class EkfSlam(Estimator[PointObservation]):
         grown[:N, N:] = P_new_all.T
         grown[N:, N:] = 0.5 * (P_nn + P_nn.T)
         self._landmarks = np.vstack([self._landmarks, self._position + points @ R.T])
+        self._uid = np.concatenate([self._uid, self._next_uid + np.arange(k, dtype=np.int64)])
+        self._next_uid += k
         self._drift = np.vstack([self._drift, np.zeros((k, 3))])
         self._moving = np.concatenate([self._moving, np.zeros(k, dtype=bool)])
 
@@ -879,6 +932,7 @@ class EkfSlam(Estimator[PointObservation]):
         self._last_seen = self._last_seen[keep]
         self._drift = self._drift[keep]
         self._moving = self._moving[keep]
+        self._uid = self._uid[keep]
         if self._vanished is not None:
             self._vanished.keep(keep)
         self._observations = [o for o, k in zip(self._observations, keep.tolist(), strict=True) if k]
