@@ -58,7 +58,7 @@ def test_relocation_leaves_out_a_wrong_pair_and_measures_the_noise() -> None:
 
 
 def test_noise_floor_and_iterations_too_sparse_to_fit() -> None:
-    poses, ids, landmarks, history = _scene(5, points=MIN_PAIRS)
+    _, ids, landmarks, history = _scene(5, points=MIN_PAIRS)
     iteration, points, landmark_ids = history.arrays()
     keep = ~((iteration == 2) & (np.arange(len(iteration)) % MIN_PAIRS == 0))  # iteration 2: one pair short
     relocation = relocate(iteration[keep], points[keep], landmark_ids[keep], 5, ids, landmarks, min_noise=0.2)
