@@ -29,7 +29,11 @@ def _scene(iterations: int, seed: int = 0, noise: float = 0.0, points: int = 12)
     for k in range(iterations):
         chosen = rng.choice(200, size=points, replace=False)
         R, p = poses[k, :3, :3], poses[k, :3, 3]
-        sensor = (landmarks[chosen] - p) @ R + rng.normal(scale=noise, size=(points, 3)) if noise else (landmarks[chosen] - p) @ R
+        sensor = (
+            (landmarks[chosen] - p) @ R + rng.normal(scale=noise, size=(points, 3))
+            if noise
+            else (landmarks[chosen] - p) @ R
+        )
         history.add(k, sensor, ids[chosen])
     return poses, ids, landmarks, history
 
