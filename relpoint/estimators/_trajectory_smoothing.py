@@ -26,12 +26,14 @@ metres, rotations in radians.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from relpoint.geometry import FloatArray, skew
 from relpoint.statistics import chi2_gate
+from relpoint.types import Trajectory
 
 IntArray = npt.NDArray[np.int64]
 
@@ -323,3 +325,33 @@ def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArra
     out = poses.copy()
     out[:, :3, 3] = p_f + smoothing.corrections
     return out, smoothing
+
+
+def smoothed_trajectory(
+    trajectory: Trajectory, iterations: int, pairs: PairHistory, map_ids: IntArray, map_positions: FloatArray,
+    min_noise: float,
+) -> tuple[Trajectory, dict[str, Any]]:  # fmt: skip
+    """A filter's trajectory smoothed on its final map, and the report for ``run.json``.
+
+    ``trajectory`` holds the poses the filter returned, one per iteration (``world``); ``pairs`` the
+    pairs it made; ``map_ids`` (M,) and ``map_positions`` (M, 3, ``world``, m) the final map's static
+    landmarks; ``min_noise`` the filter's point noise (m, per axis). A run that skipped iterations,
+    or whose pairs place no iteration on the final map, keeps its trajectory, and the report says why.
+    """
+    if len(trajectory) != iterations:
+        return trajectory, {"applied": False, "reason": "the run skipped iterations"}
+    relocation = relocate(*pairs.arrays(), iterations, map_ids, map_positions, min_noise=min_noise)
+    fitted = int(relocation.fitted.sum())
+    if fitted == 0:
+        return trajectory, {"applied": False, "reason": "no iteration has enough pairs on the final map"}
+    poses, smoothing = smoothed_poses(trajectory.matrices(), relocation)
+    shift = np.linalg.norm(poses[:, :3, 3] - trajectory.positions, axis=1)
+    report = {
+        "applied": True,
+        "iterations_placed": fitted,
+        "noise_m": round(relocation.noise, 6),
+        "walk_position_m": round(smoothing.position_step, 6),
+        "mean_shift_m": round(float(shift.mean()), 6),
+        "max_shift_m": round(float(shift.max()), 6),
+    }
+    return Trajectory.from_matrices(trajectory.stamps_ns, poses), report

@@ -61,7 +61,7 @@ from relpoint.estimators._landmark_motion import (
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
-from relpoint.estimators._trajectory_smoothing import PairHistory, relocate, smoothed_poses
+from relpoint.estimators._trajectory_smoothing import PairHistory, smoothed_trajectory
 from relpoint.estimators._vanished import VanishedLandmarks
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
@@ -411,31 +411,13 @@ class EkfSlam(Estimator[PointObservation]):
         """
         if self._pairs is None:
             return trajectory
-        iterations = self._stats["iterations"]
-        if len(trajectory) != iterations:
-            self._smoothing = {"applied": False, "reason": "the run skipped iterations"}
-            return trajectory
         static = ~self._moving
         positions = self.landmark_map().positions[: len(self._landmarks)]
-        relocation = relocate(
-            *self._pairs.arrays(), iterations, self._uid[static], positions[static],
+        smoothed, self._smoothing = smoothed_trajectory(
+            trajectory, self._stats["iterations"], self._pairs, self._uid[static], positions[static],
             min_noise=float(np.sqrt(self._R_obs[0, 0])),
         )  # fmt: skip
-        fitted = int(relocation.fitted.sum())
-        if fitted == 0:
-            self._smoothing = {"applied": False, "reason": "no iteration has enough pairs on the final map"}
-            return trajectory
-        poses, smoothing = smoothed_poses(trajectory.matrices(), relocation)
-        shift = np.linalg.norm(poses[:, :3, 3] - trajectory.positions, axis=1)
-        self._smoothing = {
-            "applied": True,
-            "iterations_placed": fitted,
-            "noise_m": round(relocation.noise, 6),
-            "walk_position_m": round(smoothing.position_step, 6),
-            "mean_shift_m": round(float(shift.mean()), 6),
-            "max_shift_m": round(float(shift.max()), 6),
-        }
-        return Trajectory.from_matrices(trajectory.stamps_ns, poses)
+        return smoothed
 
     # ------------------------------------------------------------------------------------- accessors
 
