@@ -125,3 +125,15 @@ def test_smoothed_poses_move_positions_onto_the_map_and_keep_rotations() -> None
     empty = Relocation(np.tile(np.eye(3), (60, 1, 1)), np.zeros((60, 3)), np.zeros(60, bool), np.full((60, 6), np.inf),
                        np.zeros(60, np.int64), float("nan"))  # fmt: skip
     np.testing.assert_array_equal(smoothed_poses(filtered, empty)[0], filtered)
+
+
+def test_a_wrong_fit_is_left_out_of_the_smoothed_path() -> None:
+    poses, ids, landmarks, history = _scene(60, noise=0.02)
+    relocation = relocate(*history.arrays(), 60, ids, landmarks)
+    positions = relocation.positions.copy()
+    positions[30] += np.array([0.0, 2.5, 0.0])  # five points in a line, paired with the wrong landmarks
+    wrong = Relocation(relocation.rotations, positions, relocation.fitted, relocation.variances, relocation.pairs,
+                       relocation.noise)  # fmt: skip
+    smoothed, smoothing = smoothed_poses(poses, wrong)
+    assert smoothing.rejected == 1
+    assert np.abs(smoothed[:, :3, 3] - poses[:, :3, 3]).max() < 0.02

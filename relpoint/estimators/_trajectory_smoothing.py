@@ -14,7 +14,9 @@ placed again on the final map, from the very pairs the filter made at that itera
    the rotation's from the inverse of the landmarks' inertia about their centroid, the position's
    from the point count and the rotation's lever arm. Fewer than :data:`MIN_PAIRS` pairs give no fit.
 2. **Smoothing** (:func:`smooth_corrections`): a single fit has one iteration's noise, while the
-   filter's own error changes slowly. The position correction ``fit - filtered`` (``world``) is
+   filter's own error changes slowly. Wrong fits (a few pairs that were not what they seemed) are
+   left out first by Hampel's filter: a fit far from the median of its neighbours, in robust
+   standard deviations of all fits and in its own. The position correction ``fit - filtered`` (``world``) is
    taken as a random walk observed with each fit's variance, and solved by a Rauch-Tung-Striebel
    smoother, axis by axis. The walk's step variance is the maximum-likelihood one over a
    log-spaced grid: how fast the filter's error changes is measured from the log, not set.
@@ -45,6 +47,10 @@ MAX_PAIRS_PER_ITERATION = 64
 #: A pair whose residual is over this many times its iteration's median residual is left out of
 #: the second fit (a mover the filter still paired, a wrong pair).
 OUTLIER_FACTOR = 3.0
+#: Hampel's filter on the fits (a wrong one is left out): half window (fits) and bound (robust
+#: standard deviations).
+HAMPEL_HALF_WINDOW = 5
+HAMPEL_SIGMAS = 5.0
 #: Candidate step standard deviations of the position correction's random walk (m per
 #: iteration), log-spaced.
 POSITION_STEPS = np.geomspace(1e-5, 1.0, 41)
@@ -281,6 +287,7 @@ class Smoothing:
 
     corrections: FloatArray  # (K, 3): position correction in world (m)
     position_step: float  # the random walk's step standard deviation (m per iteration, per axis)
+    rejected: int = 0  # fits left out as wrong (:func:`smoothed_poses`)
 
 
 def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing:
@@ -309,9 +316,33 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
     return Smoothing(smoothed, step)
 
 
+def _hampel_outliers(measured: FloatArray, variances: FloatArray) -> npt.NDArray[np.bool_]:
+    """The fits (F, 3) that stand out of their neighbours: Hampel's filter on each axis.
+
+    A fit is an outlier where, on some axis, it is further from the median of the
+    ``2 * HAMPEL_HALF_WINDOW + 1`` fits around it than ``HAMPEL_SIGMAS`` robust standard deviations
+    of all fits' such distances (1.4826 times their median) and than that many of its own standard
+    deviations: the filter's error changes slowly, a wrong fit jumps.
+    """
+    F = len(measured)
+    if F < 3:
+        return np.zeros(F, dtype=bool)
+    half = min(HAMPEL_HALF_WINDOW, (F - 1) // 2)
+    padded = np.pad(measured, ((half, half), (0, 0)), mode="reflect")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1, axis=0)  # (F, 3, W)
+    distance = np.abs(measured - np.median(windows, axis=2))
+    scale = 1.4826 * np.median(distance, axis=0)
+    bound = HAMPEL_SIGMAS * np.maximum(scale, np.sqrt(variances))
+    return np.any(distance > bound, axis=1)
+
+
 def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArray, Smoothing]:
     """The filter's poses ``T_world_sensor`` (K, 4, 4) with their positions moved by the smoothed
     corrections toward the relocation (``p <- p + dp``); rotations are the filter's.
+
+    Iterations before the first fit take its correction. Not even where the first pose defines
+    ``world`` (no fixes) is the correction held at zero there: the final map has moved against that
+    pose as much as against any other (held at zero, Starry Night's ATE was 0.13 m against 0.12 m).
 
     Only positions move: a fit's rotation, from a few points near the sensor, is noisier than a
     filter's that fuses odometry, and on real stereo landmarks (UTIAS Starry Night) smoothing it
@@ -321,7 +352,12 @@ def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArra
     measured = np.zeros((len(poses), 3))
     rows = np.flatnonzero(relocation.fitted)
     measured[rows] = relocation.positions[rows] - p_f[rows]
-    smoothing = smooth_corrections(measured, relocation.variances[:, 3:])
+    variances = relocation.variances[:, 3:].copy()
+    # A wrong fit (pairs that were not what they seemed, a few points in a line) is left out.
+    outlying = rows[_hampel_outliers(measured[rows], variances[rows])]
+    variances[outlying] = np.inf
+    smoothing = smooth_corrections(measured, variances)
+    smoothing = Smoothing(smoothing.corrections, smoothing.position_step, len(outlying))
     out = poses.copy()
     out[:, :3, 3] = p_f + smoothing.corrections
     return out, smoothing
@@ -351,6 +387,7 @@ def smoothed_trajectory(
         "iterations_placed": fitted,
         "noise_m": round(relocation.noise, 6),
         "walk_position_m": round(smoothing.position_step, 6),
+        "fits_rejected": smoothing.rejected,
         "mean_shift_m": round(float(shift.mean()), 6),
         "max_shift_m": round(float(shift.max()), 6),
     }
