@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+import numpy.typing as npt
 from scipy import linalg
 from scipy.linalg import blas
 
@@ -290,6 +291,7 @@ class EkfSlam(Estimator[PointObservation]):
             self._stamp_ns = observation.stamp_ns
         self._predict_to(observation.stamp_ns)
         points = np.asarray(observation.points)
+        pairs: tuple[FloatArray, npt.NDArray[np.int64]] | None = None
         if len(points):
             if self._mover_test is not None:
                 self._widen(np.flatnonzero(self._moving))
@@ -309,7 +311,7 @@ class EkfSlam(Estimator[PointObservation]):
             paired = np.flatnonzero(assignment >= 0)
             if self._pairs is not None:  # the pairs of static landmarks: what places the pose
                 steady = paired[~self._moving[assignment[paired]]]
-                self._pairs.add(self._stats["iterations"], points[steady], self._uid[assignment[steady]])
+                pairs = (points[steady], self._uid[assignment[steady]])  # kept once the step succeeds
             if len(paired):
                 self._update_landmarks(points[paired], assignment[paired])
             fresh = np.flatnonzero(may_start)
@@ -326,6 +328,8 @@ class EkfSlam(Estimator[PointObservation]):
             self._stats["paired"] += len(paired)
             self._stats["started"] += len(fresh)
             self._stats["discarded"] += len(points) - len(paired) - len(fresh)
+        if pairs is not None and self._pairs is not None:
+            self._pairs.add(self._stats["iterations"], *pairs)
         self._stats["iterations"] += 1
         if self._frame is not None:
             fit = self._frame.update(observation.stamp_ns, self._position, self._P[:3, :3])
