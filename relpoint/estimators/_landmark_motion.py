@@ -50,7 +50,7 @@ CHI2_MEDIAN_3 = chi2_gate(0.5, 3)
 #: iterations); a slow mover, whose smoothed motion is one or two noises, dips under the median (the
 #: 50 % gate) by chance and was released there, then left the association's reach and came back as
 #: a duplicate (figure8-line-40-fast). Measured: with 0.25 instead of 0.5 the EKF's duplicates there
-#: fall from 1.9 % to 1.0 % of the map, the 30 %-dynamic figure eight's EKF ATE over seeds 0-4 from
+#: fall from 1.9 % to 1.0 % of the map on seeds 0-1 (4.3-10.2 % to 2.7-7.5 % on seeds 2-5), the 30 %-dynamic figure eight's EKF ATE over seeds 0-4 from
 #: 6.2 to 4.7 m, FastSLAM's on the 7-Scenes kitchen from 5.7 to 4.8 cm; the EKF on the kitchen and
 #: on Starry Night stays within 3 % (3.62 -> 3.63 cm, 0.115 -> 0.119 m). With 0.1 the kitchen's
 #: EKF lost 0.9 mm.

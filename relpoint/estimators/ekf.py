@@ -180,11 +180,12 @@ class EkfConfig(MovingLandmarkSettings):
     runs out the best hypothesis so far is used, a warning says so and ``jcbb_gave_up`` in
     ``run.json`` counts the iterations; a run stopped by the clock depends on the machine's speed."""
     smooth_trajectory: bool = setting(True)
-    """When the log ends, place every past pose again on the final map, from the pairs the filter
-    made at that iteration, and smooth the corrections over time
+    """When the log ends, place every past position again on the final map, from the pairs the
+    filter made at that iteration, and smooth the corrections over time
     (:mod:`relpoint.estimators._trajectory_smoothing`): what the filter learnt later (a closed loop,
-    the fixes) then corrects the poses it had already returned, not only its map. ``smoothing`` in
-    ``run.json`` reports it. Off: the trajectory is the filter's own, pose by pose."""
+    the fixes) then corrects the positions it had already returned, not only its map; rotations
+    stay the filter's. ``smoothing`` in ``run.json`` reports it. Off: the trajectory is the filter's
+    own, pose by pose."""
 
     def at_noise(self, sigma: float) -> EkfConfig:
         """These settings with ``observation_sigma = sigma`` (m)."""
