@@ -137,3 +137,25 @@ def test_a_wrong_fit_is_left_out_of_the_smoothed_path() -> None:
     smoothed, smoothing = smoothed_poses(poses, wrong)
     assert smoothing.rejected == 1
     assert np.abs(smoothed[:, :3, 3] - poses[:, :3, 3]).max() < 0.02
+
+
+def test_the_ekf_keeps_its_own_trajectory_when_the_run_skipped_iterations() -> None:
+    from relpoint.estimators.ekf import EkfConfig, EkfSlam
+    from relpoint.simulation import SimulationConfig, simulate
+    from relpoint.types import Trajectory
+
+    sim = simulate(SimulationConfig(density=25, noise=0.3, iterations=40, seed=0))
+    ekf = EkfSlam(EkfConfig(observation_sigma=0.3))
+    poses = [ekf.step(step.observation) for step in sim.steps()]
+    shorter = Trajectory.from_poses(poses[:-1])  # one iteration's pose missing: not one per iteration
+    assert ekf.finish(shorter) is shorter
+    assert ekf.summary()["smoothing"] == {"applied": False, "reason": "the run skipped iterations"}
+    whole = Trajectory.from_poses(poses)
+    smoothed = ekf.finish(whole)
+    assert ekf.summary()["smoothing"]["applied"] and ekf.summary()["smoothing"]["iterations_placed"] >= 35
+    np.testing.assert_allclose(smoothed.matrices()[:, :3, :3], whole.matrices()[:, :3, :3], atol=1e-12)
+    assert not np.array_equal(smoothed.positions, whole.positions)
+    off = EkfSlam(EkfConfig(observation_sigma=0.3, smooth_trajectory=False))
+    for step in sim.steps():
+        off.step(step.observation)
+    assert off.finish(whole) is whole and "smoothing" not in off.summary()
