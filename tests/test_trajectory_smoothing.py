@@ -159,3 +159,29 @@ def test_the_ekf_keeps_its_own_trajectory_when_the_run_skipped_iterations() -> N
     for step in sim.steps():
         off.step(step.observation)
     assert off.finish(whole) is whole and "smoothing" not in off.summary()
+
+
+def test_the_fixes_jumps_are_taken_out_when_the_fits_say_they_were_noise() -> None:
+    # A filter that fuses a noisy fix every iteration jumps by part of each fix's noise; relocated on
+    # the final map, its positions are 7 cm fits. Taken as a plain walk the correction must follow
+    # every jump; with the jumps taken out it is a constant, which the fits pin far better.
+    rng = np.random.default_rng(3)
+    K = 300
+    truth = np.cumsum(rng.normal(scale=1.0, size=(K, 3)), axis=0)
+    jumps = np.cumsum(rng.normal(scale=0.05, size=(K, 3)), axis=0)  # each fix's pull, summed
+    poses = np.tile(np.eye(4), (K, 1, 1))
+    poses[:, :3, 3] = truth + jumps
+    variances = np.full((K, 6), 0.07**2)
+    fits = Relocation(np.tile(np.eye(3), (K, 1, 1)), truth + rng.normal(scale=0.07, size=(K, 3)), np.ones(K, bool),
+                      variances, np.full(K, 20), 0.3)  # fmt: skip
+    walk, plain = smoothed_poses(poses, fits)
+    jumped, removed = smoothed_poses(poses, fits, fix_jumps=jumps)
+    assert not plain.fix_jumps_removed and removed.fix_jumps_removed
+    assert removed.log_likelihood > plain.log_likelihood
+    error_walk = np.sqrt(np.mean(np.sum((walk[:, :3, 3] - truth) ** 2, axis=1)))
+    error_jumps = np.sqrt(np.mean(np.sum((jumped[:, :3, 3] - truth) ** 2, axis=1)))
+    assert error_jumps < 0.5 * error_walk
+    # Jumps that were real corrections (each pulled back drift, and the filter is right) stay in.
+    poses[:, :3, 3] = truth + rng.normal(scale=0.005, size=(K, 3))
+    _, kept = smoothed_poses(poses, fits, fix_jumps=jumps)
+    assert not kept.fix_jumps_removed

@@ -296,6 +296,8 @@ class Smoothing:
     corrections: FloatArray  # (K, 3): position correction in world (m)
     position_step: float  # the random walk's step standard deviation (m per iteration, per axis)
     rejected: int = 0  # fits left out as wrong (:func:`smoothed_poses`)
+    log_likelihood: float = float("nan")  # of the fits under the walk, at its measured step
+    fix_jumps_removed: bool = False  # the walk is of the correction with the fixes' jumps taken out
 
 
 def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing:
@@ -312,7 +314,8 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
         _, _, _, log_likelihood, _ = _random_walk_filter(
             measured[:, None, :], variances[:, None, :], (POSITION_STEPS**2)[:, None]
         )
-        step = float(POSITION_STEPS[int(np.argmax(log_likelihood.sum(axis=1)))])
+        total = log_likelihood.sum(axis=1)
+        step = float(POSITION_STEPS[int(np.argmax(total))])
         means, filtered_var, predicted, _, _ = _random_walk_filter(measured, variances, np.full(3, step**2))
         smoothed = _rts(means, filtered_var, predicted)
     for axis in range(3):
@@ -321,7 +324,7 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
             smoothed[: seen[0], axis] = smoothed[seen[0], axis]
         else:
             smoothed[:, axis] = 0.0
-    return Smoothing(smoothed, step)
+    return Smoothing(smoothed, step, log_likelihood=float(np.max(total)))
 
 
 def _hampel_outliers(measured: FloatArray, variances: FloatArray) -> npt.NDArray[np.bool_]:
@@ -344,9 +347,17 @@ def _hampel_outliers(measured: FloatArray, variances: FloatArray) -> npt.NDArray
     return np.any(distance > bound, axis=1)
 
 
-def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArray, Smoothing]:
+def smoothed_poses(
+    poses: FloatArray, relocation: Relocation, fix_jumps: FloatArray | None = None
+) -> tuple[FloatArray, Smoothing]:
     """The filter's poses ``T_world_sensor`` (K, 4, 4) with their positions moved by the smoothed
     corrections toward the relocation (``p <- p + dp``); rotations are the filter's.
+
+    ``fix_jumps`` (K, 3, m), when given, is how far the fixes fused up to each iteration moved the
+    filter's position (their Kalman updates, summed): each fix moves the filter at once, partly by
+    the fix's own noise, so its error is a walk with jumps. The correction is smoothed twice, as a
+    walk and as a walk once the jumps are taken out (``fit - (filtered - jumps)``), and the model
+    whose fits are the likelier is kept.
 
     Iterations before the first fit take its correction. Not even where the first pose defines
     ``world`` (no fixes) is the correction held at zero there: the final map has moved against that
@@ -365,7 +376,17 @@ def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArra
     outlying = rows[_hampel_outliers(measured[rows], variances[rows])]
     variances[outlying] = np.inf
     smoothing = smooth_corrections(measured, variances)
-    smoothing = Smoothing(smoothing.corrections, smoothing.position_step, len(outlying))
+    if fix_jumps is not None and np.any(fix_jumps):
+        without_jumps = smooth_corrections(measured + fix_jumps, variances)
+        if without_jumps.log_likelihood > smoothing.log_likelihood:
+            smoothing = Smoothing(
+                without_jumps.corrections - fix_jumps, without_jumps.position_step,
+                log_likelihood=without_jumps.log_likelihood, fix_jumps_removed=True,
+            )  # fmt: skip
+    smoothing = Smoothing(
+        smoothing.corrections, smoothing.position_step, len(outlying), smoothing.log_likelihood,
+        smoothing.fix_jumps_removed,
+    )  # fmt: skip
     out = poses.copy()
     out[:, :3, 3] = p_f + smoothing.corrections
     return out, smoothing
@@ -373,13 +394,14 @@ def smoothed_poses(poses: FloatArray, relocation: Relocation) -> tuple[FloatArra
 
 def smoothed_trajectory(
     trajectory: Trajectory, iterations: int, pairs: PairHistory, map_ids: IntArray, map_positions: FloatArray,
-    min_noise: float,
+    min_noise: float, fix_jumps: FloatArray | None = None,
 ) -> tuple[Trajectory, dict[str, Any]]:  # fmt: skip
     """A filter's trajectory smoothed on its final map, and the report for ``run.json``.
 
     ``trajectory`` holds the poses the filter returned, one per iteration (``world``); ``pairs`` the
     pairs it made; ``map_ids`` (M,) and ``map_positions`` (M, 3, ``world``, m) the final map's static
-    landmarks; ``min_noise`` the filter's point noise (m, per axis). A run that skipped iterations,
+    landmarks; ``min_noise`` the filter's point noise (m, per axis); ``fix_jumps`` as in
+    :func:`smoothed_poses`. A run that skipped iterations,
     or whose pairs place no iteration on the final map, keeps its trajectory, and the report says why.
     """
     if len(trajectory) != iterations:
@@ -388,7 +410,7 @@ def smoothed_trajectory(
     fitted = int(relocation.fitted.sum())
     if fitted == 0:
         return trajectory, {"applied": False, "reason": "no iteration has enough pairs on the final map"}
-    poses, smoothing = smoothed_poses(trajectory.matrices(), relocation)
+    poses, smoothing = smoothed_poses(trajectory.matrices(), relocation, fix_jumps)
     shift = np.linalg.norm(poses[:, :3, 3] - trajectory.positions, axis=1)
     report = {
         "applied": True,
@@ -396,6 +418,7 @@ def smoothed_trajectory(
         "noise_m": round(relocation.noise, 6),
         "walk_position_m": round(smoothing.position_step, 6),
         "fits_rejected": smoothing.rejected,
+        "fix_jumps_removed": smoothing.fix_jumps_removed,
         "mean_shift_m": round(float(shift.mean()), 6),
         "max_shift_m": round(float(shift.max()), 6),
     }

@@ -274,6 +274,7 @@ class EkfSlam(Estimator[PointObservation]):
         self._next_uid = 0
         self._pairs = PairHistory() if self.config.smooth_trajectory else None
         self._smoothing: dict[str, Any] | None = None
+        self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m)) per fused fix
         self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
         self._vanished = (
@@ -370,7 +371,10 @@ class EkfSlam(Estimator[PointObservation]):
         inflation = self._fix_gate.inflation(d2)
         if inflation is None:
             return  # held back: it contradicts the filter's position (see relpoint.estimators._fix_gate)
+        before = self._position.copy()
         self._kalman_update(np.arange(3), np.eye(3), innovation, R_fix * inflation)
+        if self._pairs is not None:  # the jump the fix made, from the next pose on (trajectory smoothing)
+            self._fix_jumps.append((self._stats["iterations"], self._position - before))
         self._stats["fixes"] += 1
 
     def landmark_map(self) -> LandmarkMap:
@@ -418,9 +422,14 @@ class EkfSlam(Estimator[PointObservation]):
             return trajectory
         static = ~self._moving
         positions = self.landmark_map().positions[: len(self._landmarks)]
+        iterations = self._stats["iterations"]
+        jumps = np.zeros((iterations, 3))
+        for iteration, shift in self._fix_jumps:
+            if iteration < iterations:
+                jumps[iteration] += shift
         smoothed, self._smoothing = smoothed_trajectory(
-            trajectory, self._stats["iterations"], self._pairs, self._uid[static], positions[static],
-            min_noise=float(np.sqrt(self._R_obs[0, 0])),
+            trajectory, iterations, self._pairs, self._uid[static], positions[static],
+            min_noise=float(np.sqrt(self._R_obs[0, 0])), fix_jumps=np.cumsum(jumps, axis=0) if self._fix_jumps else None,
         )  # fmt: skip
         return smoothed
 
