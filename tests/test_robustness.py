@@ -272,14 +272,17 @@ def robustness() -> Any:
     return module
 
 
-def test_ekf_with_dense_fixes_is_no_worse_than_without_them_nor_than_the_fixes(robustness: Any) -> None:
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ekf_with_dense_fixes_is_no_worse_than_without_them_nor_than_the_fixes(robustness: Any, seed: int) -> None:
     # The issue's floor: fusing fixes is never worse than running without them (by more than 10 %) and
-    # never worse than the fixes alone. Before, 1 m fixes every iteration made the EKF 5x worse.
+    # never worse than the fixes alone. Before, 1 m fixes every iteration made the EKF 5x worse; seed 1
+    # was still 2.2x (aligned) until the trajectory was smoothed with the fixes' jumps taken out.
     # 250 iterations: the frame is pinned at about 120, and the fixes need a while to settle after it.
     cell = next(c for c in robustness.matrix() if c.name == "figure8-fix-1m-every")
-    with_fixes = robustness.run_one(cell, "ekf", 0, 250)
-    without = robustness.run_one(cell, "ekf", 0, 250, fixes=False)
-    optimum = robustness.optimum(cell, 0, 250)
+    with_fixes = robustness.run_one(cell, "ekf", seed, 250)
+    without = robustness.run_one(cell, "ekf", seed, 250, fixes=False)
+    optimum = robustness.optimum(cell, seed, 250)
+    assert with_fixes["summary"]["smoothing"]["fix_jumps_removed"]
     assert with_fixes["summary"]["fix_frame"] == "fixes"
     assert with_fixes["ate_aligned"] <= 1.1 * without["ate_aligned"]
     assert with_fixes["ate"] <= 1.1 * without["ate"]
