@@ -7,8 +7,8 @@ filter back the path bends. An offline tool has the whole log, so when it ends e
 placed again on the final map, from the very pairs the filter made at that iteration:
 
 1. **Relocation** (:func:`relocate`): per iteration, the rigid fit (Kabsch) of its paired points
-   (sensor frame) onto their landmarks' final positions (``world``), robust to the odd pair (a
-   second fit without the pairs over three times the iteration's median residual). Its uncertainty
+   (sensor frame) onto their landmarks' final positions (``world``), robust to the odd pair (refitted
+   twice, each time without the pairs over three times the iteration's median residual). Its uncertainty
    follows from the fit's geometry and the point noise (measured from all residuals, their median
    over the chi-square median with 3 degrees of freedom, and no less than the filter's): per axis,
    the rotation's from the inverse of the landmarks' inertia about their centroid, the position's
@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators._landmark_motion import median_by_group
 from relpoint.geometry import FloatArray, skew
 from relpoint.statistics import chi2_gate
 from relpoint.types import Trajectory
@@ -171,30 +172,27 @@ def relocate(
     correlated over time (a filter passes the noise its model assumes).
     """
     K = iterations
-    order = np.argsort(map_ids, kind="stable")
-    sorted_ids = map_ids[order]
-    where = np.searchsorted(sorted_ids, landmark_ids)
-    where = np.clip(where, 0, max(len(sorted_ids) - 1, 0))
-    known = (
-        (len(sorted_ids) > 0) & (sorted_ids[where] == landmark_ids)
-        if len(sorted_ids)
-        else np.zeros(len(landmark_ids), bool)
-    )
-    known &= (iteration >= 0) & (iteration < K)
-    group, source = iteration[known], points[known]
-    target = map_positions[order[where[known]]]
-    weights = np.ones(len(group))
     empty = Relocation(
         np.broadcast_to(np.eye(3), (K, 3, 3)).copy(), np.zeros((K, 3)), np.zeros(K, dtype=bool),
         np.full((K, 6), np.inf), np.zeros(K, dtype=np.int64), float("nan"),
     )  # fmt: skip
+    if len(map_ids) == 0:
+        return empty
+    order = np.argsort(map_ids, kind="stable")
+    sorted_ids = map_ids[order]
+    where = np.clip(np.searchsorted(sorted_ids, landmark_ids), 0, len(sorted_ids) - 1)
+    known = (sorted_ids[where] == landmark_ids) & (iteration >= 0) & (iteration < K)
+    by_iteration = np.flatnonzero(known)[np.argsort(iteration[known], kind="stable")]  # median_by_group's order
+    group, source = iteration[by_iteration], points[by_iteration]
+    target = map_positions[order[where[by_iteration]]]
+    weights = np.ones(len(group))
     if len(group) == 0:
         return empty
-    for _ in range(2):
+    for _ in range(2):  # each refit leaves out the pairs far from the fit before it
         R, t, count, _, target_mean = _batched_kabsch(group, source, target, weights, K)
         residual = np.linalg.norm(np.einsum("nab,nb->na", R[group], source) + t[group] - target, axis=1)
-        median = _median_by_group(group, residual, K)
-        weights = (residual <= OUTLIER_FACTOR * median[group]).astype(np.float64)
+        median = median_by_group(group, residual[:, None], K)[:, 0]
+        weights = (residual <= OUTLIER_FACTOR * median).astype(np.float64)
     R, t, count, _, target_mean = _batched_kabsch(group, source, target, weights, K)
     fitted = count >= MIN_PAIRS
     residual = np.einsum("nab,nb->na", R[group], source) + t[group] - target
@@ -226,23 +224,9 @@ def relocate(
     return Relocation(rotations, positions, fitted, variances, np.round(count).astype(np.int64), noise)
 
 
-def _median_by_group(group: IntArray, values: FloatArray, groups: int) -> FloatArray:
-    """Per group the median of ``values`` (N,) (NaN for an empty group)."""
-    order = np.lexsort((values, group))
-    ranked = values[order]
-    counts = np.bincount(group, minlength=groups)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    low = starts + np.maximum(counts - 1, 0) // 2
-    high = starts + counts // 2
-    safe_low = np.clip(low, 0, max(len(ranked) - 1, 0))
-    safe_high = np.clip(high, 0, max(len(ranked) - 1, 0))
-    out = 0.5 * (ranked[safe_low] + ranked[safe_high]) if len(ranked) else np.zeros(groups)
-    return np.where(counts > 0, out, np.nan)
-
-
 def _random_walk_filter(
     measured: FloatArray, variance: FloatArray, step_variance: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Kalman filter of scalar random walks, vectorised over the trailing axes.
 
     ``measured`` and ``variance`` (K, ...) (``inf`` variance: no measurement), ``step_variance``
@@ -275,7 +259,7 @@ def _random_walk_filter(
             var = np.where(fresh, r, np.where(seen, (1.0 - gain) * var, var))
         means[k] = mean
         variances[k] = var
-    return means, variances, predicted, log_likelihood, np.broadcast_to(step_variance, shape)
+    return means, variances, predicted, log_likelihood
 
 
 def _rts(means: FloatArray, variances: FloatArray, predicted: FloatArray) -> FloatArray:
@@ -311,12 +295,12 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
     if K == 0 or not np.isfinite(variances).any():
         return Smoothing(np.zeros((K, 3)), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        _, _, _, log_likelihood, _ = _random_walk_filter(
+        _, _, _, log_likelihood = _random_walk_filter(
             measured[:, None, :], variances[:, None, :], (POSITION_STEPS**2)[:, None]
         )
         total = log_likelihood.sum(axis=1)
         step = float(POSITION_STEPS[int(np.argmax(total))])
-        means, filtered_var, predicted, _, _ = _random_walk_filter(measured, variances, np.full(3, step**2))
+        means, filtered_var, predicted, _ = _random_walk_filter(measured, variances, np.full(3, step**2))
         smoothed = _rts(means, filtered_var, predicted)
     for axis in range(3):
         seen = np.flatnonzero(np.isfinite(variances[:, axis]))
