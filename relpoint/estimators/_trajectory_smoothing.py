@@ -284,12 +284,14 @@ class Smoothing:
     fix_jumps_removed: bool = False  # the walk is of the correction with the fixes' jumps taken out
 
 
-def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing:
+def smooth_corrections(measured: FloatArray, variances: FloatArray, min_gain: float = 0.0) -> Smoothing:
     """RTS-smoothed random-walk corrections (K, 3) from per-iteration measurements and variances.
 
     The step variance (one for the three axes) is the maximum-likelihood one over
-    :data:`POSITION_STEPS`. Iterations before an axis's first measurement take its first smoothed
-    value; with no measurement at all the corrections are zero.
+    :data:`POSITION_STEPS`, unless its log-likelihood beats the smallest step's (a constant
+    correction) by less than ``min_gain`` (nats): then the smallest. Iterations before an axis's
+    first measurement take its first smoothed value; with no measurement at all the corrections are
+    zero.
     """
     K = len(measured)
     if K == 0 or not np.isfinite(variances).any():
@@ -299,7 +301,10 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
             measured[:, None, :], variances[:, None, :], (POSITION_STEPS**2)[:, None]
         )
         total = log_likelihood.sum(axis=1)
-        step = float(POSITION_STEPS[int(np.argmax(total))])
+        best = int(np.argmax(total))
+        if total[best] - total[0] < min_gain:
+            best = 0
+        step = float(POSITION_STEPS[best])
         means, filtered_var, predicted, _ = _random_walk_filter(measured, variances, np.full(3, step**2))
         smoothed = _rts(means, filtered_var, predicted)
     for axis in range(3):
@@ -308,7 +313,7 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray) -> Smoothing
             smoothed[: seen[0], axis] = smoothed[seen[0], axis]
         else:
             smoothed[:, axis] = 0.0
-    return Smoothing(smoothed, step, log_likelihood=float(np.max(total)))
+    return Smoothing(smoothed, step, log_likelihood=float(total[best]))
 
 
 def _hampel_outliers(measured: FloatArray, variances: FloatArray) -> npt.NDArray[np.bool_]:

@@ -52,6 +52,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
+from relpoint.estimators._fix_smoothing import smoothed_on_fixes
 from relpoint.estimators._landmark_motion import (
     MotionTest,
     MovingLandmarkSettings,
@@ -73,7 +74,7 @@ from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
 from relpoint.settings import setting
 from relpoint.statistics import chi2_gate
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -170,6 +171,11 @@ class FastSlamConfig(MovingLandmarkSettings):
     fix_drift: float = setting(0.1, low=0, high=10)
     """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
     (m/m, per axis), the drift of the local map that the fixes correct."""
+    smooth_trajectory: bool = setting(True)
+    """When the log ends, take the fused fixes' jumps out of the trajectory and smooth the
+    correction on the fixes (:mod:`relpoint.estimators._fix_smoothing`): each fix moves the filter at
+    once, partly by its own noise. ``smoothing`` in ``run.json`` reports it. Off, or without fused
+    fixes: the trajectory is the filter's poses as it made them. Rotations stay the filter's."""
     fix_window: int = setting(100, low=0, high=1_000_000)
     """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
     iterations, by the covariance-weighted correction (eq. 31-32)."""
@@ -268,6 +274,11 @@ class FastSlam(Estimator[PointObservation]):
         self._frame: FixFrame | None = FixFrame(min_spread=cfg.fix_min_spread) if cfg.fix_alignment == "rigid" else None
         self._frame_fit: FrameFit | None = None
         self._fix_gate = FixGate(self.config.fix_gate_probability, self.config.fix_gate_patience)
+        # Trajectory smoothing on the fixes (``smooth_trajectory``): each fix taken (stamp (ns),
+        # position (m), per-axis variance (m^2)) and each fused fix's jump of the mean position.
+        self._fixes_taken: list[tuple[int, FloatArray, FloatArray]] = []
+        self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m))
+        self._smoothing: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------ interface
 
@@ -348,8 +359,10 @@ class FastSlam(Estimator[PointObservation]):
         """
         if self.config.fix_alignment == "ignore":
             return
+        fix_variances = np.diag(np.asarray(fix.covariance, dtype=np.float64)).copy()
         if self._frame is not None:
             self._frame.add_fix(fix)
+            self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
             return
         if self._stamp_ns is not None:
             self._predict_to(fix.stamp_ns)
@@ -365,6 +378,7 @@ class FastSlam(Estimator[PointObservation]):
         if inflation != 1.0:
             S = C + P_fix * inflation + np.eye(3) * 1e-12
             S_inv = np.linalg.inv(S)
+        mean_before = self.weights @ self.positions
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
@@ -378,6 +392,9 @@ class FastSlam(Estimator[PointObservation]):
         fused = C - K @ C
         self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
         self._stats["fixes"] += 1
+        # The jump of the mean pose (weights and positions both moved), from the next pose on.
+        self._fix_jumps.append((self._stats["iterations"], self.weights @ self.positions - mean_before))
+        self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances * inflation))
 
     @property
     def frame_fit(self) -> FrameFit | None:
@@ -449,7 +466,34 @@ class FastSlam(Estimator[PointObservation]):
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
+            **({"smoothing": self._smoothing} if self._smoothing is not None else {}),
         }
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        """The trajectory with the fused fixes' jumps taken out and its correction smoothed on the
+        fixes (``smooth_trajectory``; :mod:`relpoint.estimators._fix_smoothing`), or ``trajectory``
+        as it is: without fused fixes, or when the run skipped iterations (``smoothing`` in
+        :meth:`summary` says so).
+
+        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``).
+        """
+        if not self.config.smooth_trajectory or not self._fix_jumps:
+            return trajectory
+        iterations = self._stats["iterations"]
+        if len(trajectory) != iterations:
+            self._smoothing = {"applied": False, "reason": "the run skipped iterations"}
+            return trajectory
+        jumps = np.zeros((iterations, 3))
+        for iteration, shift in self._fix_jumps:
+            if iteration < iterations:
+                jumps[iteration] += shift
+        stamps = np.array([stamp for stamp, _, _ in self._fixes_taken], dtype=np.int64)
+        positions = np.array([position for _, position, _ in self._fixes_taken])
+        variances = np.array([variance for _, _, variance in self._fixes_taken])
+        smoothed, self._smoothing = smoothed_on_fixes(
+            trajectory, np.cumsum(jumps, axis=0), stamps, positions, variances
+        )
+        return smoothed
 
     def pose(self) -> Pose:
         """Weighted mean pose: mean position and the chordal mean of the rotations."""
