@@ -1,0 +1,109 @@
+"""Offline smoothing of a trajectory on the position fixes it fused (FastSLAM): pairing fixes with
+poses, the jumps taken out, the walk's test, and the estimator's use of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relpoint.estimators._fix_smoothing import fix_corrections, smoothed_on_fixes
+from relpoint.estimators._trajectory_smoothing import POSITION_STEPS, smooth_corrections
+from relpoint.types import Trajectory
+
+STEP_NS = 100_000_000
+
+
+def _line(K: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (ns) and true positions (m) of a straight path at 1 m an iteration."""
+    stamps = np.arange(K, dtype=np.int64) * STEP_NS
+    truth = np.column_stack([np.arange(K, dtype=float), np.zeros(K), np.zeros(K)])
+    return stamps, truth
+
+
+def test_a_fix_is_compared_with_the_path_at_its_stamp_and_counts_at_the_nearest_pose() -> None:
+    stamps, path = _line(10)
+    # A fix 0.3 of an iteration after pose 4 (path there x = 4.3), and one 0.7 after (nearest pose 5).
+    fix_stamps = np.array([4 * STEP_NS + 30_000_000, 4 * STEP_NS + 70_000_000], dtype=np.int64)
+    fixes = np.array([[4.8, 1.0, 0.0], [4.7, -1.0, 0.0]])
+    measured, variances = fix_corrections(stamps, path, fix_stamps, fixes, np.ones((2, 3)))
+    assert np.isfinite(variances[:, 0]).sum() == 2
+    np.testing.assert_allclose(measured[4], [0.5, 1.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(measured[5], [0.0, -1.0, 0.0], atol=1e-9)
+
+
+def test_fixes_at_one_pose_combine_by_their_inverse_variances_and_unusable_ones_are_left_out() -> None:
+    stamps, path = _line(5)
+    fix_stamps = np.full(4, 2 * STEP_NS, dtype=np.int64)
+    fixes = path[2] + np.array([[1.0, 0, 0], [4.0, 0, 0], [100.0, 0, 0], [100.0, 0, 0]])
+    variances = np.array([[1.0] * 3, [4.0] * 3, [np.nan] * 3, [0.0] * 3])
+    measured, combined = fix_corrections(stamps, path, fix_stamps, fixes, variances)
+    # (1/1 + 4/4) / (1/1 + 1/4) = 1.6, variance 1 / 1.25 = 0.8; the NaN and zero variances do not count.
+    np.testing.assert_allclose(measured[2, 0], 1.6)
+    np.testing.assert_allclose(combined[2], 0.8)
+    assert np.isinf(combined[[0, 1, 3, 4]]).all()
+
+
+def test_a_walk_must_gain_enough_likelihood_to_be_taken() -> None:
+    rng = np.random.default_rng(3)
+    K = 200
+    measured = rng.normal(scale=1.0, size=(K, 3))
+    variances = np.full((K, 3), np.inf)
+    variances[::10] = 1.0
+    free = smooth_corrections(measured, variances)
+    tested = smooth_corrections(measured, variances, min_gain=1e9)
+    assert tested.position_step == POSITION_STEPS[0]
+    assert tested.log_likelihood <= free.log_likelihood
+
+
+def _filtered_run(seed: int, K: int, fix_every: int, fix_noise: float, drift: float):
+    """A filter's path: the truth plus a slow drift, and at each fix a Kalman-like jump of 30 % of
+    the fix's innovation (partly its noise). Returns stamps, truth, the filter's positions, the
+    summed jumps, and the fixes (stamps, positions, variances)."""
+    rng = np.random.default_rng(seed)
+    stamps, truth = _line(K)
+    walk = np.cumsum(rng.normal(scale=drift, size=(K, 3)), axis=0) if drift else np.zeros((K, 3))
+    fix_at = np.arange(0, K, fix_every)
+    fixes = truth[fix_at] + rng.normal(scale=fix_noise, size=(len(fix_at), 3))
+    jumps = np.zeros((K, 3))
+    correction = np.zeros(3)
+    for i, k in enumerate(fix_at):
+        innovation = fixes[i] - (truth[k] + walk[k] + correction)
+        correction = correction + 0.3 * innovation
+        if k + 1 < K:
+            jumps[k + 1] += 0.3 * innovation
+    summed = np.cumsum(jumps, axis=0)
+    positions = truth + walk + summed
+    return stamps, truth, positions, summed, (stamps[fix_at], fixes, np.full((len(fix_at), 3), fix_noise**2))
+
+
+def _trajectory(stamps: np.ndarray, positions: np.ndarray) -> Trajectory:
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    poses[:, :3, 3] = positions
+    return Trajectory.from_matrices(stamps, poses)
+
+
+def _rmse(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sparse_noisy_fixes_leave_the_path_its_shape_and_move_it_as_a_whole(seed: int) -> None:
+    """25 fixes of 5 m: no walk is taken (a walk would follow their noise), the jumps go, and what is
+    left is the filter's path moved as a whole."""
+    stamps, truth, positions, summed, fixes = _filtered_run(seed, 250, 10, 5.0, drift=0.0)
+    smoothed, report = smoothed_on_fixes(_trajectory(stamps, positions), summed, *fixes)
+    assert report["applied"] and report["walk_position_m"] == pytest.approx(POSITION_STEPS[0])
+    shift = smoothed.positions - (positions - summed)
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-3)
+    error = smoothed.positions - truth
+    jitter = error - error.mean(axis=0)
+    assert np.sqrt(np.mean(np.sum(jitter**2, axis=1))) < 1e-3  # its shape is the truth's
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dense_fixes_and_a_real_drift_make_a_walk_that_beats_the_filter(seed: int) -> None:
+    stamps, truth, positions, summed, fixes = _filtered_run(seed, 300, 1, 1.0, drift=0.05)
+    smoothed, report = smoothed_on_fixes(_trajectory(stamps, positions), summed, *fixes)
+    assert 0.01 < report["walk_position_m"] < 0.2
+    assert _rmse(smoothed.positions, truth) < 0.7 * _rmse(positions, truth)
+    np.testing.assert_allclose(smoothed.matrices()[:, :3, :3], _trajectory(stamps, positions).matrices()[:, :3, :3])
