@@ -278,6 +278,7 @@ class FastSlam(Estimator[PointObservation]):
         # position (m), per-axis variance (m^2)) and each fused fix's jump of the mean position.
         self._fixes_taken: list[tuple[int, FloatArray, FloatArray]] = []
         self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m))
+        self._local_poses: list[FloatArray] = []  # mean pose (local) of each iteration before the pinning
         self._smoothing: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------ interface
@@ -343,6 +344,8 @@ class FastSlam(Estimator[PointObservation]):
             fit = self._frame.update(observation.stamp_ns, mean, spread)
             if fit is not None:
                 self._pin_frame(fit)
+            elif self.config.smooth_trajectory:  # the local pose, placed again once the frame is pinned
+                self._local_poses.append(self._mean_pose())
         return self.pose()
 
     def add_fix(self, fix: PositionFix) -> None:
@@ -483,6 +486,13 @@ class FastSlam(Estimator[PointObservation]):
         if len(trajectory) != iterations:
             self._smoothing = {"applied": False, "reason": "the run skipped iterations"}
             return trajectory
+        # Before the pinning the output was the local pose under the provisional transform of its
+        # iteration (which changes as fixes arrive): placed again by the transform that pinned it.
+        assert self._frame_fit is not None  # fixes were fused, so the frame was pinned
+        before = len(self._local_poses)
+        matrices = trajectory.matrices().copy()
+        if before:
+            matrices[:before] = self._frame_fit.T_world_local @ np.stack(self._local_poses)
         jumps = np.zeros((iterations, 3))
         for iteration, shift in self._fix_jumps:
             if iteration < iterations:
@@ -491,22 +501,29 @@ class FastSlam(Estimator[PointObservation]):
         positions = np.array([position for _, position, _ in self._fixes_taken])
         variances = np.array([variance for _, _, variance in self._fixes_taken])
         smoothed, self._smoothing = smoothed_on_fixes(
-            trajectory, np.cumsum(jumps, axis=0), stamps, positions, variances
-        )
+            Trajectory.from_matrices(trajectory.stamps_ns, matrices), np.cumsum(jumps, axis=0), stamps, positions,
+            variances,
+        )  # fmt: skip
+        self._smoothing["poses_placed_in_pinned_frame"] = before
         return smoothed
 
     def pose(self) -> Pose:
-        """Weighted mean pose: mean position and the chordal mean of the rotations."""
+        """Weighted mean pose: mean position and the chordal mean of the rotations (before the fixes
+        pin the frame: the local pose mapped by the provisional transform)."""
+        T = self._mean_pose()
+        if self._frame is not None:
+            T = self._frame.provisional @ T
+        return Pose.from_matrix(self._stamp_ns or 0, T)
+
+    def _mean_pose(self) -> FloatArray:
+        """The particles' weighted mean pose ``T`` (4, 4) in their own frame (local until the pinning)."""
         w = self.weights
-        position = w @ self.positions
         U, _, Vt = np.linalg.svd(np.einsum("p,pij->ij", w, self.rotations))
         D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
         T = np.eye(4)
         T[:3, :3] = U @ D @ Vt
-        T[:3, 3] = position
-        if self._frame is not None:
-            T = self._frame.provisional @ T
-        return Pose.from_matrix(self._stamp_ns or 0, T)
+        T[:3, 3] = w @ self.positions
+        return T
 
     # ------------------------------------------------------------------------------------ proposal
 
