@@ -174,8 +174,10 @@ class FastSlamConfig(MovingLandmarkSettings):
     smooth_trajectory: bool = setting(True)
     """When the log ends, take the fused fixes' jumps out of the trajectory and smooth the
     correction on the fixes (:mod:`relpoint.estimators._fix_smoothing`): each fix moves the filter at
-    once, partly by its own noise. ``smoothing`` in ``run.json`` reports it. Off, or without fused
-    fixes: the trajectory is the filter's poses as it made them. Rotations stay the filter's."""
+    once, partly by its own noise. The poses returned before the fixes pinned the frame (local, under
+    a provisional transform) are placed by the pinning's transform first. ``smoothing`` in
+    ``run.json`` reports it. Off, or without fused fixes: the trajectory is the filter's poses as it
+    made them. After the pinning, rotations stay the filter's."""
     fix_window: int = setting(100, low=0, high=1_000_000)
     """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
     iterations, by the covariance-weighted correction (eq. 31-32)."""
