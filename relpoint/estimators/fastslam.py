@@ -46,6 +46,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
 from relpoint.errors import UsageError
@@ -59,6 +60,13 @@ from relpoint.estimators._landmark_motion import (
     candidate_slots,
     hand_over,
     shared_motion_removed,
+)
+from relpoint.estimators._loop_closure import (
+    LOOP_TOLERANCE_SIGMAS,
+    MIN_SUPPORT,
+    OLD_ITERATIONS,
+    YOUNG_ITERATIONS,
+    register_loop,
 )
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
@@ -92,6 +100,7 @@ _SLOT_ARRAYS = {
     "_moving": False,
     "_suspect": -1,
     "_suspect_misses": 0,
+    "_born": -1,
 }
 """Attributes indexed by particle and landmark slot, with the value of an empty slot: capacity grows
 and a dropped landmark's gap closes in each of them."""
@@ -171,6 +180,12 @@ class FastSlamConfig(MovingLandmarkSettings):
     fix_drift: float = setting(0.1, low=0, high=10)
     """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
     (m/m, per axis), the drift of the local map that the fixes correct."""
+    close_loops: bool = setting(True)
+    """Close loops the particles' drift keeps open (:mod:`relpoint.estimators._loop_closure`): when the
+    best particle's landmarks started in the last 50 iterations sit at one offset from landmarks not
+    seen for 100, beyond chance, every particle's pose and the landmarks it saw lately move by that
+    offset, and each young landmark that then lies on an old one is merged into it. ``loop_closures``
+    in ``run.json`` counts them."""
     smooth_trajectory: bool = setting(True)
     """When the log ends, take the fused fixes' jumps out of the trajectory and smooth the
     correction on the fixes (:mod:`relpoint.estimators._fix_smoothing`): each fix moves the filter at
@@ -260,6 +275,7 @@ class FastSlam(Estimator[PointObservation]):
         # again or dropped.
         self._suspect = np.full((n, self._capacity), -1, dtype=np.int64)
         self._suspect_misses = np.zeros((n, self._capacity), dtype=np.int64)
+        self._born = np.full((n, self._capacity), -1, dtype=np.int64)  # iteration each landmark was started
         self._view = SensorView() if cfg.drop_vanished else None
         self._log_vanished = math.log(cfg.vanished_probability)
         self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
@@ -270,6 +286,9 @@ class FastSlam(Estimator[PointObservation]):
         self._Sigma = np.zeros((n, 12, 12))
         self._odometry: OdometryMeasurement | None = None
         self._stats = Counter[str]()
+        if cfg.close_loops:
+            self._stats["loop_closures"] = 0  # loops closed by registering young landmarks onto old ones (run.json)
+            self._stats["loop_landmarks_merged"] = 0  # the best particle's young landmarks merged into old ones
         if cfg.drop_vanished:
             self._stats["vanished"] = 0  # landmarks the best particle dropped as vanished (run.json)
         # Fix frame (``rigid``): None once the particles are in the fixes' frame (or with ``ignore``).
@@ -338,6 +357,8 @@ class FastSlam(Estimator[PointObservation]):
         if self._view is not None:
             self._drop_vanished(points, assoc, near, *started)
         self._resample_if_degenerate()
+        if self.config.close_loops:
+            self._close_loop()
         self._stats["iterations"] += 1
         if self._frame is not None:
             w = self.weights
@@ -708,6 +729,7 @@ class FastSlam(Estimator[PointObservation]):
         self._vote_n[p, slots] = 0 if ids is None else 1
         self._suspect[p, slots] = -1
         self._suspect_misses[p, slots] = 0
+        self._born[p, slots] = self._stats["iterations"]
         self.counts += np.bincount(p, minlength=self.config.particles)
         self._stats["started"] += len(p)
         return p, slots, i
@@ -771,6 +793,58 @@ class FastSlam(Estimator[PointObservation]):
         order = np.lexsort((d2, owner))
         first = order[np.unique(owner[order], return_index=True)[1]]
         return p[first], j[first]
+
+    def _loop_maps(self, particle: int, iteration: int) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of ``particle``'s static young landmarks (started within ``YOUNG_ITERATIONS``) and old
+        ones (seen at least twice, not within ``OLD_ITERATIONS``) at ``iteration``."""
+        n = int(self.counts[particle])
+        static = ~self._moving[particle, :n]
+        young = np.flatnonzero(static & (self._born[particle, :n] >= iteration - YOUNG_ITERATIONS))
+        old = np.flatnonzero(
+            static & (self._last[particle, :n] < iteration - OLD_ITERATIONS) & (self._seen[particle, :n] >= 2)
+        )
+        return young, old
+
+    def _close_loop(self) -> None:
+        """Register the best particle's young landmarks onto its old ones
+        (:func:`relpoint.estimators._loop_closure.register_loop`, within twice the search radius, at
+        two points' noise); on a loop, move every particle's pose and the landmarks it saw within
+        ``OLD_ITERATIONS`` by the offset, and merge each particle's young landmarks that then lie on
+        an old one into it (the old landmark counts as seen now)."""
+        iteration = self._stats["iterations"]
+        if iteration <= OLD_ITERATIONS:
+            return
+        best = int(np.argmax(self.log_weights))
+        young, old = self._loop_maps(best, iteration)
+        if len(young) < MIN_SUPPORT or len(old) < MIN_SUPPORT:
+            return
+        tolerance = LOOP_TOLERANCE_SIGMAS * math.sqrt(2.0 * self._Q[0, 0])
+        loop = register_loop(self.means[best, young], self.means[best, old], tolerance, 2.0 * self._search_radius)
+        if loop is None:
+            return
+        slot = np.arange(self._capacity)[None, :]
+        lately = (self._last >= iteration - OLD_ITERATIONS) & (slot < self.counts[:, None])
+        self.positions = self.positions + loop.shift
+        self.means += np.where(lately[:, :, None], loop.shift, 0.0)
+        particles, slots = [], []
+        for p in range(self.config.particles):
+            young, old = self._loop_maps(p, iteration)
+            if not len(young) or not len(old):
+                continue
+            distance, nearest = cKDTree(self.means[p, old]).query(self.means[p, young], distance_upper_bound=tolerance)
+            on_old = np.isfinite(distance)
+            self._last[p, old[nearest[on_old]]] = iteration
+            particles.append(np.full(int(on_old.sum()), p))
+            slots.append(young[on_old])
+            if p == best:
+                self._stats["loop_landmarks_merged"] += int(on_old.sum())
+        if particles:
+            self._drop(np.concatenate(particles), np.concatenate(slots))
+        self._stats["loop_closures"] += 1
+        logger.info(
+            "loop closed at iteration %d: moved %.2f m (%d of %d young landmarks agree, %.1f by chance)",
+            iteration, float(np.linalg.norm(loop.shift)), loop.support, loop.candidates, loop.expected,
+        )  # fmt: skip
 
     def _drop(self, particles: np.ndarray, slots: np.ndarray) -> None:
         """Remove landmark ``slots[k]`` from particle ``particles[k]``'s map; the later slots move down."""
