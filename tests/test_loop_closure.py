@@ -78,3 +78,17 @@ def test_fastslam_closes_the_figure_eights_loop() -> None:
         return float(np.sqrt(np.mean(np.sum((estimate - truth) ** 2, axis=1))))
 
     assert ate(closed) < 0.8 * ate(open_)
+
+
+def test_a_vote_with_more_pairs_than_its_bound_thins_the_young_and_still_finds_the_loop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from relpoint.estimators import _loop_closure
+
+    monkeypatch.setattr(_loop_closure, "MAX_PAIRS", 1_500)
+    rng = np.random.default_rng(5)
+    old = _surface(rng, 300)
+    young = old[:150] + np.array([2.0, 1.0, 0.0]) + rng.normal(scale=SIGMA, size=(150, 3))
+    loop = register_loop(young, old, TOLERANCE, REACH)
+    assert loop is not None and loop.candidates <= 75  # a third of the young landmarks voted
+    np.testing.assert_allclose(loop.shift, [-2.0, -1.0, 0.0], atol=0.25)

@@ -48,6 +48,9 @@ MIN_SUPPORT = 5
 FALSE_LOOP_PROBABILITY = 1e-9
 #: Most offset bins whose exact support is counted.
 TOP_BINS = 8
+#: Most young-old pairs a vote holds (memory and time stay bounded in dense maps): beyond it, an
+#: evenly strided share of the young landmarks votes.
+MAX_PAIRS = 200_000
 
 
 @dataclass(frozen=True)
@@ -68,7 +71,11 @@ def register_loop(young: FloatArray, old: FloatArray, tolerance: float, reach: f
     """
     if len(young) < MIN_SUPPORT or len(old) < MIN_SUPPORT or tolerance <= 0 or reach <= tolerance:
         return None
-    lists = cKDTree(old).query_ball_point(young, r=reach)
+    tree = cKDTree(old)
+    counts = np.asarray(tree.query_ball_point(young, r=reach, return_length=True), dtype=np.int64)
+    if counts.sum() > MAX_PAIRS:
+        young = young[:: int(np.ceil(counts.sum() / MAX_PAIRS))]
+    lists = tree.query_ball_point(young, r=reach)
     counts = np.fromiter((len(near) for near in lists), dtype=np.int64, count=len(young))
     candidates = int(np.count_nonzero(counts))
     if candidates < MIN_SUPPORT:
