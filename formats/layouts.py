@@ -22,6 +22,7 @@ benchmark use to compare layouts on the same messages.
 from __future__ import annotations
 
 import enum
+import functools
 import hashlib
 import os
 import shutil
@@ -325,12 +326,29 @@ def decompress_bag(path: Path, into: Path) -> Path:
 
 
 def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> str:
-    """SHA-256 of a log: its file's bytes, or for a rosbag2 directory every file's name and bytes in order."""
+    """SHA-256 of a log: its file's bytes, or for a rosbag2 directory every file's name and bytes in order.
+
+    Remembered for the files' identity, size and modification time: a batch worker that runs several
+    jobs on one log reads it once for the hash, and a file changed since is hashed again.
+    """
     path = Path(path)
     layout = layout or detect_layout(path)
+    files = tuple(storage_paths(path, layout))
+    identity = tuple((str(file.resolve()), *_file_stamp(file)) for file in files)
+    return _sha256_of(identity, files, layout is Layout.ROSBAG2)
+
+
+def _file_stamp(file: Path) -> tuple[int, int, int, int]:
+    status = file.stat()
+    return status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=64)
+def _sha256_of(identity: tuple[tuple[object, ...], ...], files: tuple[Path, ...], named: bool) -> str:
+    """The hash of ``files`` in order (each name first when ``named``); cached on ``identity``."""
     digest = hashlib.sha256()
-    for file in storage_paths(path, layout):
-        if layout is Layout.ROSBAG2:
+    for file in files:
+        if named:
             digest.update(file.name.encode("utf-8") + b"\x00")
         with file.open("rb") as stream:
             for block in iter(lambda stream=stream: stream.read(1 << 20), b""):

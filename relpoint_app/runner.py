@@ -149,7 +149,7 @@ def execute_run(
         "parameters": dataclasses.asdict(config),
         "seed": seed,
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path), "roles": sorted(roles),
+        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path, reader.layout), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
         "warnings": list(result.warnings),

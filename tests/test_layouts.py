@@ -366,3 +366,30 @@ def test_random_damage_in_any_layout_never_escapes_as_a_traceback(
     victim.write_bytes(bytes(damaged))
     with contextlib.suppress(RelpointError):
         consume(path)
+
+
+def test_a_logs_hash_is_read_once_and_again_when_the_file_changes(tmp_path: Path) -> None:
+    import hashlib
+    import os
+
+    from formats.signatures import MCAP_MAGIC
+
+    log = tmp_path / "a.mcap"
+    log.write_bytes(MCAP_MAGIC + b"x" * 100)
+    reads = []
+    opened = Path.open
+
+    def counting_open(self: Path, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if self == log:
+            reads.append(1)
+        return opened(self, *args, **kwargs)
+
+    first = log_sha256(log, Layout.MCAP)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Path, "open", counting_open)
+        assert log_sha256(log, Layout.MCAP) == first
+        assert reads == []  # remembered
+        log.write_bytes(log.read_bytes() + b"y")
+        os.utime(log, ns=(1, 1))
+        changed = log_sha256(log, Layout.MCAP)
+    assert changed == hashlib.sha256(log.read_bytes()).hexdigest() != first
