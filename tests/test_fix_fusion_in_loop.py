@@ -193,3 +193,30 @@ def test_frame_is_pinned_when_fixes_spread_after_a_full_window_of_collinear_ones
         fits.append(frame.update(k * 10**9, np.array(position), 0.01 * covariance))
     fit = next(f for f in fits if f is not None)
     np.testing.assert_allclose(fit.T_world_local, np.eye(4), atol=1e-6)
+
+
+def test_fastslam_follows_fixes_after_drifting_through_a_stretch_without_landmarks() -> None:
+    """figure8-gaps' landmark-free stretches leave the particles metres off with a small covariance;
+    the fixes keep failing the gate. After the gate's patience the particles' covariance grows until
+    the fix lies on the gate's edge, and the fixes pull them back. Seed 1, 500 iterations, 10
+    particles: the filter's own poses 8.9 m RMS against 125 m when the fix's covariance was inflated
+    instead; the run's trajectory 2.4 m against 37 m (fixes alone 1.7 m)."""
+    from relpoint import pipeline
+
+    steps = _gaps(500)
+    online = FastSlam(FastSlamConfig(particles=10), np.random.default_rng(1))
+    errors = _drive(online, steps)
+    assert online.summary()["fixes_inflated"] > 0
+    assert np.sqrt(np.mean(errors**2)) < 20.0
+
+    def inputs():  # type: ignore[no-untyped-def]
+        for step in steps:
+            if step.fix is not None:
+                yield step.fix
+            yield step.observation
+
+    result = pipeline.run(inputs(), FastSlam(FastSlamConfig(particles=10), np.random.default_rng(1)))
+    truth = np.array([step.T_world_sensor[:3, 3] for step in steps])
+    fixes = np.array([s.fix.position - s.T_world_sensor[:3, 3] for s in steps if s.fix is not None])
+    ate = np.sqrt(np.mean(np.sum((result.trajectory.positions - truth) ** 2, axis=1)))
+    assert ate < 2.0 * np.sqrt(np.mean(np.sum(fixes**2, axis=1)))

@@ -7,9 +7,12 @@ further than the map allows. Each fix is therefore tested like an observation (Z
 innovation ``nu = fix - p`` with ``S = C_p + C_fix``): inside the gate it is fused as it is; outside
 it is held back. A run of ``patience`` fixes in a row outside the gate cannot be the fixes' own
 noise (at probability 0.999 that is one in 10^9 for three); it means the filter itself has drifted
-and its covariance is too small, so from then on each fix outside the gate is fused with its
-covariance inflated to put it on the gate's edge: the state moves towards the fixes at the rate the
-evidence supports, never by a full jump, and returns to plain fusion with the first fix inside.
+and its covariance is too small, so from then on each fix outside the gate is fused on the gate's
+edge, and returns to plain fusion with the first fix inside. The EKF puts it there by inflating the
+fix's covariance (its joint covariance couples the pose with every landmark): the state moves
+towards the fixes at the rate the evidence supports, never by a full jump. FastSLAM inflates its
+particles' position covariance instead (:meth:`relpoint.estimators.fastslam.FastSlam.add_fix`): a
+drifted particle filter otherwise stays where it drifted.
 """
 
 from __future__ import annotations
