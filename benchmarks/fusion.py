@@ -120,7 +120,10 @@ def run_estimator(name: str, config: SimulationConfig, in_loop: bool) -> dict[st
     label = {"ekf": "EKF", "relpoint": "Relative Point"}.get(name, name)
 
     def make() -> Estimator:
-        return spec.factory(spec.config_class(), np.random.default_rng(0))
+        # One noise for every restarted local map, known from its first step, as ``relpoint fuse
+        # --restart`` does: an estimator that estimates it holds its first observations back, and
+        # each fresh local map would end before it had matched anything.
+        return spec.factory(spec.config_class(observation_sigma=config.noise), np.random.default_rng(0))
 
     def inputs():  # type: ignore[no-untyped-def]
         for s in steps:
@@ -148,7 +151,10 @@ def run_estimator(name: str, config: SimulationConfig, in_loop: bool) -> dict[st
     print(f"\n{label} continuous: {len(run.trajectory)} iterations in {time.perf_counter() - start:.1f} s wall, "
           f"{time.process_time() - cpu:.1f} s CPU")  # fmt: skip
     matched = matched_counts_from_map_growth(run.observed, run.map_size)
-    owners = np.searchsorted(run.map_size, np.arange(len(run.landmarks)), side="right")
+    # Creation iteration of each landmark; a landmark the run's end added (its final adjustment) takes the last.
+    owners = np.minimum(
+        np.searchsorted(run.map_size, np.arange(len(run.landmarks)), side="right"), len(run.map_size) - 1
+    )
     for suffix, fusion_config in (
         ("continuous", FusionConfig()),
         ("continuous_rigid", FusionConfig(split_significance=0.0)),

@@ -20,6 +20,8 @@ from relpoint.types import LandmarkMap, Trajectory
 
 TRAJECTORY_HEADER = ["iteration", "timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"]
 MAP_HEADER = ["landmark", "x", "y", "z", "observations", "dynamic", "gt_id"]
+#: The optional last column of ``map.csv``: the iteration each landmark was first observed or started.
+FIRST_ITERATION = "first_iteration"
 TIMING_HEADER = ["iteration", "observed", "map_size", "seconds"]
 
 
@@ -44,18 +46,24 @@ def write_trajectory_csv(path: str | os.PathLike[str], trajectory: Trajectory) -
 
 
 def write_map_csv(path: str | os.PathLike[str], landmarks: LandmarkMap) -> None:
-    """``landmark,x,y,z,observations,dynamic,gt_id``; dynamic is 0 or 1."""
+    """``landmark,x,y,z,observations,dynamic,gt_id``, and ``first_iteration`` when the estimator knows
+    it; dynamic is 0 or 1."""
+    first = landmarks.first_iteration
     rows = [
         [str(i), f"{p[0]:.9f}", f"{p[1]:.9f}", f"{p[2]:.9f}", str(int(n)), str(int(d)), str(int(g))]
         for i, (p, n, d, g) in enumerate(
             zip(landmarks.positions, landmarks.observations, landmarks.dynamic, landmarks.gt_id, strict=True)
         )
     ]
-    write_text(path, _rows_to_text(MAP_HEADER, rows))
+    if first is None:
+        write_text(path, _rows_to_text(MAP_HEADER, rows))
+        return
+    rows = [[*row, str(int(f))] for row, f in zip(rows, first, strict=True)]
+    write_text(path, _rows_to_text([*MAP_HEADER, FIRST_ITERATION], rows))
 
 
 def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
-    """Read a ``map.csv`` back into a :class:`LandmarkMap`."""
+    """Read a ``map.csv`` back into a :class:`LandmarkMap` (``first_iteration`` when the file has it)."""
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8") as stream:
@@ -63,6 +71,7 @@ def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
             missing = [c for c in MAP_HEADER[1:] if c not in (reader.fieldnames or [])]
             if missing:
                 raise InputError(f"{path}: not a relpoint map.csv (missing column(s) {', '.join(missing)})")
+            has_first = FIRST_ITERATION in (reader.fieldnames or [])
             rows = list(reader)
     except OSError as error:
         raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
@@ -73,6 +82,7 @@ def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
             np.array([int(r["observations"]) for r in rows], dtype=np.int64),
             np.array([int(r["dynamic"]) != 0 for r in rows], dtype=bool),
             np.array([int(r["gt_id"]) for r in rows], dtype=np.int64),
+            first_iteration=np.array([int(r[FIRST_ITERATION]) for r in rows], dtype=np.int64) if has_first else None,
         )
     except (ValueError, TypeError) as error:
         raise InputError(f"{path}: malformed row ({error})") from None
@@ -90,7 +100,7 @@ def write_timing_csv(
 
 
 MAP_HISTORY_HEADER = ["iteration", "timestamp", "landmark", "x", "y", "z", "dynamic", "gt_id"]
-for _header in (TRAJECTORY_HEADER, MAP_HEADER, TIMING_HEADER, MAP_HISTORY_HEADER):
+for _header in (TRAJECTORY_HEADER, MAP_HEADER, [*MAP_HEADER, FIRST_ITERATION], TIMING_HEADER, MAP_HISTORY_HEADER):
     register_csv_header(_header)
 
 

@@ -193,6 +193,9 @@ class LandmarkMap:
     gt_id: (M,) int64, majority ground-truth id of the fused observations, -1 if unknown.
     purity: (M,) float64 share of the fused observations that carry ``gt_id`` (association purity),
         or ``None`` when the estimator or the log cannot tell.
+    first_iteration: (M,) int64, the iteration each landmark was first observed or started (-1 if
+        unknown), or ``None``: what tells a continuous run's landmarks apart by the local map they
+        were made in when the map also loses landmarks (``relpoint fuse``).
     """
 
     positions: FloatArray
@@ -200,6 +203,7 @@ class LandmarkMap:
     dynamic: npt.NDArray[np.bool_]
     gt_id: IntArray
     purity: FloatArray | None = None
+    first_iteration: IntArray | None = None
 
     def __post_init__(self) -> None:
         positions = _frozen(self.positions, np.float64, (3,), "positions")
@@ -215,6 +219,11 @@ class LandmarkMap:
             if len(purity) != n or np.any((purity < 0) | (purity > 1)):
                 raise ValueError(f"purity must hold {n} shares in [0, 1]")
             object.__setattr__(self, "purity", purity)
+        if self.first_iteration is not None:
+            first = _frozen(self.first_iteration, np.int64, (), "first_iteration")
+            if len(first) != n:
+                raise ValueError(f"first_iteration has {len(first)} entries for {n} landmarks")
+            object.__setattr__(self, "first_iteration", first)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -235,7 +244,7 @@ class LandmarkMap:
             np.concatenate([m.dynamic for m in maps]),
             np.concatenate([m.gt_id for m in maps]),
             None if any(p is None for p in purities) else np.concatenate(purities),
-        )
+        )  # first iterations are each map's own
 
 
 @dataclass(frozen=True, eq=False)

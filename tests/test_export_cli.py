@@ -246,3 +246,17 @@ def test_bad_requests_are_one_line_errors(
     assert exit_code == code, err
     assert_one_error_line(err, fragment)
     assert not [p for p in tmp_path.iterdir() if p.is_file()]  # nothing written, no temporaries left
+
+
+def test_map_csv_keeps_each_landmarks_first_iteration_and_reads_maps_without_it(tmp_path: Path) -> None:
+    landmarks = LandmarkMap(
+        np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), np.array([3, 1]), np.array([False, True]), np.array([7, -1]),
+        first_iteration=np.array([0, 12]),
+    )  # fmt: skip
+    write_map_csv(tmp_path / "map.csv", landmarks)
+    assert (tmp_path / "map.csv").read_text().splitlines()[0].endswith(",gt_id,first_iteration")
+    assert read_map_csv(tmp_path / "map.csv").first_iteration.tolist() == [0, 12]
+    older = LandmarkMap(landmarks.positions, landmarks.observations, landmarks.dynamic, landmarks.gt_id)
+    write_map_csv(tmp_path / "older.csv", older)
+    assert (tmp_path / "older.csv").read_text().splitlines()[0].endswith(",gt_id")
+    assert read_map_csv(tmp_path / "older.csv").first_iteration is None

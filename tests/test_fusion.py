@@ -457,3 +457,24 @@ def test_a_local_map_that_cannot_be_made_rigid_is_left_out() -> None:
     assert not result.fused.any()
     with pytest.raises(UsageError, match="split_significance"):
         FusionConfig(split_significance=1.0)
+
+
+def test_landmarks_go_to_the_iteration_the_estimator_says_they_were_first_seen() -> None:
+    """A map that shrank (landmarks dropped) defeats the map-growth rule; the estimator's own first
+    iterations place every landmark; without them the nearest path position is the fallback."""
+    from relpoint.fusion.fuse import _landmark_iterations
+
+    path = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    positions = np.array([[8.0, 5.0, 0.0], [1.0, 5.0, 0.0], [4.0, 5.0, 0.0]])
+    shrank = np.array([0, 1, 2, 3, 4, 4, 3, 3, 3, 3])  # ends at 3, but not by growth alone
+    first = np.array([2, 7, 5])
+    with_first = LandmarkMap(positions, np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1), first_iteration=first)
+    owner, rule = _landmark_iterations(with_first, path, shrank)
+    assert rule == "first iteration" and owner.tolist() == [2, 7, 5]
+    without = LandmarkMap(positions, np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1))
+    owner, rule = _landmark_iterations(without, path, shrank)
+    assert rule == "nearest" and owner.tolist() == [8, 1, 4]
+    unknown = LandmarkMap(
+        positions, np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1), first_iteration=[2, -1, 5]
+    )
+    assert _landmark_iterations(unknown, path, shrank)[1] == "nearest"

@@ -264,6 +264,7 @@ class EkfSlam(Estimator[PointObservation]):
         radius = self.config.mover_radius_sigmas * sigma
         self._movers = MoverTracks(radius) if radius > 0 else None
         self._last_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was last observed
+        self._first_seen = np.zeros(0, dtype=np.int64)  # iteration each landmark was started
         self._mover_test = (
             MotionTest(self.config.mover_gate_probability, REACH_SIGMAS * sigma, EKF_MIN_PAIRED)
             if self.config.follow_movers
@@ -390,7 +391,8 @@ class EkfSlam(Estimator[PointObservation]):
             T = self._frame.provisional
             positions = apply_transform(T, positions)
         dynamic = np.concatenate([self._moving, np.ones(len(positions) - n, dtype=bool)])
-        return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id)
+        first = np.concatenate([self._first_seen, np.full(len(positions) - n, -1, dtype=np.int64)])
+        return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id, first_iteration=first)
 
     @property
     def map_size(self) -> int:
@@ -926,6 +928,7 @@ class EkfSlam(Estimator[PointObservation]):
         self._resize(len(cols))[:] = kept
         self._landmarks = self._landmarks[keep]
         self._last_seen = self._last_seen[keep]
+        self._first_seen = self._first_seen[keep]
         self._drift = self._drift[keep]
         self._moving = self._moving[keep]
         self._uid = self._uid[keep]
@@ -941,6 +944,7 @@ class EkfSlam(Estimator[PointObservation]):
         """Count observations per landmark and their ground-truth ids (for gt_id; never used to estimate)."""
         first_new = len(self._observations)
         self._last_seen = np.concatenate([self._last_seen, np.full(len(fresh), self._stats["iterations"])])
+        self._first_seen = np.concatenate([self._first_seen, np.full(len(fresh), self._stats["iterations"])])
         self._last_seen[indices] = self._stats["iterations"]
         self._observations.extend([1] * len(fresh))
         if self._vanished is not None:

@@ -504,6 +504,7 @@ class FastSlam(Estimator[PointObservation]):
             self._seen[best, :n].copy(),
             self._moving[best, :n].copy(),
             self._vote_id[best, :n].copy(),
+            first_iteration=self._born[best, :n].copy(),
         )
 
     @property

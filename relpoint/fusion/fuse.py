@@ -151,6 +151,11 @@ def _landmark_iterations(
 ) -> tuple[IntArray, str]:
     """The iteration each landmark belongs to and how that was found (see :func:`fuse`)."""
     m = len(landmarks)
+    first = landmarks.first_iteration
+    if first is not None and m and np.all((first >= 0) & (first < len(positions))):
+        # The estimator says when each landmark was started: right even where the map also lost
+        # landmarks (vanished, or left out as unreliable), which the map's growth cannot tell.
+        return first.astype(np.int64), "first iteration"
     if map_size is not None:
         sizes = np.asarray(map_size, dtype=np.int64).reshape(-1)
         if len(sizes) == len(positions) and np.all(np.diff(sizes) >= 0) and len(sizes) and sizes[-1] == m:
@@ -168,6 +173,7 @@ def _subset(landmarks: LandmarkMap, rows: IntArray, positions: FloatArray | None
         landmarks.observations[rows],
         landmarks.dynamic[rows],
         landmarks.gt_id[rows],
+        first_iteration=None if landmarks.first_iteration is None else landmarks.first_iteration[rows],
     )
 
 
@@ -207,7 +213,8 @@ def fuse(
     map_size:
         (N,) landmarks mapped after each iteration; when it never shrinks and ends at M, landmark row
         ``j`` belongs to the iteration that created it. Otherwise each landmark belongs to the
-        iteration whose position is nearest to it.
+        iteration whose position is nearest to it. Both yield to ``landmarks.first_iteration`` when
+        the estimator recorded it for every landmark.
     landmark_iterations:
         (M,) the iteration each landmark belongs to, overriding both rules above.
     position_sigma:

@@ -240,7 +240,9 @@ class RelativePointEstimator(
         positions[dynamic] = store.world_sum[keep[dynamic]] / np.maximum(n_obs[dynamic], 1)[:, None]
         gt_id, purity = self.tally.majority(store.uid[keep])
         known = bool(np.any(gt_id >= 0))
-        return LandmarkMap(positions, n_obs, dynamic, gt_id, np.clip(purity, 0.0, 1.0) if known else None)
+        return LandmarkMap(
+            positions, n_obs, dynamic, gt_id, np.clip(purity, 0.0, 1.0) if known else None, store.first_iter[keep]
+        )
 
     def _reported(self, ids: IntArray) -> npt.NDArray[np.bool_]:
         """Which points the map reports: static mapped points and points flagged as moving."""
