@@ -477,4 +477,5 @@ def test_landmarks_go_to_the_iteration_the_estimator_says_they_were_first_seen()
     unknown = LandmarkMap(
         positions, np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1), first_iteration=[2, -1, 5]
     )
-    assert _landmark_iterations(unknown, path, shrank)[1] == "nearest"
+    owner, rule = _landmark_iterations(unknown, path, shrank)
+    assert rule == "first iteration (nearest position where unknown)" and owner.tolist() == [2, 1, 5]

@@ -152,10 +152,16 @@ def _landmark_iterations(
     """The iteration each landmark belongs to and how that was found (see :func:`fuse`)."""
     m = len(landmarks)
     first = landmarks.first_iteration
-    if first is not None and m and np.all((first >= 0) & (first < len(positions))):
+    known = (first >= 0) & (first < len(positions)) if first is not None else np.zeros(m, dtype=bool)
+    if m and known.all():
         # The estimator says when each landmark was started: right even where the map also lost
         # landmarks (vanished, or left out as unreliable), which the map's growth cannot tell.
         return first.astype(np.int64), "first iteration"
+    if m and known.any():  # e.g. the EKF's followed movers, kept outside its map: the nearest position
+        _, nearest = cKDTree(positions).query(landmarks.positions[~known])
+        owner = first.astype(np.int64).copy()
+        owner[~known] = nearest
+        return owner, "first iteration (nearest position where unknown)"
     if map_size is not None:
         sizes = np.asarray(map_size, dtype=np.int64).reshape(-1)
         if len(sizes) == len(positions) and np.all(np.diff(sizes) >= 0) and len(sizes) and sizes[-1] == m:
