@@ -19,7 +19,7 @@ given offset with probability about ``c (tolerance / reach)^2`` (landmarks lie o
 areas rather than volumes: the larger and more cautious of the two). The number that agree by chance
 is then Poisson with the sum of those as its mean, and a loop needs a support whose Poisson tail is
 below :data:`FALSE_LOOP_PROBABILITY`. On the 7-Scenes kitchen keypoints, where the camera comes back
-to the same corners every few seconds, the strongest offset had a tail of 4e-5; at the figure eight's
+to the same corners every few seconds, the strongest offset had a tail of 5e-5; at the figure eight's
 crossing the true offset's is below 1e-30.
 
 Positions in ``world`` (m).
