@@ -50,13 +50,18 @@ def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
-    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id (and purity if known)."""
+    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id (and purity and
+    first_iteration where known)."""
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
     if landmarks.purity is not None:
         fields.append(("purity", "<f4"))
+    if landmarks.first_iteration is not None:
+        fields.append(("first_iteration", "<i4"))
     vertices = np.empty(len(landmarks), dtype=fields)
     if landmarks.purity is not None:
         vertices["purity"] = landmarks.purity
+    if landmarks.first_iteration is not None:
+        vertices["first_iteration"] = landmarks.first_iteration
     vertices["x"], vertices["y"], vertices["z"] = landmarks.positions.T
     vertices["observations"] = landmarks.observations
     vertices["dynamic"] = landmarks.dynamic

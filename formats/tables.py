@@ -20,7 +20,8 @@ from relpoint.types import LandmarkMap, Trajectory
 
 TRAJECTORY_HEADER = ["iteration", "timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"]
 MAP_HEADER = ["landmark", "x", "y", "z", "observations", "dynamic", "gt_id"]
-#: The optional last column of ``map.csv``: the iteration each landmark was first observed or started.
+#: An optional column of a ``map.csv`` that relpoint reads but does not write (``map.ply`` carries it):
+#: the iteration each landmark was first observed or started.
 FIRST_ITERATION = "first_iteration"
 TIMING_HEADER = ["iteration", "observed", "map_size", "seconds"]
 
@@ -46,20 +47,15 @@ def write_trajectory_csv(path: str | os.PathLike[str], trajectory: Trajectory) -
 
 
 def write_map_csv(path: str | os.PathLike[str], landmarks: LandmarkMap) -> None:
-    """``landmark,x,y,z,observations,dynamic,gt_id``, and ``first_iteration`` when the estimator knows
-    it; dynamic is 0 or 1."""
-    first = landmarks.first_iteration
+    """``landmark,x,y,z,observations,dynamic,gt_id``; dynamic is 0 or 1 (the log-format contract's
+    columns; a landmark's first iteration goes to ``map.ply``)."""
     rows = [
         [str(i), f"{p[0]:.9f}", f"{p[1]:.9f}", f"{p[2]:.9f}", str(int(n)), str(int(d)), str(int(g))]
         for i, (p, n, d, g) in enumerate(
             zip(landmarks.positions, landmarks.observations, landmarks.dynamic, landmarks.gt_id, strict=True)
         )
     ]
-    if first is None:
-        write_text(path, _rows_to_text(MAP_HEADER, rows))
-        return
-    rows = [[*row, str(int(f))] for row, f in zip(rows, first, strict=True)]
-    write_text(path, _rows_to_text([*MAP_HEADER, FIRST_ITERATION], rows))
+    write_text(path, _rows_to_text(MAP_HEADER, rows))
 
 
 def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
@@ -100,7 +96,7 @@ def write_timing_csv(
 
 
 MAP_HISTORY_HEADER = ["iteration", "timestamp", "landmark", "x", "y", "z", "dynamic", "gt_id"]
-for _header in (TRAJECTORY_HEADER, MAP_HEADER, [*MAP_HEADER, FIRST_ITERATION], TIMING_HEADER, MAP_HISTORY_HEADER):
+for _header in (TRAJECTORY_HEADER, MAP_HEADER, TIMING_HEADER, MAP_HISTORY_HEADER):
     register_csv_header(_header)
 
 

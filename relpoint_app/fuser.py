@@ -24,6 +24,7 @@ from formats.atomic import atomic_directory
 from formats.layouts import log_sha256
 from formats.log import LogReader
 from formats.outputs import check_output_directory
+from formats.ply import read_ply
 from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_tum, write_tum
@@ -31,7 +32,7 @@ from relpoint.errors import InputError, UsageError
 from relpoint.estimators import ESTIMATORS, SIMULATOR_SIGMA
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import RestartingEstimator, RestartRule
-from relpoint.types import RunResult
+from relpoint.types import LandmarkMap, RunResult
 from relpoint_app.roles import NEED_ROLES
 from relpoint_app.runner import drive
 
@@ -66,7 +67,7 @@ def fuse_run(
         result, observed, map_size, seconds, roles = _restarted(previous, reader, config)
     else:
         trajectory = read_tum(run_dir / "trajectory.tum")
-        landmarks = read_map_csv(run_dir / "map.csv")
+        landmarks = _with_first_iterations(read_map_csv(run_dir / "map.csv"), run_dir / "map.ply")
         observed, map_size, seconds = read_timing(run_dir / "timing.csv")
         if len(observed) != len(trajectory):
             raise InputError(f"{run_dir}: timing.csv has {len(observed)} rows for {len(trajectory)} poses")
@@ -140,6 +141,22 @@ def _read_run(run_dir: Path, *, need_outputs: bool) -> dict[str, Any]:
     except (OSError, ValueError) as error:
         raise InputError(f"{run_dir / 'run.json'}: not readable JSON ({error})") from None
     return document if isinstance(document, dict) else {}
+
+
+def _with_first_iterations(landmarks: LandmarkMap, ply: Path) -> LandmarkMap:
+    """``landmarks`` with the iteration each was first observed, from the run's ``map.ply`` when it
+    holds them for the same landmarks (``fuse`` gives each landmark to its local map by them); as it
+    is otherwise (a run of an older relpoint, another tool's files)."""
+    if landmarks.first_iteration is not None or not ply.is_file():
+        return landmarks
+    try:
+        vertices = read_ply(ply)
+    except InputError:
+        return landmarks
+    names = vertices.dtype.names or ()
+    if "first_iteration" not in names or len(vertices) != len(landmarks):
+        return landmarks
+    return dataclasses.replace(landmarks, first_iteration=np.asarray(vertices["first_iteration"], dtype=np.int64))
 
 
 def _with_noise_of(previous: dict[str, Any], parameters: dict[str, Any], config_class: type) -> dict[str, Any]:

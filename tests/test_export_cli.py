@@ -248,15 +248,20 @@ def test_bad_requests_are_one_line_errors(
     assert not [p for p in tmp_path.iterdir() if p.is_file()]  # nothing written, no temporaries left
 
 
-def test_map_csv_keeps_each_landmarks_first_iteration_and_reads_maps_without_it(tmp_path: Path) -> None:
+def test_map_csv_keeps_the_contracts_columns_and_map_ply_carries_the_first_iterations(tmp_path: Path) -> None:
+    from formats.ply import landmark_vertices, read_ply, write_ply
+
     landmarks = LandmarkMap(
         np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), np.array([3, 1]), np.array([False, True]), np.array([7, -1]),
         first_iteration=np.array([0, 12]),
     )  # fmt: skip
     write_map_csv(tmp_path / "map.csv", landmarks)
-    assert (tmp_path / "map.csv").read_text().splitlines()[0].endswith(",gt_id,first_iteration")
-    assert read_map_csv(tmp_path / "map.csv").first_iteration.tolist() == [0, 12]
-    older = LandmarkMap(landmarks.positions, landmarks.observations, landmarks.dynamic, landmarks.gt_id)
-    write_map_csv(tmp_path / "older.csv", older)
-    assert (tmp_path / "older.csv").read_text().splitlines()[0].endswith(",gt_id")
-    assert read_map_csv(tmp_path / "older.csv").first_iteration is None
+    assert (tmp_path / "map.csv").read_text().splitlines()[0] == "landmark,x,y,z,observations,dynamic,gt_id"
+    assert read_map_csv(tmp_path / "map.csv").first_iteration is None
+    write_ply(tmp_path / "map.ply", landmark_vertices(landmarks))
+    assert read_ply(tmp_path / "map.ply")["first_iteration"].tolist() == [0, 12]
+    # Another tool's map.csv with the column is read with it.
+    text = (tmp_path / "map.csv").read_text().splitlines()
+    lines = [text[0] + ",first_iteration", text[1] + ",0", text[2] + ",12"]
+    (tmp_path / "other.csv").write_text("\n".join(lines) + "\n")
+    assert read_map_csv(tmp_path / "other.csv").first_iteration.tolist() == [0, 12]
