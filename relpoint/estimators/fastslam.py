@@ -542,10 +542,9 @@ class FastSlam(Estimator[PointObservation]):
             return trajectory
         # Before the pinning the output was the local pose under the provisional transform of its
         # iteration (which changes as fixes arrive): placed again by the transform that pinned it.
-        assert self._frame_fit is not None  # fixes were fused, so the frame was pinned
-        before = len(self._local_poses)
+        before = len(self._local_poses) if self._frame_fit is not None else 0  # fixes fused: it was pinned
         matrices = trajectory.matrices().copy()
-        if before:
+        if before and self._frame_fit is not None:
             matrices[:before] = self._frame_fit.T_world_local @ np.stack(self._local_poses)
         jumps = np.zeros((iterations, 3))
         for iteration, shift in self._fix_jumps:
