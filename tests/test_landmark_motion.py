@@ -70,15 +70,21 @@ def test_with_too_few_pairs_nothing_is_flagged() -> None:
     assert not moving[0]
 
 
+def _flagged_movers(k: int, flagged: int, drift: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point covariances (k, 3, 3) at 0.3 m, and the first ``flagged`` of ``k`` landmarks moving with
+    smoothed innovation ``drift`` (m, along x): ``(Q, drift, moving)``."""
+    Q = np.broadcast_to(np.eye(3) * 0.09, (k, 3, 3))
+    drifts = np.zeros((k, 3))
+    drifts[:flagged] = [drift, 0.0, 0.0]
+    moving = np.arange(k) < flagged
+    return Q, drifts, moving
+
+
 def test_a_moving_landmark_that_stops_is_released() -> None:
     rng = np.random.default_rng(1)
     test = MotionTest(0.999, reach=5.0)
     k = MIN_PAIRED + 1
-    Q = np.broadcast_to(np.eye(3) * 0.09, (k, 3, 3))
-    drift = np.zeros((k, 3))
-    drift[0] = [1.0, 0.0, 0.0]
-    moving = np.zeros(k, dtype=bool)
-    moving[0] = True
+    Q, drift, moving = _flagged_movers(k, flagged=1, drift=1.0)
     for _ in range(20):  # a landmark placed on its last point, now still: 2Q noise around 0
         innovations = rng.normal(size=(k, 3)) * 0.3
         innovations[0] = 0.0
@@ -94,11 +100,7 @@ def test_a_slow_mover_stays_flagged_while_a_still_one_is_released() -> None:
     rng = np.random.default_rng(4)
     test = MotionTest(0.999, reach=5.0)
     k = MIN_PAIRED + 2
-    Q = np.broadcast_to(np.eye(3) * 0.09, (k, 3, 3))
-    drift = np.zeros((k, 3))
-    drift[:2] = [0.5, 0.0, 0.0]
-    moving = np.zeros(k, dtype=bool)
-    moving[:2] = True
+    Q, drift, moving = _flagged_movers(k, flagged=2, drift=0.5)
     held, released_at = 0, None
     for iteration in range(200):
         innovations = rng.normal(size=(k, 3)) * 0.3 * np.sqrt(2.0)
