@@ -316,6 +316,17 @@ def smooth_corrections(measured: FloatArray, variances: FloatArray, min_gain: fl
     return Smoothing(smoothed, step, log_likelihood=float(total[best]))
 
 
+def summed_fix_jumps(jumps: list[tuple[int, FloatArray]], iterations: int) -> FloatArray:
+    """How far the fixes fused up to each of ``iterations`` iterations moved a filter's position
+    (``world``, m; (K, 3)), from the ``(iteration, shift)`` of each fused fix: a fix fused before
+    iteration ``k`` moves the poses from ``k`` on."""
+    summed = np.zeros((iterations, 3))
+    for iteration, shift in jumps:
+        if iteration < iterations:
+            summed[iteration] += shift
+    return np.cumsum(summed, axis=0)
+
+
 def _hampel_outliers(measured: FloatArray, variances: FloatArray) -> npt.NDArray[np.bool_]:
     """The fits (F, 3) that stand out of their neighbours: Hampel's filter on each axis.
 

@@ -62,7 +62,7 @@ from relpoint.estimators._landmark_motion import (
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
-from relpoint.estimators._trajectory_smoothing import PairHistory, smoothed_trajectory
+from relpoint.estimators._trajectory_smoothing import PairHistory, smoothed_trajectory, summed_fix_jumps
 from relpoint.estimators._vanished import VanishedLandmarks
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
@@ -428,13 +428,10 @@ class EkfSlam(Estimator[PointObservation]):
         static = ~self._moving
         positions = self.landmark_map().positions[: len(self._landmarks)]
         iterations = self._stats["iterations"]
-        jumps = np.zeros((iterations, 3))
-        for iteration, shift in self._fix_jumps:
-            if iteration < iterations:
-                jumps[iteration] += shift
         smoothed, self._smoothing = smoothed_trajectory(
             trajectory, iterations, self._pairs, self._uid[static], positions[static],
-            min_noise=float(np.sqrt(self._R_obs[0, 0])), fix_jumps=np.cumsum(jumps, axis=0) if self._fix_jumps else None,
+            min_noise=float(np.sqrt(self._R_obs[0, 0])),
+            fix_jumps=summed_fix_jumps(self._fix_jumps, iterations) if self._fix_jumps else None,
         )  # fmt: skip
         return smoothed
 

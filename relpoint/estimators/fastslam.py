@@ -70,6 +70,7 @@ from relpoint.estimators._loop_closure import (
 )
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators._time_gaps import GapBridge
+from relpoint.estimators._trajectory_smoothing import summed_fix_jumps
 from relpoint.estimators._vanished import (
     MIN_MISSES,
     MIN_PAIRED,
@@ -390,7 +391,8 @@ class FastSlam(Estimator[PointObservation]):
         fix_variances = np.diag(np.asarray(fix.covariance, dtype=np.float64)).copy()
         if self._frame is not None:
             self._frame.add_fix(fix)
-            self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
+            if self.config.smooth_trajectory:
+                self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
             return
         if self._stamp_ns is not None:
             self._predict_to(fix.stamp_ns)
@@ -426,9 +428,9 @@ class FastSlam(Estimator[PointObservation]):
         fused = C - K @ C
         self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
         self._stats["fixes"] += 1
-        # The jump of the mean pose (weights and positions both moved), from the next pose on.
-        self._fix_jumps.append((self._stats["iterations"], self.weights @ self.positions - mean_before))
-        self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
+        if self.config.smooth_trajectory:  # the jump of the mean pose (weights and positions both moved)
+            self._fix_jumps.append((self._stats["iterations"], self.weights @ self.positions - mean_before))
+            self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
 
     def _filter_inflation(self, nu: FloatArray, C: FloatArray, P_fix: FloatArray) -> float:
         """The factor ``a`` of the particles' position covariances ``C`` (n, 3, 3) that puts the fix
@@ -542,20 +544,17 @@ class FastSlam(Estimator[PointObservation]):
             return trajectory
         # Before the pinning the output was the local pose under the provisional transform of its
         # iteration (which changes as fixes arrive): placed again by the transform that pinned it.
-        before = len(self._local_poses) if self._frame_fit is not None else 0  # fixes fused: it was pinned
         matrices = trajectory.matrices().copy()
-        if before and self._frame_fit is not None:
+        before = 0
+        if self._frame_fit is not None and self._local_poses:  # fixes were fused, so it was pinned
+            before = len(self._local_poses)
             matrices[:before] = self._frame_fit.T_world_local @ np.stack(self._local_poses)
-        jumps = np.zeros((iterations, 3))
-        for iteration, shift in self._fix_jumps:
-            if iteration < iterations:
-                jumps[iteration] += shift
         stamps = np.array([stamp for stamp, _, _ in self._fixes_taken], dtype=np.int64)
         positions = np.array([position for _, position, _ in self._fixes_taken])
         variances = np.array([variance for _, _, variance in self._fixes_taken])
         smoothed, self._smoothing = smoothed_on_fixes(
-            Trajectory.from_matrices(trajectory.stamps_ns, matrices), np.cumsum(jumps, axis=0), stamps, positions,
-            variances,
+            Trajectory.from_matrices(trajectory.stamps_ns, matrices), summed_fix_jumps(self._fix_jumps, iterations),
+            stamps, positions, variances,
         )  # fmt: skip
         self._smoothing["poses_placed_in_pinned_frame"] = before
         return smoothed
