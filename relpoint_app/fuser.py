@@ -147,7 +147,7 @@ def _with_first_iterations(landmarks: LandmarkMap, ply: Path) -> LandmarkMap:
     """``landmarks`` with the iteration each was first observed, from the run's ``map.ply`` when it
     holds them for the same landmarks (``fuse`` gives each landmark to its local map by them); as it
     is otherwise (a run of an older relpoint, another tool's files)."""
-    if landmarks.first_iteration is not None or not ply.is_file():
+    if landmarks.first_iteration is not None or len(landmarks) == 0 or not ply.is_file():
         return landmarks
     try:
         vertices = read_ply(ply)
