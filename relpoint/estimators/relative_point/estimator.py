@@ -164,6 +164,7 @@ class RelativePointEstimator(
         self._support: list[tuple[IntArray, npt.NDArray[np.float32]] | None] = []
         self._observations: dict[int, tuple[IntArray, npt.NDArray[np.float32]]] = {}
         self._keyframe_stride = 1
+        self._kept_observations = 0
         self._merged_uid: dict[int, int] = {}
         self.counts: dict[str, int] = dict.fromkeys(
             (

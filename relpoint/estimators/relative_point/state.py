@@ -65,4 +65,5 @@ class EstimatorState:
     _support: list[tuple[IntArray, npt.NDArray[np.float32]] | None]
     _observations: dict[int, tuple[IntArray, npt.NDArray[np.float32]]]
     _keyframe_stride: int
+    _kept_observations: int
     _merged_uid: dict[int, int]
