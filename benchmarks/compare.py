@@ -650,9 +650,13 @@ def main(argv: list[str] | None = None) -> int:
         f"GTSAM peers: {gtsam_message}"
         + ("" if gtsam_ok else "; running without the iSAM2 column and the LM cross-check")
     )
-    if not gtsam_ok:
-        args.estimators = [e for e in args.estimators if e not in GTSAM_PEERS]
     out: Path = args.out
+    if not gtsam_ok:
+        # A peer that cannot run here still counts where its runs are reused from ``--out``.
+        args.estimators = [
+            e for e in args.estimators
+            if e not in GTSAM_PEERS or (args.reuse and all((out / f"{s}_{e}.csv").exists() for s in args.only))
+        ]  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
 
     runs: dict[tuple[str, str], dict[str, Any]] = {}

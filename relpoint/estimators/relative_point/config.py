@@ -97,7 +97,7 @@ class RelativePointConfig(Settings):
     bundle_adjustment: bool = True
     """With ``final_adjustment``, then solve every iteration's pose and every static point's position
     jointly from the log's observations themselves (a bundle adjustment over the association the run
-    made), starting from the adjusted map; keeps up to 200,000 observations until the log ends (about
+    made), starting from the adjusted map; keeps up to 50,000 observations until the log ends (about
     20 bytes each), every iteration's until a long log needs keyframes."""
     adjustment_prior: float = setting(0.005, low=0)
     """Weight (in iterations averaged) of each point's pull towards its incremental position in the
