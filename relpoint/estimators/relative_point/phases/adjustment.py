@@ -65,6 +65,17 @@ BUNDLE_DRIFT_PROBABILITY = 1e-3
 BUNDLE_DRIFT_MOTION = 1.0
 BUNDLE_RELEASE_PROBABILITY = 0.05
 
+#: A flagged point judged in the solve that takes every candidate in is judged again alone (in a solve
+#: with the static points and itself, ``BUNDLE_ALONE_STEPS`` Levenberg-Marquardt steps from the solution
+#: without it) when it is not released there and its block means move less than this many of its
+#: noises: a clear mover is not. At most ``BUNDLE_JUDGED_ALONE`` of them, the most observed first (one
+#: solve each). Measured over the robustness matrix, seeds 0-3: the worst run's ATE 2.12x -> 1.67x the
+#: optimum's (figure8-line-40-fast seed 1: 2.12x -> 1.01x, its two static points seen from the first
+#: iterations released), dynamic precision 0.97 -> 1.00 and 0.90 -> 1.00 in two runs, recall unchanged.
+BUNDLE_CLEAR_MOTION = 3.0
+BUNDLE_JUDGED_ALONE = 16
+BUNDLE_ALONE_STEPS = 3
+
 #: The bundle adjustment is for sparse views: with more static observations a keyframe than this on
 #: average it is not run and the network adjustment stands. Dense views tie the relative maps together
 #: well already, and the solve grows with the square of the points in view (7-Scenes kitchen, 400
@@ -313,6 +324,7 @@ class FinalAdjustment(EstimatorState):
         # The later solves (with the flagged points judged, without the drifting ones) go on from it.
         T_start, X_start = _solution(T_world_sensor, positions, bundle)
         drifting = released = np.zeros(0, np.int64)
+        judged_alone = released_alone = 0
         if BUNDLE_DRIFT_PROBABILITY > 0:
             # Points flagged dynamic with enough observations are judged in a solve that takes them
             # in: a static point flagged while movers outnumbered the static points around it, or
@@ -324,10 +336,28 @@ class FinalAdjustment(EstimatorState):
             if len(candidates):
                 trial = _in_solvable_iterations(iteration, usable | np.isin(row, candidates))
                 judged = self._bundle_solve(T_start, X_start, iteration, row, observed, trial, sigma)
-                probability, _ = self._drift(judged)
-                released = judged.points[
-                    (probability > BUNDLE_RELEASE_PROBABILITY) & np.isin(judged.points, candidates)
-                ]
+                probability, motion = self._drift(judged)
+                in_trial = np.isin(judged.points, candidates)
+                released = judged.points[(probability > BUNDLE_RELEASE_PROBABILITY) & in_trial]
+                # The movers among the candidates bend that solve, and a static point seen while they
+                # did seems to drift too. Those that do not clearly move are judged again one at a
+                # time, each in a solve with the static points alone.
+                doubtful = in_trial & (probability <= BUNDLE_RELEASE_PROBABILITY) & (motion < BUNDLE_CLEAR_MOTION)
+                seen = np.bincount(row[trial], minlength=int(row.max()) + 1)[judged.points[doubtful]]
+                doubtful_rows = judged.points[doubtful][np.argsort(-seen, kind="stable")[:BUNDLE_JUDGED_ALONE]]
+                alone = []
+                for candidate in doubtful_rows:
+                    one = _in_solvable_iterations(iteration, usable | np.isin(row, released) | (row == candidate))
+                    solved = self._bundle_solve(
+                        T_start, X_start, iteration, row, observed, one, sigma, iterations=BUNDLE_ALONE_STEPS
+                    )
+                    p_alone, _ = self._drift(solved)
+                    where = np.searchsorted(solved.points, candidate)
+                    found = where < len(solved.points) and solved.points[where] == candidate
+                    if found and p_alone[where] > BUNDLE_RELEASE_PROBABILITY:
+                        alone.append(candidate)
+                judged_alone, released_alone = len(doubtful_rows), len(alone)
+                released = np.concatenate([released, np.asarray(alone, np.int64)])
                 if len(released):
                     store.dynamic[released] = False
                     store.moving[released] = False
@@ -369,6 +399,8 @@ class FinalAdjustment(EstimatorState):
             "observations": len(bundle.pose_row),
             "dynamic_flagged": len(drifting),
             "dynamic_released": len(released),
+            "judged_alone": judged_alone,
+            "released_alone": released_alone,
             "steps": result.iterations,
             "cost_before": round(result.cost_before, 3),
             "cost_after": round(result.cost_after, 3),
@@ -384,6 +416,7 @@ class FinalAdjustment(EstimatorState):
         observed: FloatArray,
         usable: npt.NDArray[np.bool_],
         sigma: float,
+        iterations: int | None = None,
     ) -> _Bundle:
         """One bundle adjustment over the ``usable`` observations (``observed`` (N, 3), sensor frame, m,
         of point ``row`` at ``iteration``), starting from ``T_world_sensor`` (K, 4, 4) and ``positions``
@@ -403,7 +436,7 @@ class FinalAdjustment(EstimatorState):
             poses == 0,
             prior=0.0 if anchored else self.config.adjustment_prior,
             robust=BUNDLE_ROBUST_SIGMAS * sigma,
-            iterations=self.config.adjustment_iterations,
+            iterations=iterations or self.config.adjustment_iterations,
         )
         return _Bundle(result, poses, points, pose_row, point_row, observed[usable])
 
