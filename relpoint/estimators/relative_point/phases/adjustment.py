@@ -94,9 +94,10 @@ BUNDLE_MIN_OBSERVATIONS = 3
 #: After the Cauchy-robust bundle adjustment, the observations within this many noises of their
 #: points (3-D residual, the noise measured as the median residual over ``CHI3_MEDIAN``) are solved
 #: again by plain least squares (0: the robust solution stands). A static point's residual exceeds
-#: 4.03 noises with probability 1e-3. Over the robustness matrix (seeds 0-3) the final ATE is 1.04x
-#: the optimum's (geometric mean; 1.12x at 3 noises, 1.03x at 6); its worst run 2.1x (2.5x at 6: a
-#: looser gate lets the fast movers the detection missed back in).
+#: 4.03 noises with probability 1e-3. Over the robustness matrix (seeds 0-3), before the candidates
+#: were judged alone, the final ATE was 1.04x the optimum's (geometric mean; 1.12x at 3 noises, 1.03x
+#: at 6) and its worst run 2.1x (2.5x at 6: a looser gate lets the fast movers the detection missed
+#: back in).
 BUNDLE_INLIER_SIGMAS = 4.03
 
 #: Iterations a point the map never placed must be seen at to take part in the bundle adjustment
@@ -266,11 +267,15 @@ class FinalAdjustment(EstimatorState):
         ``T_world_sensor = (R, t)``, it minimises the Cauchy-robust sum of ``|R z + t - X|^2`` with
         :func:`.adjustment.adjust_network` (each iteration a "group" whose relative map is its own
         observations, weight one each), starting from ``T_world_sensor`` (K, 4, 4) and the adjusted
-        map. The first iteration stays where it is: it defines ``world``. Only the keyframes are solved
-        (every iteration up to ``BUNDLE_MAX_OBSERVATIONS``); the other iterations, and those with fewer than
+        map; the points the map never placed take part too (``BUNDLE_MIN_SIGHTINGS``). Then the
+        flagged points are judged (released when they do not drift, :meth:`_judged_alone`), the
+        static ones whose residuals drift are flagged, and the inliers of the robust solution are
+        solved again by plain least squares (``BUNDLE_INLIER_SIGMAS``). The first iteration stays
+        where it is: it defines ``world``. Only the keyframes are solved (every iteration up to
+        ``BUNDLE_MAX_OBSERVATIONS``); the other iterations, and those with fewer than
         ``BUNDLE_MIN_OBSERVATIONS`` usable observations, take the correction of the nearest solved one
-        (:func:`carry_corrections`). The points take their solved positions in the store. Returns
-        the poses (K, 4, 4).
+        (:func:`carry_corrections`). The mapped points take their solved positions in the store.
+        Returns the poses (K, 4, 4).
         """
         store = self.store
         entries = sorted(self._observations.items())
@@ -345,19 +350,10 @@ class FinalAdjustment(EstimatorState):
                 doubtful = in_trial & (probability <= BUNDLE_RELEASE_PROBABILITY) & (motion < BUNDLE_CLEAR_MOTION)
                 seen = np.bincount(row[trial], minlength=int(row.max()) + 1)[judged.points[doubtful]]
                 doubtful_rows = judged.points[doubtful][np.argsort(-seen, kind="stable")[:BUNDLE_JUDGED_ALONE]]
-                alone = []
-                for candidate in doubtful_rows:
-                    one = _in_solvable_iterations(iteration, usable | np.isin(row, released) | (row == candidate))
-                    solved = self._bundle_solve(
-                        T_start, X_start, iteration, row, observed, one, sigma, iterations=BUNDLE_ALONE_STEPS
-                    )
-                    p_alone, _ = self._drift(solved)
-                    where = np.searchsorted(solved.points, candidate)
-                    found = where < len(solved.points) and solved.points[where] == candidate
-                    if found and p_alone[where] > BUNDLE_RELEASE_PROBABILITY:
-                        alone.append(candidate)
+                static = usable | np.isin(row, released)
+                alone = self._judged_alone(doubtful_rows, T_start, X_start, iteration, row, observed, static, sigma)
                 judged_alone, released_alone = len(doubtful_rows), len(alone)
-                released = np.concatenate([released, np.asarray(alone, np.int64)])
+                released = np.concatenate([released, alone])
                 if len(released):
                     store.dynamic[released] = False
                     store.moving[released] = False
@@ -420,7 +416,8 @@ class FinalAdjustment(EstimatorState):
     ) -> _Bundle:
         """One bundle adjustment over the ``usable`` observations (``observed`` (N, 3), sensor frame, m,
         of point ``row`` at ``iteration``), starting from ``T_world_sensor`` (K, 4, 4) and ``positions``
-        (one per store row, ``world``, m)."""
+        (one per point row, ``world``, m): Cauchy-robust at ``BUNDLE_ROBUST_SIGMAS`` times ``sigma`` (m;
+        0: plain least squares), at most ``iterations`` steps (default ``adjustment_iterations``)."""
         poses, pose_row = np.unique(iteration[usable], return_inverse=True)
         points, point_row = np.unique(row[usable], return_inverse=True)
         # The first iteration fixes the gauge; without it a light pull towards the start does.
@@ -439,6 +436,36 @@ class FinalAdjustment(EstimatorState):
             iterations=iterations or self.config.adjustment_iterations,
         )
         return _Bundle(result, poses, points, pose_row, point_row, observed[usable])
+
+    def _judged_alone(
+        self,
+        candidates: IntArray,
+        T_world_sensor: FloatArray,
+        positions: FloatArray,
+        iteration: IntArray,
+        row: IntArray,
+        observed: FloatArray,
+        static: npt.NDArray[np.bool_],
+        sigma: float,
+    ) -> IntArray:
+        """The ``candidates`` (point rows) whose residuals show no drift, each judged in its own solve.
+
+        Each solve takes the ``static`` observations and the candidate's, ``BUNDLE_ALONE_STEPS``
+        steps from ``T_world_sensor`` (K, 4, 4) and ``positions`` (``world``, m), the solution without
+        it: a point is released when its drift is more likely than ``BUNDLE_RELEASE_PROBABILITY``.
+        """
+        released = []
+        for candidate in candidates:
+            one = _in_solvable_iterations(iteration, static | (row == candidate))
+            solved = self._bundle_solve(
+                T_world_sensor, positions, iteration, row, observed, one, sigma, iterations=BUNDLE_ALONE_STEPS
+            )
+            probability, _ = self._drift(solved)
+            where = np.searchsorted(solved.points, candidate)
+            found = where < len(solved.points) and solved.points[where] == candidate
+            if found and probability[where] > BUNDLE_RELEASE_PROBABILITY:
+                released.append(candidate)
+        return np.asarray(released, np.int64)
 
     @staticmethod
     def _residuals(bundle: _Bundle) -> FloatArray:
