@@ -441,3 +441,20 @@ def test_config_is_validated() -> None:
         RelativePointConfig.from_mapping({"match-bound": 2.0, "no_such_setting": 1})
     config = RelativePointConfig.from_mapping({"match-bound": 2.5})
     assert config.match_bound == 2.5 and RelativePointConfig(**config.to_dict()) == config
+
+
+def test_residual_trend_is_calibrated_on_static_points_and_finds_wandering_ones() -> None:
+    from relpoint.estimators.relative_point.adjustment import residual_trend
+
+    rng = np.random.default_rng(0)
+    points, seen = 400, 40
+    point = np.repeat(np.arange(points), seen)
+    static = rng.normal(0.0, 0.3, (points * seen, 3))
+    probability = residual_trend(point, static, points)
+    # White noise of any level: the F distribution holds (measured 4.0 % below 0.05, none below 1e-3).
+    assert 0.02 < np.mean(probability < 0.05) < 0.08 and np.mean(probability < 1e-3) < 0.005
+    # A random walk of a third of the noise per observation trends over its 40 observations.
+    walk = np.cumsum(rng.normal(0.0, 0.1, (points, seen, 3)), axis=1).reshape(-1, 3) + static
+    assert np.mean(residual_trend(point, walk, points) < 1e-3) > 0.5
+    # Fewer than six observations are not judged.
+    assert residual_trend(np.zeros(5, np.int64), rng.normal(size=(5, 3)), 1)[0] == 1.0

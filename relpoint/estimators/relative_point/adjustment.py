@@ -365,6 +365,38 @@ def carry_corrections(before: FloatArray, after: FloatArray, fitted: npt.NDArray
     return carried
 
 
+def residual_trend(point: IntArray, residual: FloatArray, n_points: int) -> FloatArray:
+    """How unlikely each point's residuals are to trend over its observations if it is static (n_points,).
+
+    ``point`` and ``residual`` as in :func:`residual_drift` (each point's residuals in time order).
+    Each axis's residuals are regressed on the observation's rank; for a static point with white
+    noise the regression's mean square over the residual one follows F(3, 3 (n - 2)) for ``n``
+    observations, whatever its noise level. The F distribution's upper-tail probability is returned
+    (small: it trends); 1 for a point seen fewer than six times. A mover that wanders one way (a
+    random walk, a slow drift) trends over its whole track, where blocks cut it into short steps.
+    """
+    from scipy.special import fdtrc  # here, not at import: scipy costs start-up time
+
+    order = np.argsort(point, kind="stable")
+    rows, r = point[order], residual[order]
+    count = np.bincount(rows, minlength=n_points).astype(np.float64)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    rank = np.arange(len(rows)) - start[rows]
+    centred_rank = rank - (count[rows] - 1.0) / 2.0
+    mean = np.zeros((n_points, 3))
+    np.add.at(mean, rows, r)
+    mean /= np.maximum(count, 1.0)[:, None]
+    deviation = r - mean[rows]
+    spread = count * (count**2 - 1.0) / 12.0  # sum of the centred ranks' squares
+    moment = np.zeros((n_points, 3))
+    np.add.at(moment, rows, centred_rank[:, None] * deviation)
+    explained = np.sum(moment**2, axis=1) / np.maximum(spread, 1e-300)
+    total = np.bincount(rows, np.sum(deviation**2, axis=1), minlength=n_points)
+    d_residual = np.maximum(3.0 * (count - 2.0), 1.0)
+    ratio = (explained / 3.0) / np.maximum((total - explained) / d_residual, 1e-300)
+    return np.where(count >= 6, fdtrc(3.0, d_residual, ratio), 1.0)
+
+
 def residual_drift(
     point: IntArray, residual: FloatArray, n_points: int, *, block: int
 ) -> tuple[FloatArray, FloatArray]:
