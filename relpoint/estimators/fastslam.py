@@ -435,24 +435,22 @@ class FastSlam(Estimator[PointObservation]):
     def _filter_inflation(self, nu: FloatArray, C: FloatArray, P_fix: FloatArray) -> float:
         """The factor ``a`` of the particles' position covariances ``C`` (n, 3, 3) that puts the fix
         on the gate's edge for the particle nearest to it: ``min_p nu_p^T (a C_p + P_fix)^-1 nu_p``
-        equals the gate (bisection on log ``a``, 1 to 1e12)."""
+        equals the gate (Brent's method on log ``a``, 1 to 1e12; called past the gate, so at ``a = 1``
+        the fix is outside it)."""
+        from scipy.optimize import brentq  # here, not at import: only a drifted filter needs it
+
         threshold = self._fix_gate.threshold
         eye = np.eye(3) * 1e-12
 
-        def d2(a: float) -> float:
-            S_inv = np.linalg.inv(a * C + P_fix + eye)
-            return float(np.min(np.einsum("pa,pab,pb->p", nu, S_inv, nu)))
+        def excess(log_a: float) -> float:
+            S_inv = np.linalg.inv(10.0**log_a * C + P_fix + eye)
+            return float(np.min(np.einsum("pa,pab,pb->p", nu, S_inv, nu))) - threshold
 
-        low, high = 0.0, 12.0
-        if d2(10.0**high) > threshold:
-            return 10.0**high
-        for _ in range(40):
-            mid = 0.5 * (low + high)
-            if d2(10.0**mid) > threshold:
-                low = mid
-            else:
-                high = mid
-        return 10.0**high
+        if excess(0.0) <= 0.0:
+            return 1.0
+        if excess(12.0) > 0.0:
+            return 1e12
+        return 10.0 ** brentq(excess, 0.0, 12.0, xtol=1e-9)
 
     @property
     def frame_fit(self) -> FrameFit | None:
