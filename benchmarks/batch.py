@@ -12,15 +12,21 @@ Usage::
 
     python benchmarks/batch.py [--iterations 200] [--density 25] [--repeats 2] [--dask]
 
+Before timing, relpoint's own packages are byte-compiled in place (``compileall``), as pip does when
+it installs a package: an editable checkout run with ``PYTHONDONTWRITEBYTECODE=1`` (or ``python -B``,
+as multiprocessing starts its fork server) otherwise compiles its sources again in every process,
+about 0.1 s on the way to the first job. ``--no-compile`` measures the checkout as it is.
+
 With ``--dask`` the same plan runs on a Dask ``LocalCluster`` of one and of two worker processes
-(started once, before the timed runs, each preloading :mod:`relpoint_app.worker_warmup` as
-``dask worker --preload relpoint_app.worker_warmup`` does) through ``relpoint batch --scheduler``.
+(each started before its timed run and closed after it, preloading :mod:`relpoint_app.worker_warmup`
+as ``dask worker --preload relpoint_app.worker_warmup`` does) through ``relpoint batch --scheduler``.
 """
 
 from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import json
 import os
 import statistics
@@ -28,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 PLAN = """\
@@ -62,6 +69,23 @@ def run_batch(plan: Path, jobs: int, results: Path, scheduler: str | None = None
     return seconds, sum(row["cpu_seconds"] for row in rows), sum(row["wall_seconds"] for row in rows)
 
 
+@contextlib.contextmanager
+def _cluster(workers: int) -> Iterator[str | None]:
+    """The address of a Dask ``LocalCluster`` of ``workers`` processes, one thread each, started before
+    the timed run (as a cluster would be) with the warm-up preloaded, and closed after it, so that no
+    other cluster's scheduler and workers share the cores meanwhile; None (the local pool) for 0."""
+    if not workers:
+        yield None
+        return
+    from distributed import LocalCluster
+
+    from relpoint_app.batch_start import WARMUP_MODULE
+
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None, preload=[WARMUP_MODULE]) as cluster:  # fmt: skip
+        yield cluster.scheduler_address
+
+
 def _burn(n: int) -> float:
     start = time.process_time()
     total = 0
@@ -90,10 +114,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--dask", action="store_true", help="run the plan on a Dask LocalCluster of 1 and of 2 workers instead"
     )
+    parser.add_argument(
+        "--no-compile", action="store_true", help="do not byte-compile relpoint's packages before timing"
+    )
     args = parser.parse_args(argv)
+    if not args.no_compile:
+        import compileall
+
+        root = Path(__file__).resolve().parents[1]
+        for package in ("relpoint", "relpoint_app", "relpoint_cli", "formats"):
+            compileall.compile_dir(root / package, quiet=1)
+        print("bytecode: relpoint's packages byte-compiled in place before timing, as an installed package is")
 
     from relpoint.simulation import SimulationConfig, simulate
-    from relpoint_app.batch_start import WARMUP_MODULE
     from relpoint_app.simulation import write_simulation
 
     with tempfile.TemporaryDirectory(prefix="relpoint-batch-bench-") as tmp:
@@ -108,28 +141,18 @@ def main(argv: list[str] | None = None) -> int:
         times: dict[int, list[float]] = {1: [], 2: []}
         outside: list[float] = []  # --jobs 1: the batch's wall time outside its jobs (start-up, wind-down)
         job_walls: list[float] = []
-        clusters = {}
-        if args.dask:  # started once, outside the timed runs, as a cluster would be
-            from distributed import LocalCluster
-
-            for workers in (1, 2):
-                clusters[workers] = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                 host="127.0.0.1", dashboard_address=None,
-                                                 preload=[WARMUP_MODULE])  # fmt: skip
         for repeat in range(args.repeats):
             for jobs in (1, 2):
-                scheduler = clusters[jobs].scheduler_address if clusters else None
-                seconds, cpu, walls = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}", scheduler)
+                with _cluster(jobs if args.dask else 0) as scheduler:
+                    seconds, cpu, walls = run_batch(plan, jobs, root / f"results-{jobs}-{repeat}", scheduler)
                 times[jobs].append(seconds)
                 if jobs == 1:
                     outside.append(seconds - walls)
                     job_walls.append(walls)
                 print(
-                    f"  {'Dask workers' if clusters else '--jobs'} {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
+                    f"  {'Dask workers' if args.dask else '--jobs'} {jobs}: {seconds:7.2f} s wall, jobs' CPU {cpu:6.2f} s, cores used {cpu / seconds:.2f}"
                     f"   (load average {os.getloadavg()[0]:.1f})"
                 )
-        for cluster in clusters.values():
-            cluster.close()
         one, two = statistics.median(times[1]), statistics.median(times[2])
         label = "Dask workers" if args.dask else "--jobs"
         print(f"median wall time {label} 1: {one:.2f} s, {label} 2: {two:.2f} s, speed-up {one / two:.2f}x")

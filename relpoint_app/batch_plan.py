@@ -414,7 +414,7 @@ def _run_options(values: dict[str, Any], where: str) -> RunOptions:
 def _estimator_config(name: str, values: dict[str, Any], where: str) -> None:
     """Validate ``values`` by building the estimator's config (raises UsageError like ``relpoint run``)."""
     try:
-        ESTIMATORS[name].build_config(values)
+        ESTIMATORS.config_class(name).from_strings((), base=values)
     except UsageError as error:
         raise UsageError(f"{where}: {error.message}", error.hint) from None
 

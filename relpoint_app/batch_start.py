@@ -8,11 +8,12 @@ while the command reads the plan, and every worker forked from it starts its fir
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import multiprocessing.context
 import multiprocessing.forkserver
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 #: Most jobs a plan may expand to (``relpoint batch --max-jobs``).
 MAX_JOBS = 10_000
@@ -43,10 +44,42 @@ def pool_context() -> multiprocessing.context.BaseContext:
     return context
 
 
+#: The native thread pools' sizes, as the fork server (and so every local pool worker) starts with
+#: them: one thread each, since the jobs are the parallelism.
+SINGLE_THREADED = {
+    name: "1"
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+                 "VECLIB_MAXIMUM_THREADS")
+}  # fmt: skip
+
+
+@contextlib.contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """``os.environ`` with ``values`` for the duration (what a process started meanwhile inherits)."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
 def start_fork_server() -> None:
-    """Start the fork server now (it warms up in the background; idempotent; a no-op without one)."""
+    """Start the fork server now (it warms up in the background; idempotent; a no-op without one).
+
+    The server starts with single-threaded native thread pools (:data:`SINGLE_THREADED`; this
+    process's own environment is left as it was). Every job limits them to one thread anyway
+    (``threadpoolctl``), but a pool sized at start-up is never made: OpenBLAS starts a thread per
+    core when numpy is imported, which slowed the server's warm-up, on the way to every batch's
+    first job, by about 0.1 s on 2 cores.
+    """
     if pool_context().get_start_method() == "forkserver":
-        multiprocessing.forkserver.ensure_running()
+        with _environment(SINGLE_THREADED):
+            multiprocessing.forkserver.ensure_running()
 
 
 def runs_local_pool(args: Sequence[str]) -> bool:
@@ -68,4 +101,7 @@ def start_fork_server_early(args: Sequence[str]) -> None:
     the fork server's warm-up then overlaps. ``relpoint batch`` starts it again in any case (a no-op).
     """
     if runs_local_pool(args):
+        # This process only reads the plan and gathers rows: its own native thread pools, made when
+        # the plan's checks import numpy, would only compete with the server's warm-up for the cores.
+        os.environ.update(SINGLE_THREADED)
         start_fork_server()

@@ -19,6 +19,7 @@ def test_builtin_declarations_match_each_spec(name: str) -> None:
     spec = ESTIMATORS[name]
     assert isinstance(spec, EstimatorSpec) and spec.name == name
     assert ESTIMATORS.inputs(name) == (spec.needs, spec.uses)
+    assert ESTIMATORS.config_class(name) is spec.config_class
 
 
 @pytest.mark.parametrize("name", sorted(BUILTIN))
@@ -65,10 +66,13 @@ def test_registry_lists_builtins_and_registered_specs_and_refuses_unknown_names(
     registry.register(extra)
     assert "extra" in registry and registry["extra"] is extra and list(registry)[-1] == "extra"
     assert registry.inputs("extra") == (frozenset({"points"}), frozenset())
+    assert registry.config_class("extra") is dict
     with pytest.raises(KeyError):
         registry["nope"]
     with pytest.raises(KeyError):
         registry.inputs("nope")
+    with pytest.raises(KeyError):
+        registry.config_class("nope")
     assert "nope" not in registry
 
 
@@ -80,6 +84,28 @@ def test_info_imports_no_estimator_scipy_or_numba() -> None:
         "try:\n    main()\nexcept SystemExit as stop:\n    assert not stop.code, stop.code\n"
         "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba', 'open3d', 'cv2')"
         " or m.startswith('relpoint.estimators.') and m.split('.')[2] not in ('base', '_noise', 'spec'))\n"
+        "assert not heavy, heavy\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_batch_checks_a_plan_without_scipy_or_the_estimators(tmp_path: Path) -> None:
+    # `relpoint batch` reads and checks its plan while the workers warm up: the point estimators'
+    # settings come from their own modules, which import no scipy.
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        f'logs = ["{REPO / "sample_logs" / "figure8.mcap"}"]\n'
+        "[estimators.relpoint]\n[estimators.ekf.grid]\nobservation_sigma = [0.3, 0.5]\n"
+        "[estimators.fastslam]\nparticles = 7\n"
+    )
+    code = (
+        "import sys\nfrom pathlib import Path\nfrom relpoint_app.batch_plan import check_outputs, load_plan\n"
+        f"plan = load_plan(Path({str(plan)!r}), results=Path({str(tmp_path / 'results')!r}))\n"
+        "check_outputs(plan)\nassert len(plan.jobs) == 4, plan.jobs\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba', 'open3d', 'cv2')"
+        " or m in ('relpoint.estimators.ekf', 'relpoint.estimators.fastslam',"
+        " 'relpoint.estimators.relative_point.estimator'))\n"
         "assert not heavy, heavy\n"
     )
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)

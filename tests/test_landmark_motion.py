@@ -7,10 +7,18 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from relpoint.estimators._landmark_motion import MIN_PAIRED, MIN_SEEN, MotionTest, hand_over, median_by_group
+from relpoint.estimators._landmark_motion import (
+    CHI2_MEDIAN_3,
+    MIN_PAIRED,
+    MIN_SEEN,
+    MotionTest,
+    hand_over,
+    median_by_group,
+)
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint.statistics import chi2_gate
 
 
 def test_median_by_group_is_each_groups_median() -> None:
@@ -226,3 +234,7 @@ def test_a_pose_error_is_not_taken_for_motion() -> None:
     residual = shared_motion_removed(np.zeros(40, dtype=np.int64), innovations, offsets, 1)
     np.testing.assert_allclose(residual[5:], 0.0, atol=1e-9)
     np.testing.assert_allclose(residual[:5], [[2.0, 0.0, 0.0]] * 5, atol=1e-9)
+
+
+def test_the_written_out_chi_square_median_is_the_quantile() -> None:
+    assert pytest.approx(chi2_gate(0.5, 3), rel=1e-15) == CHI2_MEDIAN_3

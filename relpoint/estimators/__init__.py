@@ -2,7 +2,9 @@
 
 A built-in estimator's module is imported the first time its spec is asked for: what each one reads
 (:meth:`EstimatorRegistry.inputs`) and its name are known without importing it, so that ``relpoint
-info`` and ``--help`` start without scipy and numba.
+info`` and ``--help`` start without scipy and numba; its settings class
+(:meth:`EstimatorRegistry.config_class`) lives in a module of its own that imports neither, so that
+``relpoint batch`` checks a plan without them.
 """
 
 from __future__ import annotations
@@ -14,14 +16,17 @@ from dataclasses import dataclass
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.base import DEPTH, FIX, ODOMETRY, POINTS, Estimator
 from relpoint.estimators.spec import EstimatorSpec
+from relpoint.settings import Settings
 
 
 @dataclass(frozen=True)
 class BuiltinEstimator:
-    """Where a built-in estimator's spec lives (``module.SPEC``), the input roles it declares there, and
-    the module of its compiled kernels, if any (whose ``prepare()`` loads or compiles them)."""
+    """Where a built-in estimator's spec lives (``module.SPEC``) and its settings class
+    (``config``, as ``module:Class``), the input roles it declares there, and the module of its
+    compiled kernels, if any (whose ``prepare()`` loads or compiles them)."""
 
     module: str
+    config: str
     needs: frozenset[str]
     uses: frozenset[str] = frozenset()
     kernels: str | None = None
@@ -30,15 +35,30 @@ class BuiltinEstimator:
 #: The built-in estimators; ``tests/test_estimators_registry.py`` checks these against each ``SPEC``.
 BUILTIN = {
     "relpoint": BuiltinEstimator(
-        "relpoint.estimators.relative_point.estimator", frozenset({POINTS}),
+        "relpoint.estimators.relative_point.estimator",
+        "relpoint.estimators.relative_point.config:RelativePointConfig",
+        frozenset({POINTS}),
         kernels="relpoint.estimators.relative_point._kernels",
     ),
-    "ekf": BuiltinEstimator("relpoint.estimators.ekf", frozenset({POINTS}), frozenset({ODOMETRY, FIX})),
+    "ekf": BuiltinEstimator(
+        "relpoint.estimators.ekf",
+        "relpoint.estimators.ekf_config:EkfConfig",
+        frozenset({POINTS}),
+        frozenset({ODOMETRY, FIX}),
+    ),
     "fastslam": BuiltinEstimator(
-        "relpoint.estimators.fastslam", frozenset({POINTS}), frozenset({ODOMETRY, FIX}),
+        "relpoint.estimators.fastslam",
+        "relpoint.estimators.fastslam_config:FastSlamConfig",
+        frozenset({POINTS}),
+        frozenset({ODOMETRY, FIX}),
         kernels="relpoint.estimators._fastslam_kernels",
     ),
-    "dense": BuiltinEstimator("relpoint.estimators.dense.estimator", frozenset({DEPTH}), frozenset({"color"})),
+    "dense": BuiltinEstimator(
+        "relpoint.estimators.dense.estimator",
+        "relpoint.estimators.dense.estimator:DenseConfig",
+        frozenset({DEPTH}),
+        frozenset({"color"}),
+    ),
 }
 
 
@@ -69,6 +89,16 @@ class EstimatorRegistry(Mapping[str, EstimatorSpec]):
         """Add (or replace) an estimator under ``spec.name``."""
         self._specs[spec.name] = spec
         return spec
+
+    def config_class(self, name: str) -> type[Settings]:
+        """The settings class of ``name``, without importing a built-in estimator's own module."""
+        if name in self._specs:
+            return self._specs[name].config_class
+        if name not in BUILTIN:
+            raise KeyError(name)
+        module, attribute = BUILTIN[name].config.split(":")
+        config_class: type[Settings] = getattr(importlib.import_module(module), attribute)
+        return config_class
 
     def inputs(self, name: str) -> tuple[frozenset[str], frozenset[str]]:
         """(input roles ``name`` needs, roles it also uses), without importing a built-in estimator."""

@@ -37,11 +37,9 @@ Layout
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -49,14 +47,12 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
-from relpoint.errors import UsageError
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._fix_smoothing import smoothed_on_fixes
 from relpoint.estimators._landmark_motion import (
     MotionTest,
-    MovingLandmarkSettings,
     candidate_slots,
     hand_over,
     shared_motion_removed,
@@ -79,16 +75,14 @@ from relpoint.estimators._vanished import (
     run_log_probability,
 )
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
+from relpoint.estimators.fastslam_config import SEARCH_RADIUS_SIGMAS, FastSlamConfig
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
-from relpoint.settings import setting
 from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 logger = logging.getLogger(__name__)
 
-VARIANTS = ("2.0", "1.0")
-FIX_ALIGNMENTS = ("rigid", "ignore")
 _LOG_2PI = math.log(2.0 * math.pi)
 _SLOT_ARRAYS = {
     "means": 0.0,
@@ -107,109 +101,6 @@ _SLOT_ARRAYS = {
 and a dropped landmark's gap closes in each of them."""
 #: Attributes indexed by particle; resampling copies each of them.
 _PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", *_SLOT_ARRAYS)
-
-
-#: The default search radius in units of the observation noise (5 m at the simulator's 0.3 m).
-SEARCH_RADIUS_SIGMAS = 5.0 / SIMULATOR_SIGMA
-
-
-@dataclass(frozen=True)
-class FastSlamConfig(MovingLandmarkSettings):
-    """Settings of the FastSLAM estimator. Metres, radians, seconds."""
-
-    settings_name: ClassVar[str] = "fastslam"
-    #: What ``relpoint config`` says about the settings that matter.
-    key_settings: ClassVar[dict[str, str]] = {
-        "observation_sigma": "per-axis point noise (m); sets the landmark filters and the new-landmark "
-        "likelihood. Unset, it is estimated from the first observations.",
-        "search_radius": "landmarks considered for a point (m); unset, 16.7 x observation_sigma (5 m at 0.3 m). "
-        "Cost grows with the landmarks inside it.",
-        "particles": "accuracy against time: the cost is linear in the particles.",
-        "linear_acceleration_noise, angular_acceleration_noise": "the proposal's motion spread between "
-        "observations (m/s^2, rad/s^2).",
-    }
-    settings_hint: ClassVar[str] = "see `relpoint config --estimator fastslam` for the parameters"
-
-    variant: str = setting("2.0", choices=VARIANTS)
-    """``2.0`` (proposal includes the points) or ``1.0`` (proposal is the motion model)."""
-    particles: int = setting(50, low=1, high=10_000)
-    """Number of particles."""
-    observation_sigma: float | None = setting(None, low=1e-6, high=1e3)
-    """Standard deviation of a point measurement, per axis (m). Unset (the default): ``relpoint run``
-    estimates it from the first observations of the log (:mod:`relpoint.estimators._noise`); a
-    ``FastSlam`` built directly, without ``SPEC.factory``, takes the simulator's 0.3 m. It sets the
-    measurement covariance, the new-landmark likelihood and (unset) ``search_radius``."""
-    new_landmark_probability: float = setting(0.9999, above=0, below=1)
-    """Sets the new-landmark likelihood: the density of a point at this chi-square quantile of a
-    fresh landmark's innovation. A point starts a landmark in a particle when no landmark there
-    explains it with a higher likelihood."""
-    start_landmark_probability: float = setting(0.9999999, above=0, below=1)
-    """A point that no landmark explains starts a landmark only if it also lies outside this wider
-    quantile of every candidate landmark; points in between are discarded. Without the band a point
-    of a drifted landmark (a loop closure) starts a duplicate that then wins every later association."""
-    linear_acceleration_noise: float = setting(2.0, low=0, high=1e4)
-    """Constant-velocity proposal: white linear acceleration noise (m/s^2)."""
-    angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
-    """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
-    initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
-    """Prior standard deviation of the initial linear velocity (m/s)."""
-    initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
-    """Prior standard deviation of the initial angular velocity (rad/s)."""
-    pose_noise: float = setting(0.01, low=0, high=1e2)
-    """Extra position noise per iteration, per axis (m), and the same in radians for orientation;
-    keeps the proposal full rank when odometry is perfect."""
-    resample_threshold: float = setting(0.5, low=0, high=1)
-    """Resample when the effective sample size falls below this fraction of the particles."""
-    search_radius: float | None = setting(None, low=1e-6, high=1e6)
-    """Landmarks farther than this from a point (in every particle) are not considered for it (m).
-    Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
-    the simulator's 0.3 m and 0.25 m for a depth camera's 1.5 cm."""
-    fix_alignment: str = setting("rigid", choices=FIX_ALIGNMENTS)
-    """How position fixes (``/fix``) enter: ``rigid`` runs in the local frame until at least three
-    non-collinear fixes pin it, fits the rigid transform local -> fix frame to the mean local
-    positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
-    by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
-    proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
-    fix_gate_probability: float = setting(0.999, low=0, high=1)
-    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
-    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
-    fix_gate_patience: int = setting(3, low=0, high=1_000_000)
-    """Fixes in a row outside the gate that are held back; the ones after are fused with their
-    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
-    fix_min_spread: float = setting(8.0, low=1e-3, high=1e6)
-    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
-    fix_drift: float = setting(0.1, low=0, high=10)
-    """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
-    (m/m, per axis), the drift of the local map that the fixes correct."""
-    close_loops: bool = setting(True)
-    """Close loops the particles' drift keeps open (:mod:`relpoint.estimators._loop_closure`): when the
-    best particle's landmarks started in the last 50 iterations sit at one offset from landmarks not
-    seen for 100, beyond chance, every particle's pose and the landmarks it saw lately move by that
-    offset, and each young landmark that then lies on an old one is merged into it. ``loop_closures``
-    in ``run.json`` counts them."""
-    smooth_trajectory: bool = setting(True)
-    """When the log ends, take the fused fixes' jumps out of the trajectory and smooth the
-    correction on the fixes (:mod:`relpoint.estimators._fix_smoothing`): each fix moves the filter at
-    once, partly by its own noise. The poses returned before the fixes pinned the frame (local, under
-    a provisional transform) are placed by the pinning's transform first. ``smoothing`` in
-    ``run.json`` reports it. Off, or without fused fixes: the trajectory is the filter's poses as it
-    made them. After the pinning, rotations stay the filter's."""
-    fix_window: int = setting(100, low=0, high=1_000_000)
-    """``rigid``: a fix moves each particle's pose, and the landmarks it saw within this many
-    iterations, by the covariance-weighted correction (eq. 31-32)."""
-
-    def at_noise(self, sigma: float) -> FastSlamConfig:
-        """These settings with ``observation_sigma = sigma`` (m)."""
-        return dataclasses.replace(self, observation_sigma=sigma)
-
-    def check(self) -> None:
-        """A point between the new-landmark quantile and the start quantile is discarded: the start
-        quantile is the wider one."""
-        if self.start_landmark_probability < self.new_landmark_probability:
-            raise UsageError(
-                "fastslam setting start_landmark_probability must be at least new_landmark_probability "
-                f"({self.new_landmark_probability}), got {self.start_landmark_probability}"
-            )
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
