@@ -40,7 +40,7 @@ from formats.topics import Topics
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.batch_plan import BatchPlan, Job, SimulationStep
-from relpoint_app.batch_start import pool_context
+from relpoint_app.batch_start import pool_context, start_fork_server
 
 if TYPE_CHECKING:
     from formats.log import LogReader
@@ -439,6 +439,7 @@ class LocalPool(Executor):
     STOP_GRACE_S = 1.0
 
     def __init__(self, workers: int) -> None:
+        start_fork_server()  # with its environment (a no-op once ``relpoint batch`` has started it)
         context = pool_context()
         self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=workers, mp_context=context, initializer=_init_worker

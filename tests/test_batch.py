@@ -113,10 +113,16 @@ def test_plan_expands_logs_estimators_and_grids(plan_file: Path, tmp_path: Path)
     [
         ('logs = "*.mcap"\nestimators = ["ekf"]\n', "matches no file"),
         ('[[simulate]]\nname = "a"\n[estimators.magic]\n', "unknown estimator 'magic'"),
-        ('[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n', "unknown ekf setting(s): no_such; see `relpoint config --estimator ekf`"),
+        (
+            '[[simulate]]\nname = "a"\n[estimators.ekf]\nno_such = 1\n',
+            "unknown ekf setting(s): no_such; see `relpoint config --estimator ekf`",
+        ),
         ('[[simulate]]\nname = "a"\n[estimators.ekf.grid]\nobservation_sigma = 0.3\n', "must be a non-empty list"),
         ('estimators = ["ekf"]\n[[simulate]]\nname = "a"\n[evaluation]\nalign = "banana"\n', "align"),
-        ('[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n', "simulate[0]: simulation setting density must be between 0.001"),
+        (
+            '[[simulate]]\nname = "a"\ndensity = -1\n[estimators.ekf]\n',
+            "simulate[0]: simulation setting density must be between 0.001",
+        ),
         ('estimators = ["ekf"]\n', "names no logs"),
         ("jobs = 3\n", "unknown key(s) jobs"),
     ],
@@ -257,6 +263,41 @@ def test_pool_workers_start_warm() -> None:
         [(_, loaded)] = list(pool.map_unordered(lambda_free_call, [_warm_modules]))
     assert loaded == ["relpoint_app.worker_warmup", "relpoint_app.batch_jobs", "relpoint.estimators._fastslam_kernels",
                       "relpoint.estimators.relative_point._kernels", "fastslam kernels"]  # fmt: skip
+
+
+def _blas_threads() -> list[int]:
+    """In a pool worker: the native thread pools' sizes, as the worker started (no limit applied)."""
+    from threadpoolctl import threadpool_info
+
+    return [pool["num_threads"] for pool in threadpool_info()]
+
+
+def test_pool_workers_start_with_single_threaded_native_pools_and_leave_this_environment() -> None:
+    import os
+
+    from relpoint_app.batch_jobs import LocalPool
+    from relpoint_app.batch_start import SINGLE_THREADED
+
+    before = {name: os.environ.get(name) for name in SINGLE_THREADED}
+    with LocalPool(1) as pool:
+        [(_, threads)] = list(pool.map_unordered(lambda_free_call, [_blas_threads]))
+    assert threads and set(threads) == {1}
+    assert {name: os.environ.get(name) for name in SINGLE_THREADED} == before
+
+
+@pytest.mark.parametrize("trim_threshold", [None, "65536"])
+def test_a_dask_worker_keeps_its_array_heap_only_when_the_trim_threshold_is_fixed(trim_threshold: str | None) -> None:
+    import os
+    import subprocess
+    import sys
+
+    env = {key: value for key, value in os.environ.items() if key != "MALLOC_TRIM_THRESHOLD_"}
+    if trim_threshold is not None:
+        env["MALLOC_TRIM_THRESHOLD_"] = trim_threshold
+    code = "from relpoint_app.worker_warmup import keep_array_heap\nprint(keep_array_heap())\n"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == str(trim_threshold is not None and sys.platform.startswith("linux"))
 
 
 def test_filter_jobs_import_no_library_the_warm_up_did_not(tmp_path: Path) -> None:
