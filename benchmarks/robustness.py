@@ -21,7 +21,12 @@ for several seeds. Per cell and estimator it prints the mean over the seeds of:
   because a run without fixes knows ``world`` only up to a rigid transform: the simulator's ``world``
   is its start, which gives it the frame for free), and ``x fixes``: the raw ATE as a ratio to the
   fixes alone (the fixes linearly interpolated to every iteration), both in ``world``;
-* with movers, ``x static``: the ATE as a ratio to the run on the same cell without movers (same seed);
+* with movers, ``x static``: the ATE as a ratio to the run on the same cell without movers (same seed;
+  the movers are static landmarks there, so that scene also holds more landmarks to localise on), and
+  ``x oracle``: the ATE as a ratio to the run on the same log with the movers' points taken out: how far
+  the movers drag the pose, without the information the static scene has and this one lacks. On the
+  optimum's row, ``x static`` is the optimum's own ratio to the static scene's optimum: what the
+  movers' absence costs least squares with perfect association;
 * Relative Point, ``x incr``: the worst seed's larger ratio of ATE and landmark RMSE to the same run's
   incremental solution (``final_adjustment=false``): the final adjustment's floor (at most 1.05). On
   the optimum's row, the same ratio for the optimum's ATE: how far the floor is from what least squares
@@ -45,6 +50,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -57,6 +63,8 @@ for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
 
 import numpy as np  # noqa: E402
+
+from relpoint.types import PointObservation  # noqa: E402
 
 ESTIMATORS = ("relpoint", "ekf", "fastslam")
 #: Estimator settings of every run: the defaults, but the observation noise set to the cell's (each
@@ -204,10 +212,23 @@ def reference(sim: Any, in_world: bool) -> tuple[np.ndarray, Any]:
     return (sim.ground_truth.positions - t) @ R, local
 
 
+def without_movers(items: Any, dynamic: np.ndarray) -> Any:
+    """``items`` (:func:`inputs`) with the points of the landmarks flagged in ``dynamic`` (by id) taken out."""
+    for item in items:
+        if isinstance(item, PointObservation) and item.ids is not None:
+            ids = np.asarray(item.ids)
+            known = (ids >= 0) & (ids < len(dynamic))
+            moving = np.zeros(len(ids), dtype=bool)
+            moving[known] = dynamic[ids[known]]
+            item = dataclasses.replace(item, points=item.points[~moving], ids=ids[~moving])
+        yield item
+
+
 def run_one(
-    cell: Cell, name: str, seed: int, iterations: int | None, fixes: bool = True, **settings: Any
+    cell: Cell, name: str, seed: int, iterations: int | None, fixes: bool = True, movers: bool = True, **settings: Any
 ) -> dict[str, Any]:
-    """One estimator over one cell and seed (default settings but ``settings``): the figures of the module docstring."""
+    """One estimator over one cell and seed (default settings but ``settings``): the figures of the module
+    docstring; without ``movers``, the movers' points are taken out of the log first."""
     from threadpoolctl import threadpool_limits
 
     from relpoint import pipeline
@@ -217,7 +238,8 @@ def run_one(
     with threadpool_limits(limits=1):
         sim = simulate(simulation_config(cell, seed, iterations))
         estimator = build_estimator(name, sim.config.noise, **settings)
-        result = pipeline.run(inputs(sim, fixes), estimator)
+        items = inputs(sim, fixes) if movers else without_movers(inputs(sim, fixes), sim.landmarks.dynamic)
+        result = pipeline.run(items, estimator)
     truth, landmarks = reference(sim, in_world=fixes and cell.fixes)
     metrics = landmark_metrics(result.landmarks, landmarks).summary
     size = len(result.landmarks)
@@ -305,7 +327,7 @@ def optimum(cell: Cell, seed: int, iterations: int | None) -> dict[str, Any]:
 
 @dataclass
 class Job:
-    kind: str  # "run", "nofix", "static", "incremental", "optimum"
+    kind: str  # "run", "nofix", "static", "oracle", "incremental", "optimum", "optimum_static"
     cell: Cell
     estimator: str
     seed: int
@@ -314,8 +336,12 @@ class Job:
 def _do(job: Job, iterations: int | None) -> tuple[Job, dict[str, Any]]:
     if job.kind == "optimum":
         return job, optimum(job.cell, job.seed, iterations)
+    if job.kind == "optimum_static":
+        return job, optimum(job.cell.static_twin(), job.seed, iterations)
     if job.kind == "static":
         return job, run_one(job.cell.static_twin(), job.estimator, job.seed, iterations)
+    if job.kind == "oracle":
+        return job, run_one(job.cell, job.estimator, job.seed, iterations, movers=False)
     if job.kind == "incremental":
         return job, run_one(job.cell, job.estimator, job.seed, iterations, final_adjustment=False)
     return job, run_one(job.cell, job.estimator, job.seed, iterations, fixes=job.kind != "nofix")
@@ -327,12 +353,15 @@ def plan_jobs(cells: list[Cell], estimators: list[str], seeds: list[int]) -> lis
     for cell in cells:
         for seed in seeds:
             jobs.append(Job("optimum", cell, "", seed))
+            if cell.movers:
+                jobs.append(Job("optimum_static", cell, "", seed))
             for name in estimators:
                 jobs.append(Job("run", cell, name, seed))
                 if cell.fixes and name != "relpoint":  # Relative Point does not take fixes
                     jobs.append(Job("nofix", cell, name, seed))
                 if cell.movers and name != "relpoint":
                     jobs.append(Job("static", cell, name, seed))
+                    jobs.append(Job("oracle", cell, name, seed))
                 if name == "relpoint":
                     jobs.append(Job("incremental", cell, name, seed))
     return jobs
@@ -366,7 +395,8 @@ def cell_rows(
             row: dict[str, Any] = {"cell": cell.name, "estimator": name, "seeds": len(runs)}
             for key in ("ate", "ate_aligned", "lm", "dyn_precision", "dyn_recall", "dyn_recall_3s", "dup_pct",
                         "ms_per_it"):
-                row[key] = float(np.nanmean([r[key] for r in runs])) if runs else float("nan")
+                values = [r[key] for r in runs if np.isfinite(r[key])]  # the dynamic figures are NaN without movers
+                row[key] = float(np.mean(values)) if values else float("nan")
             row["ate_x_opt"] = float(np.mean([r["ate"] / o["ate"] for r, o in zip(runs, opt, strict=True)]))
             row["lm_x_opt"] = float(np.mean([r["lm"] / o["lm"] for r, o in zip(runs, opt, strict=True)]))
             # Worst seed of the per-seed ratios (the floors hold in every run, not on average).
@@ -387,6 +417,9 @@ def cell_rows(
             if ("static", cell.name, name) in results:
                 static = results[("static", cell.name, name)]
                 row["x_static"] = float(max(r["ate"] / s["ate"] for r, s in zip(runs, static, strict=True)))
+            if ("oracle", cell.name, name) in results:
+                oracle = results[("oracle", cell.name, name)]
+                row["x_oracle"] = float(max(r["ate"] / o["ate"] for r, o in zip(runs, oracle, strict=True)))
             row["dup_pct_worst"] = float(max(r["dup_pct"] for r in runs))
             row["dyn_precision_worst"] = float(np.nanmin([r["dyn_precision"] for r in runs] + [np.inf]))
             row["dyn_recall_worst"] = float(np.nanmin([r["dyn_recall"] for r in runs] + [np.inf]))
@@ -400,6 +433,9 @@ def cell_rows(
         row["lm"] = float(np.mean([o["lm"] for o in opt]))
         if cell.fixes:
             row["fixes_ate"] = float(np.mean([o["fixes_ate"] for o in opt]))
+        if ("optimum_static", cell.name, "") in results:
+            twin = results[("optimum_static", cell.name, "")]
+            row["x_static"] = float(max(o["ate"] / t["ate"] for o, t in zip(opt, twin, strict=True)))
         if ("incremental", cell.name, "relpoint") in results:
             # The final adjustment's floor applied to the optimum itself (ATE only: the optimum maps
             # every static landmark, the incremental solution those it mapped).
@@ -412,10 +448,11 @@ def cell_rows(
 COLUMNS = (
     ("estimator", "{:<9}"), ("ate", "{:7.3f}"), ("ate_x_opt", "{:6.2f}"), ("ate_aligned", "{:7.3f}"), ("lm", "{:7.3f}"), ("lm_x_opt", "{:6.2f}"),
     ("dyn_precision", "{:6.2f}"), ("dyn_recall", "{:6.2f}"), ("dyn_recall_3s", "{:6.2f}"), ("dup_pct", "{:6.1f}"), ("ms_per_it", "{:7.1f}"),
-    ("x_nofix", "{:6.2f}"), ("x_nofix_raw", "{:6.2f}"), ("x_fixes", "{:6.2f}"), ("x_static", "{:6.2f}"), ("x_incr", "{:6.2f}"),
+    ("x_nofix", "{:6.2f}"), ("x_nofix_raw", "{:6.2f}"), ("x_fixes", "{:6.2f}"), ("x_static", "{:6.2f}"), ("x_oracle", "{:6.2f}"),
+    ("x_incr", "{:6.2f}"),
 )  # fmt: skip
 HEADERS = ("estimator", "ate m", "x opt", "ate al", "lm m", "x opt", "dyn P", "dyn R", "R 3s", "dup %", "ms/it", "x nofix", "raw", "x fixes",
-           "x static", "x incr")  # fmt: skip
+           "x static", "x oracle", "x incr")  # fmt: skip
 
 
 def _format(value: Any, spec: str) -> str:
@@ -494,11 +531,18 @@ def format_summary(rows: list[dict[str, Any]], report: list[dict[str, Any]]) -> 
         verdict = "holds" if item["holds"] else "MISSED"
         lines.append(f"{item['estimator']:<9} {item['figure']:<20} {sign} {item['bound']:<4}  worst {item['worst']:7.3f} "
                      f"({item['worst_cell']}), median {item['median']:7.3f}  {verdict}")  # fmt: skip
-    reference = [(r["x_incr"], r["cell"]) for r in rows if r["estimator"] == "optimum" and "x_incr" in r]
-    if reference:
-        worst = max(reference)
-        lines.append(f"optimum   x_incr (ATE, reference)      worst {worst[0]:7.3f} ({worst[1]}), "
-                     f"median {np.median([v for v, _ in reference]):7.3f}")  # fmt: skip
+    for figure in ("x_incr", "x_static"):
+        reference = [(r[figure], r["cell"]) for r in rows if r["estimator"] == "optimum" and figure in r]
+        if reference:
+            worst = max(reference)
+            lines.append(f"optimum   {figure + ' (ATE, reference)':<26} worst {worst[0]:7.3f} ({worst[1]}), "
+                         f"median {np.median([v for v, _ in reference]):7.3f}")  # fmt: skip
+    for name in ESTIMATORS:
+        drag = [(r["x_oracle"], r["cell"]) for r in rows if r["estimator"] == name and "x_oracle" in r]
+        if drag:
+            worst = max(drag)
+            lines.append(f"{name:<9} {'x_oracle (reference)':<26} worst {worst[0]:7.3f} ({worst[1]}), "
+                         f"median {np.median([v for v, _ in drag]):7.3f}")  # fmt: skip
     return "\n".join(lines)
 
 
