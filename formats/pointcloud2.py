@@ -31,6 +31,11 @@ DATATYPES: dict[int, np.dtype] = {
 _CODES = {dtype: code for code, dtype in DATATYPES.items()}
 
 
+#: The fields relpoint reads from a cloud: the coordinates, the ground-truth landmark id, and the
+#: ground-truth landmarks' dynamic flag (LOG_FORMAT.md). Every other field is tolerated unread.
+READ_FIELDS = frozenset({"x", "y", "z", "id", "dynamic"})
+
+
 @dataclass(frozen=True)
 class Field:
     """One PointField: ``name``, byte ``offset`` in the point, ``datatype`` code, element ``count``."""
@@ -50,19 +55,27 @@ def cloud_dtype(fields: Sequence[Field], point_step: int, big_endian: bool = Fal
 def _cloud_dtype(fields: tuple[Field, ...], point_step: int, big_endian: bool) -> np.dtype:
     """Structured dtype for one point of a cloud with these fields and ``point_step`` bytes per point.
 
-    Raises :class:`InputError` for unknown datatypes, duplicate names, or fields that do not fit
-    inside ``point_step``.
+    A field relpoint reads (:data:`READ_FIELDS`) must be unique, of a known datatype and inside
+    ``point_step``, else :class:`InputError`. Any other field that is not (padding fields that share a
+    name, as some drivers write, or a vendor's datatype) is left out of the dtype: nothing reads it.
     """
     names, formats, offsets = [], [], []
     for field in fields:
+        read = field.name in READ_FIELDS
         if field.datatype not in DATATYPES:
+            if not read:
+                continue
             raise InputError(f"PointCloud2 field {field.name!r} has unknown datatype {field.datatype}")
-        if field.name in names:
+        if field.name in names or (read and sum(f.name == field.name for f in fields) > 1):
+            if not read:
+                continue
             raise InputError(f"PointCloud2 has two fields named {field.name!r}")
         base = DATATYPES[field.datatype].newbyteorder(">" if big_endian else "<")
         count = max(1, int(field.count))
         end = field.offset + base.itemsize * count
         if field.offset < 0 or end > point_step:
+            if not read:
+                continue
             raise InputError(
                 f"PointCloud2 field {field.name!r} (offset {field.offset}, {count} x {base.itemsize} bytes) "
                 f"does not fit in point_step {point_step}"

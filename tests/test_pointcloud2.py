@@ -107,3 +107,21 @@ def test_encode_round_trip_keeps_dtypes() -> None:
     for name, values in columns.items():
         np.testing.assert_array_equal(cloud[name], values)
         assert cloud[name].dtype == values.dtype
+
+
+def test_fields_relpoint_does_not_read_may_repeat_overflow_or_have_unknown_types() -> None:
+    # Drivers pad points with fields that share a name ("_"); vendors add their own datatypes. Only the
+    # coordinates and ids are read, so those fields are left out rather than refusing the cloud.
+    fields = [Field("x", 0, FLOAT32), Field("_", 4, 7), Field("y", 8, FLOAT32), Field("_", 12, 7),
+              Field("z", 16, FLOAT32), Field("vendor", 20, 99), Field("long", 20, 7, count=8)]  # fmt: skip
+    points = np.arange(12, dtype=np.float32).reshape(4, 3)
+    data = np.zeros((4, 24), dtype=np.uint8)
+    for k, offset in enumerate((0, 8, 16)):
+        data[:, offset : offset + 4] = points[:, k : k + 1].view(np.uint8)
+    cloud = decode_cloud(data.tobytes(), fields, width=4, height=1, point_step=24, row_step=96)
+    assert cloud.dtype.names == ("x", "_", "y", "z")
+    xyz, _ = xyz_from_cloud(cloud)
+    np.testing.assert_array_equal(xyz, points)
+    # ... but a field relpoint reads must be unambiguous.
+    with pytest.raises(InputError, match="two fields named 'x'"):
+        decode_cloud(data.tobytes(), [*fields, Field("x", 4, FLOAT32)], width=4, height=1, point_step=24, row_step=96)
