@@ -110,8 +110,11 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         counts = [len(cloud) for cloud in clouds]
         frames = sorted({cloud.frame_id for cloud in clouds})
         observations = {
-            "topic": reader.topics.points, "frame_ids": frames, "points_mean": round(float(np.mean(counts)), 3),
-            "points_min": int(np.min(counts)), "points_max": int(np.max(counts)),
+            "topic": reader.topics.points, "frame_ids": frames,
+            # None when no cloud of the topic could be read (each is counted under "skipped")
+            "points_mean": round(float(np.mean(counts)), 3) if counts else None,
+            "points_min": int(np.min(counts)) if counts else None,
+            "points_max": int(np.max(counts)) if counts else None,
             "skipped": dict(sorted(reader.skipped.items())),
         }  # fmt: skip
     reference_topics = [
@@ -154,7 +157,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         rate = "-" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         click.echo(f"  {t['topic']:<{width}}  {t['type']:<{type_width}}  {t['serialization_format']:<6}  "
                    f"{t['count']:>7}  {rate:>8}  {t['role'] or ''}")  # fmt: skip
-    if observations:
+    if observations and observations["points_mean"] is None:
+        click.echo(f"observations on {observations['topic']}: no cloud could be read")
+    elif observations:
         click.echo(
             f"observations on {observations['topic']} (frame {', '.join(observations['frame_ids'])}): "
             f"{observations['points_mean']:.1f} points per iteration (min {observations['points_min']}, "
@@ -177,6 +182,8 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     click.echo(f"evaluation: trajectory {trajectory}, "
                f"landmarks {'yes' if document['evaluate_landmarks'] else 'no (no ground-truth landmarks)'}")  # fmt: skip
     if reference_topics:
-        click.echo(f"  pose topics that can serve as --reference-topic or --estimate-topic: {', '.join(reference_topics)}")
+        click.echo(
+            f"  pose topics that can serve as --reference-topic or --estimate-topic: {', '.join(reference_topics)}"
+        )
     if tf_topics:
         click.echo(f"  transforms on {', '.join(tf_topics)}: a reference from a frame chain with --parent/--child")

@@ -101,7 +101,9 @@ class _Singular(Estimator):
         return Pose(observation.stamp_ns, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
     def landmark_map(self) -> LandmarkMap:
-        return LandmarkMap(np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64))
+        return LandmarkMap(
+            np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64)
+        )
 
 
 def test_a_singular_iteration_is_skipped_counted_and_the_run_goes_on() -> None:
@@ -207,8 +209,11 @@ def test_simulation_settings_out_of_range_are_usage_errors(args: tuple[str, ...]
     assert not (tmp_path / "s.mcap").exists()
 
 
-ALIAS_BOMB = "a: &a [" + ",".join(['"lol"'] * 9) + "]\n" + "".join(
-    f"{b}: &{b} [" + ",".join([f"*{a}"] * 9) + "]\n" for a, b in zip("abcdefgh", "bcdefghi", strict=True)
+ALIAS_BOMB = (
+    "a: &a ["
+    + ",".join(['"lol"'] * 9)
+    + "]\n"
+    + "".join(f"{b}: &{b} [" + ",".join([f"*{a}"] * 9) + "]\n" for a, b in zip("abcdefgh", "bcdefghi", strict=True))
 )
 
 
@@ -239,3 +244,25 @@ def test_dev_zero_as_a_config_file_is_refused_unread(tmp_path: Path) -> None:
     process = subprocess.run([sys.executable, "-m", "relpoint_cli.main", "simulate", "-o", str(tmp_path / "s.mcap"),
                               "--config", str(link)], capture_output=True, text=True, timeout=120, cwd=REPO)  # fmt: skip
     assert process.returncode == 2 and "larger than 1 MB" in process.stderr
+
+
+def test_info_on_a_log_whose_every_cloud_is_unreadable_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import tests.hostile_logs as hostile
+
+    plain = hostile._cloud
+
+    def ambiguous(stamp: int, points: np.ndarray, ids: np.ndarray) -> dict:
+        message = plain(stamp, points, ids)
+        message["fields"] = [*message["fields"], {"name": "x", "offset": 12, "datatype": 7, "count": 1}]
+        return message
+
+    monkeypatch.setattr(hostile, "_cloud", ambiguous)
+    log = write_log(tmp_path / "ambiguous.mcap", SimulationConfig(iterations=5, density=25, seed=1))
+    result = CliRunner().invoke(cli, ["info", str(log)])
+    assert result.exit_code == 0, result.output
+    assert "no cloud could be read" in result.output and "two fields named 'x'" in result.output
+    result = CliRunner().invoke(cli, ["info", str(log), "--json"])
+    observations = json.loads(result.stdout)["observations"]
+    assert observations["points_mean"] is None and sum(observations["skipped"].values()) == 5
+    code, err = invoke("run", str(log), "-e", "ekf", "-o", str(tmp_path / "out"))
+    assert code == 3 and err.strip().splitlines()[-1].startswith("relpoint: error: the log holds no usable"), err
