@@ -243,3 +243,50 @@ def test_ekf_is_not_lost_after_a_stretch_without_landmarks() -> None:
     ate = np.sqrt(np.mean(np.sum((result.trajectory.positions - truth) ** 2, axis=1)))
     assert estimator.summary()["fixes_inflated"] > 0  # the gate saw the drift
     assert ate < 10.0 and len(result.landmarks) < 1000
+
+
+def _moved_fix_inputs(sim: object, T: np.ndarray) -> list[object]:
+    """The simulation's observations and its fixes, the fixes given in a frame ``T`` away from its start."""
+    items: list[object] = []
+    for step in sim.steps():  # type: ignore[attr-defined]
+        items.append(step.observation)
+        if step.fix is not None:
+            R = T[:3, :3]
+            items.append(
+                PositionFix(step.fix.stamp_ns, R @ step.fix.position + T[:3, 3], R @ step.fix.covariance @ R.T)
+            )
+    return items
+
+
+@pytest.mark.parametrize("name", ["ekf", "fastslam"])
+@pytest.mark.parametrize("pinned", [False, True])
+def test_output_before_the_frame_is_pinned_is_placed_by_one_transform(name: str, pinned: bool) -> None:
+    # The fixes' frame is turned 90 degrees and 40 m away from the sensor's start. Before the fixes pin
+    # the frame (or when they never do) each pose was output under the provisional transform of its
+    # iteration; at the end every pose is in one frame: no jump between consecutive poses.
+    from relpoint import pipeline
+    from relpoint.evaluation import umeyama
+
+    T = _known_transform()
+    sim = simulate(SimulationConfig(iterations=120, density=25, seed=2, fix_every=10, fix_noise=0.2))
+    spread = 3.0 if pinned else 1e5
+    if name == "ekf":
+        estimator = EkfSlam(EkfConfig(observation_sigma=0.3, fix_min_spread=spread))
+    else:
+        estimator = FastSlam(FastSlamConfig(particles=10, observation_sigma=0.3, fix_min_spread=spread),
+                             np.random.default_rng(0))  # fmt: skip
+    result = pipeline.run(_moved_fix_inputs(sim, T), estimator)
+    assert (estimator.frame_fit is not None) == pinned
+    matrices = result.trajectory.matrices()
+    truth = sim.ground_truth.matrices()
+    steps = np.einsum("kji,kjl->kil", matrices[:-1, :3, :3], matrices[1:, :3, :3])  # R_k^T R_k+1
+    true_steps = np.einsum("kji,kjl->kil", truth[:-1, :3, :3], truth[1:, :3, :3])
+    turn = np.degrees(np.arccos(np.clip((np.trace(steps, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    true_turn = np.degrees(np.arccos(np.clip((np.trace(true_steps, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert np.max(np.abs(turn - true_turn)) < 3.0
+    jumps = np.linalg.norm(np.diff(matrices[:, :3, 3], axis=0), axis=1)
+    true_jumps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    assert np.max(np.abs(jumps - true_jumps)) < 1.0
+    positions = matrices[:, :3, 3]
+    R, t, _ = umeyama(positions, truth[:, :3, 3])
+    assert np.sqrt(np.mean(np.sum((positions @ R.T + t - truth[:, :3, 3]) ** 2, axis=1))) < 1.0

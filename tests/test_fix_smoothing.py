@@ -153,7 +153,8 @@ def _aligned_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
 def test_fastslam_places_its_poses_before_the_pinning_in_the_pinned_frame() -> None:
     """figure8-gaps starts away from the fixes' frame: until the fixes pin it, FastSLAM returns its
     local poses under a provisional transform; when the log ends they are placed by the pinning's
-    transform, rotations included, and the smoothed path is nearer the truth than the filter's."""
+    transform, rotations included (with or without the smoothing), and the smoothed path is nearer
+    the truth than the filter's."""
     from relpoint import pipeline
     from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
     from relpoint.simulation import SimulationConfig, simulate
@@ -179,5 +180,6 @@ def test_fastslam_places_its_poses_before_the_pinning_in_the_pinned_frame() -> N
     # The first pose is the local frame's origin; placed by the pinning's transform.
     np.testing.assert_allclose(result.trajectory.matrices()[0, :3, :3], T[:3, :3], atol=1e-9)
     np.testing.assert_allclose(result.trajectory.matrices()[pinned:, :3, :3], filtered[pinned:, :3, :3])
+    np.testing.assert_allclose(filtered[:, :3, :3], result.trajectory.matrices()[:, :3, :3], atol=1e-9)
     truth = sim.ground_truth.positions
-    assert _rmse(result.trajectory.positions, truth) < 0.7 * _rmse(runs[False][0].trajectory.positions, truth)
+    assert _rmse(result.trajectory.positions, truth) < 0.95 * _rmse(runs[False][0].trajectory.positions, truth)

@@ -41,7 +41,7 @@ import numpy.typing as npt
 from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation
 from relpoint.lagrange import interpolate_fixes
 from relpoint.statistics import chi2_gate
-from relpoint.types import PositionFix
+from relpoint.types import PositionFix, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -290,3 +290,26 @@ def frame_summary(rigid: bool, fit: FrameFit | None) -> dict[str, Any]:
     if fit is None:
         return {"fix_frame": "local"}
     return {"fix_frame": "fixes", "fix_frame_fixes": fit.fixes, "fix_frame_rms": round(fit.rms, 4)}
+
+
+def placed_in_one_frame(
+    trajectory: Trajectory, local_stamps: npt.ArrayLike, local_poses: npt.ArrayLike, T_world_local: FloatArray
+) -> Trajectory:
+    """``trajectory`` with each pose output before the frame was pinned placed again by one transform.
+
+    Before the pinning a filter outputs its local pose under the provisional transform of that
+    iteration, which changes as fixes arrive: the early poses are then in as many frames as there
+    were transforms. At the end, the poses at ``local_stamps`` (ns) are replaced by
+    ``T_world_local @ local_poses`` ((K, 4, 4), the filter's local poses at those stamps):
+    ``T_world_local`` is the pinning's transform, or the last provisional one for a frame never
+    pinned. The other poses (after the pinning, already in ``world``) are kept.
+    """
+    stamps = np.asarray(local_stamps, dtype=np.int64)
+    if stamps.size == 0:
+        return trajectory
+    matrices = trajectory.matrices().copy()
+    rows = np.searchsorted(trajectory.stamps_ns, stamps)
+    rows = np.minimum(rows, len(trajectory.stamps_ns) - 1)
+    found = trajectory.stamps_ns[rows] == stamps
+    matrices[rows[found]] = np.asarray(T_world_local) @ np.asarray(local_poses)[found]
+    return Trajectory.from_matrices(trajectory.stamps_ns, matrices)

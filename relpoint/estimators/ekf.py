@@ -46,7 +46,7 @@ from relpoint.estimators._association import (
     mahalanobis_squared,
     nearest_neighbour,
 )
-from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary, placed_in_one_frame
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._landmark_motion import (
     EKF_MIN_PAIRED,
@@ -145,6 +145,9 @@ class EkfSlam(Estimator[PointObservation]):
         self._pairs = PairHistory() if self.config.smooth_trajectory else None
         self._smoothing: dict[str, Any] | None = None
         self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m)) per fused fix
+        # (stamp ns, local pose (4, 4)) of each iteration before the fixes pin the frame: placed again by
+        # one transform at the end (placed_in_one_frame)
+        self._local_poses: list[tuple[int, FloatArray]] = []
         self._moving = np.zeros(0, dtype=bool)
         self._position_at_fix: FloatArray | None = None
         self._vanished = (
@@ -207,6 +210,8 @@ class EkfSlam(Estimator[PointObservation]):
             fit = self._frame.update(observation.stamp_ns, self._position, self._P[:3, :3])
             if fit is not None:
                 self._pin_frame(fit)
+            else:
+                self._local_poses.append((observation.stamp_ns, self._local_pose()))
         return self.pose()
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
@@ -285,13 +290,22 @@ class EkfSlam(Estimator[PointObservation]):
         }
 
     def finish(self, trajectory: Trajectory) -> Trajectory:
-        """The trajectory smoothed on the final map (``smooth_trajectory``; see
-        :mod:`relpoint.estimators._trajectory_smoothing`), or ``trajectory`` as it is.
+        """The trajectory in one frame, smoothed on the final map (``smooth_trajectory``; see
+        :mod:`relpoint.estimators._trajectory_smoothing`).
 
-        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``); a run
-        that skipped iterations, or whose pairs place no iteration on the final map, keeps it, and
-        ``smoothing`` in :meth:`summary` says why.
+        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``). Those
+        returned before the fixes pinned the frame were placed by the provisional transform of their
+        iteration: they are placed again by the pinning's transform, or by the last provisional one
+        when the fixes never pinned it (:func:`~relpoint.estimators._fix_frame.placed_in_one_frame`).
+        A run that skipped iterations, or whose pairs place no iteration on the final map, is not
+        smoothed, and ``smoothing`` in :meth:`summary` says why.
         """
+        T_world_local = self._frame_fit.T_world_local if self._frame_fit is not None else None
+        if T_world_local is None and self._frame is not None and self._frame.fix_count:
+            T_world_local = self._frame.provisional  # never pinned: the last provisional transform
+        if self._local_poses and T_world_local is not None:
+            stamps, poses = zip(*self._local_poses, strict=True)
+            trajectory = placed_in_one_frame(trajectory, stamps, np.stack(poses), T_world_local)
         if self._pairs is None:
             return trajectory
         static = ~self._moving
@@ -311,12 +325,17 @@ class EkfSlam(Estimator[PointObservation]):
 
         Before the fixes pin the frame (``rigid``), the local pose mapped by the provisional transform.
         """
-        T = np.eye(4)
-        T[:3, :3] = self._rotation
-        T[:3, 3] = self._position
+        T = self._local_pose()
         if self._frame is not None:
             T = self._frame.provisional @ T
         return Pose.from_matrix(self._stamp_ns or 0, T)
+
+    def _local_pose(self) -> FloatArray:
+        """``T`` (4, 4) of the filter's pose in its own frame (``world`` once the frame is pinned)."""
+        T = np.eye(4)
+        T[:3, :3] = self._rotation
+        T[:3, 3] = self._position
+        return T
 
     @property
     def frame_fit(self) -> FrameFit | None:

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
 from relpoint.estimators import _fastslam_kernels
-from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary
+from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary, placed_in_one_frame
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._fix_smoothing import smoothed_on_fixes
 from relpoint.estimators._landmark_motion import (
@@ -191,7 +191,9 @@ class FastSlam(Estimator[PointObservation]):
         # position (m), per-axis variance (m^2)) and each fused fix's jump of the mean position.
         self._fixes_taken: list[tuple[int, FloatArray, FloatArray]] = []
         self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m))
-        self._local_poses: list[FloatArray] = []  # mean pose (local) of each iteration before the pinning
+        # (stamp ns, mean pose (local, 4 x 4)) of each iteration before the pinning: placed again by one
+        # transform at the end (placed_in_one_frame)
+        self._local_poses: list[tuple[int, FloatArray]] = []
         self._smoothing: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------ interface
@@ -259,8 +261,8 @@ class FastSlam(Estimator[PointObservation]):
             fit = self._frame.update(observation.stamp_ns, mean, spread)
             if fit is not None:
                 self._pin_frame(fit)
-            elif self.config.smooth_trajectory:  # the local pose, placed again once the frame is pinned
-                self._local_poses.append(self._mean_pose())
+            else:  # the local pose, placed again by one transform at the end
+                self._local_poses.append((observation.stamp_ns, self._mean_pose()))
         return self.pose()
 
     def add_fix(self, fix: PositionFix) -> None:
@@ -418,33 +420,36 @@ class FastSlam(Estimator[PointObservation]):
         }
 
     def finish(self, trajectory: Trajectory) -> Trajectory:
-        """The trajectory with the fused fixes' jumps taken out and its correction smoothed on the
-        fixes (``smooth_trajectory``; :mod:`relpoint.estimators._fix_smoothing`), or ``trajectory``
-        as it is: without fused fixes, or when the run skipped iterations (``smoothing`` in
-        :meth:`summary` says so).
+        """The trajectory in one frame, with the fused fixes' jumps taken out and its correction
+        smoothed on the fixes (``smooth_trajectory``; :mod:`relpoint.estimators._fix_smoothing`).
 
-        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``).
+        ``trajectory`` holds the poses :meth:`step` returned, one per iteration (``world``). Those
+        returned before the fixes pinned the frame were the local pose under the provisional
+        transform of their iteration, which changes as fixes arrive: they are placed again by the
+        pinning's transform, or by the last provisional one when the fixes never pinned the frame
+        (:func:`~relpoint.estimators._fix_frame.placed_in_one_frame`). Without fused fixes, or when
+        the run skipped iterations, there is no smoothing (``smoothing`` in :meth:`summary` says so).
         """
+        T_world_local = self._frame_fit.T_world_local if self._frame_fit is not None else None
+        if T_world_local is None and self._frame is not None and self._frame.fix_count:
+            T_world_local = self._frame.provisional  # never pinned: the last provisional transform
+        before = 0
+        if self._local_poses and T_world_local is not None:
+            stamps, poses = zip(*self._local_poses, strict=True)
+            trajectory = placed_in_one_frame(trajectory, stamps, np.stack(poses), T_world_local)
+            before = len(self._local_poses)
         if not self.config.smooth_trajectory or not self._fix_jumps:
             return trajectory
         iterations = self._stats["iterations"]
         if len(trajectory) != iterations:
             self._smoothing = {"applied": False, "reason": "the run skipped iterations"}
             return trajectory
-        # Before the pinning the output was the local pose under the provisional transform of its
-        # iteration (which changes as fixes arrive): placed again by the transform that pinned it.
-        matrices = trajectory.matrices().copy()
-        before = 0
-        if self._frame_fit is not None and self._local_poses:  # fixes were fused, so it was pinned
-            before = len(self._local_poses)
-            matrices[:before] = self._frame_fit.T_world_local @ np.stack(self._local_poses)
         stamps = np.array([stamp for stamp, _, _ in self._fixes_taken], dtype=np.int64)
         positions = np.array([position for _, position, _ in self._fixes_taken])
         variances = np.array([variance for _, _, variance in self._fixes_taken])
         smoothed, self._smoothing = smoothed_on_fixes(
-            Trajectory.from_matrices(trajectory.stamps_ns, matrices), summed_fix_jumps(self._fix_jumps, iterations),
-            stamps, positions, variances,
-        )  # fmt: skip
+            trajectory, summed_fix_jumps(self._fix_jumps, iterations), stamps, positions, variances
+        )
         self._smoothing["poses_placed_in_pinned_frame"] = before
         return smoothed
 
