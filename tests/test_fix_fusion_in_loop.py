@@ -290,3 +290,24 @@ def test_output_before_the_frame_is_pinned_is_placed_by_one_transform(name: str,
     positions = matrices[:, :3, 3]
     R, t, _ = umeyama(positions, truth[:, :3, 3])
     assert np.sqrt(np.mean(np.sum((positions @ R.T + t - truth[:, :3, 3]) ** 2, axis=1))) < 1.0
+
+
+@pytest.mark.parametrize("sigma", [0.2, 1.0, 5.0])
+def test_the_spread_a_fit_needs_scales_with_the_fixes_noise(sigma: float) -> None:
+    # The rotation about the fixes' best line is known to about noise / spread: the default asks the
+    # same 8 noises at any noise (8 m for 1 m fixes, as the fixed default did).
+    T = _known_transform()
+    local = _arc(400)
+    frame = FixFrame()
+    pinned_at = None
+    for k, x in enumerate(local):
+        if k % 10 == 0:
+            frame.add_fix(PositionFix(k * DT_NS, T[:3, :3] @ x + T[:3, 3], np.eye(3) * sigma**2))
+        if frame.update(k * DT_NS, x, np.zeros((3, 3))) is not None:
+            pinned_at = k
+            break
+    assert frame.required_spread() == pytest.approx(8.0 * sigma)
+    assert pinned_at is not None
+    fixes = np.array([T[:3, :3] @ x + T[:3, 3] for x in local[: pinned_at + 1 : 10]])
+    assert 8.0 * sigma <= line_spread(fixes) < 8.0 * sigma + 2.0
+    assert FixFrame(min_spread=3.0).required_spread() == 3.0

@@ -90,6 +90,13 @@ def line_spread(points: npt.ArrayLike) -> float:
     return float(np.sqrt(np.sum(singular[1:] ** 2) / len(p)))
 
 
+#: The fixes' spread (RMS distance from their best line) a frame fit needs, in units of the fixes'
+#: per-axis noise: the rotation about that line is then known to about 1 / 8 rad over one fix.
+SPREAD_SIGMAS = 8.0
+#: Floor (m) of the noise behind the required spread, for fixes and local positions that claim none.
+MIN_SPREAD_NOISE = 1e-3
+
+
 class FixFrame:
     """Collects fixes and a filter's local positions until the fixes pin ``T_world_local``.
 
@@ -97,12 +104,13 @@ class FixFrame:
     ----------
     min_fixes: fixes needed before a fit is tried (at least 3).
     min_spread: the fixes' RMS distance from their best line (m) needed for a fit; below it the
-        rotation about the line is not determined.
+        rotation about the line is not determined. None (the default): :data:`SPREAD_SIGMAS` times
+        the fixes' noise (:meth:`required_spread`).
     max_fixes: at most this many fixes are kept: beyond it every other one is dropped (see
         :meth:`_thin`), so the kept ones thin out but still span every fix so far.
     """
 
-    def __init__(self, min_fixes: int = 3, min_spread: float = 8.0, max_fixes: int = 100) -> None:
+    def __init__(self, min_fixes: int = 3, min_spread: float | None = None, max_fixes: int = 100) -> None:
         if not 3 <= min_fixes <= max_fixes:
             raise ValueError(f"need 3 <= min_fixes <= max_fixes, got {min_fixes} and {max_fixes}")
         self.min_fixes = min_fixes
@@ -234,18 +242,36 @@ class FixFrame:
         T[:3, 3] = world.mean(axis=0) - rotation @ local.mean(axis=0)
         self._provisional = T
 
+    def required_spread(self) -> float:
+        """The fixes' spread (m) a fit needs: ``min_spread``, or :data:`SPREAD_SIGMAS` times the fixes'
+        noise (the RMS of their per-axis standard deviations; the local positions' when the fixes
+        claim none), so that the rotation is pinned as well at any noise and scale: 8 m for 1 m fixes
+        (the fixed default before), 1.6 m for 0.2 m fixes, 40 m for 5 m ones."""
+        if self.min_spread is not None:
+            return self.min_spread
+        sigma = (
+            float(np.sqrt(np.mean([np.trace(c) / 3.0 for c in self._fix_covariances])))
+            if self._fix_covariances
+            else 0.0
+        )
+        if sigma <= 0.0 and self._covariances:
+            sigma = float(np.sqrt(max(np.mean([np.trace(c) / 3.0 for c in self._covariances]), 0.0)))
+        return SPREAD_SIGMAS * max(sigma, MIN_SPREAD_NOISE)
+
     def fit(self) -> FrameFit | None:
-        """Fit ``T_world_local`` if at least ``min_fixes`` fixes with ``min_spread`` are paired; else None."""
+        """Fit ``T_world_local`` if at least ``min_fixes`` fixes with the required spread are paired
+        (:meth:`required_spread`); else None."""
         if len(self._fix_stamps) < self.min_fixes:
             return None
         spread = line_spread(np.asarray(self._fix_positions))
-        if spread < self.min_spread:
+        required = self.required_spread()
+        if spread < required:
             return None
         pairs = self._pairs()
         if pairs is None or len(pairs[0]) < 3:
             return None
         local, local_cov, world, world_cov = pairs
-        if line_spread(local) < 0.5 * self.min_spread:
+        if line_spread(local) < 0.5 * required:
             return None  # the local path has not spread (yet) as the fixes have: no rotation to fit
         weights = 1.0 / np.maximum(np.trace(world_cov + local_cov, axis1=1, axis2=2), 1e-12)
         result = fit_rigid(local, world, weights=weights)

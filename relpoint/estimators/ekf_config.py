@@ -103,8 +103,10 @@ class EkfConfig(MovingLandmarkSettings):
     fix_gate_patience: int = setting(3, low=0, high=1_000_000)
     """Fixes in a row outside the gate that are held back; the ones after are fused with their
     covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
-    fix_min_spread: float = setting(8.0, low=1e-3, high=1e6)
-    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame."""
+    fix_min_spread: float | None = setting(None, low=1e-3, high=1e6)
+    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame. Unset
+    (the default): 8 times the fixes' noise (the RMS of their per-axis standard deviations): 8 m for
+    1 m fixes, 1.6 m for 0.2 m ones (``relpoint.estimators._fix_frame.FixFrame.required_spread``)."""
     fix_drift: float = setting(0.0, low=0, high=10)
     """``rigid``: before each fix, the pose and the landmarks seen within ``fix_window`` iterations
     may have drifted together in ``world`` by this much per metre travelled since the previous fix
