@@ -458,3 +458,33 @@ def test_residual_trend_is_calibrated_on_static_points_and_finds_wandering_ones(
     assert np.mean(residual_trend(point, walk, points) < 1e-3) > 0.5
     # Fewer than six observations are not judged.
     assert residual_trend(np.zeros(5, np.int64), rng.normal(size=(5, 3)), 1)[0] == 1.0
+
+
+def test_dropped_frames_and_jittered_stamps_are_followed() -> None:
+    # The motion between iterations is rescaled to each iteration's interval: a dropped frame (the
+    # sensor moved twice as far) is predicted from the velocity, and stamps that jitter around evenly
+    # spaced frames fall back to the step as it was. Measured: with 30 % of the frames dropped at
+    # random, 1.21 m against 0.92 m with all of them (39.8 m, 51 degenerate iterations, when the
+    # motion was a step per iteration).
+    simulation = simulate(SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=300, seed=3))
+    rng = np.random.default_rng(0)
+
+    def rms(keep: float, jitter_s: float) -> tuple[float, int]:
+        estimator = RelativePointEstimator()
+        errors = []
+        for step in simulation.steps():
+            if step.index and rng.random() > keep:
+                continue
+            observation = step.observation
+            if step.index:
+                shift = int(rng.uniform(-jitter_s, jitter_s) * 1e9)
+                observation = PointObservation(observation.stamp_ns + shift, observation.points, observation.ids)
+            position = in_world(simulation, np.array([estimator.step(observation).position]))[0]
+            errors.append(np.linalg.norm(position - simulation.ground_truth.positions[step.index]))
+        return float(np.sqrt(np.mean(np.square(errors)))), estimator.counts["degenerate_iterations"]
+
+    every, _ = rms(1.0, 0.0)
+    dropped, degenerate = rms(0.7, 0.0)
+    jittered, _ = rms(1.0, 0.045)
+    assert dropped < 1.5 * every and degenerate == 0
+    assert jittered < 1.1 * every

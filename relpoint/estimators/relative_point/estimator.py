@@ -152,6 +152,7 @@ class RelativePointEstimator(
         self._path = np.zeros((256, 3))  # position of every iteration (world, m): loop corrections follow it
         self._motion_measured = False
         self._iteration = 0
+        self._previous_stamp_ns: int | None = None  # the last iteration's stamp (ns)
         self._regroup_queue: deque[int] = deque()
         self._first_groups: deque[int] = deque()
         self._over_grouped: set[int] = set()
@@ -189,6 +190,11 @@ class RelativePointEstimator(
         """Process one iteration's untransformed points (sensor frame); return ``T_world_sensor``."""
         k = self._iteration
         self._iteration += 1
+        # The motion predicts one iteration (older points: one per iteration of age): rescaled to this
+        # iteration's interval, whatever the previous one's was.
+        if self._previous_stamp_ns is not None:
+            self.motion.to_interval((observation.stamp_ns - self._previous_stamp_ns) * 1e-9)
+        self._previous_stamp_ns = observation.stamp_ns
         points = np.asarray(observation.points, dtype=np.float64)
         finite = np.all(np.isfinite(points), axis=1)
         self.counts["nonfinite_points"] += int(np.count_nonzero(~finite))

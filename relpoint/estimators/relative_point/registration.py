@@ -40,7 +40,7 @@ from relpoint.estimators.relative_point._kernels import (
     transform_by_age,
 )
 from relpoint.estimators.relative_point.lsf import fit_transform
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, body_twist, integrate_twist
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -96,10 +96,32 @@ class MotionModel:
 
     ``T_curr_prev`` maps a point from the sensor frame of the previous iteration into the current one;
     it is refreshed each iteration from that iteration's matches and used to predict the next.
+    ``interval_s`` is the time it spans (s; None until the stamps say): before an iteration whose
+    interval differs, :meth:`to_interval` rescales it, so the prediction holds the velocity rather
+    than the step. A dropped frame or an irregular rate moves the sensor in proportion to the time;
+    stamps that jitter around evenly spaced frames do not: :meth:`match` tries the step as it was as
+    well and keeps whichever prediction matches more points.
     """
 
     def __init__(self) -> None:
         self.T_curr_prev = np.eye(4)
+        self.interval_s: float | None = None
+        self._unscaled: FloatArray | None = None  # the motion before this iteration's rescaling
+
+    def to_interval(self, seconds: float) -> None:
+        """Make ``T_curr_prev`` the motion over ``seconds`` at the same body-frame velocity (the process
+        model of :func:`relpoint.geometry.integrate_twist`), the ratio of intervals clamped to
+        [1 / :data:`MAX_INTERVAL_RATIO`, :data:`MAX_INTERVAL_RATIO`]."""
+        if not seconds > 0.0:
+            return
+        self._unscaled = None
+        if self.interval_s is not None:
+            ratio = min(max(seconds / self.interval_s, 1.0 / MAX_INTERVAL_RATIO), MAX_INTERVAL_RATIO)
+            if abs(ratio - 1.0) > INTERVAL_TOLERANCE:
+                self._unscaled = self.T_curr_prev
+                linear, angular = body_twist(np.eye(4), self.T_curr_prev, 1.0)
+                self.T_curr_prev = integrate_twist(np.eye(4), linear * ratio, angular * ratio, 1.0)
+        self.interval_s = seconds
 
     def predict(self, points: FloatArray, age: IntArray) -> FloatArray:
         """Carry points (N, 3) last observed ``age`` (N,) iterations ago (1 or more) into the current frame."""
@@ -131,16 +153,16 @@ class MotionModel:
         (the predicted range, m; the motion's rotation error grows with it), and new pairs refresh
         the motion again. One compiled call (:func:`~._kernels.match_recent`).
         """
-        row, T_curr_prev, measured, far = match_recent(
-            np.ascontiguousarray(reference, dtype=np.float64),
-            np.ascontiguousarray(age, dtype=np.int64),
-            np.ascontiguousarray(points, dtype=np.float64),
-            self.T_curr_prev,
-            float(bound),
-            float(angle),
-            bool(predict),
-            MOTION_COLLINEAR_TOLERANCE,
-        )
+        reference = np.ascontiguousarray(reference, dtype=np.float64)
+        age = np.ascontiguousarray(age, dtype=np.int64)
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        args = (float(bound), float(angle), bool(predict), MOTION_COLLINEAR_TOLERANCE)
+        row, T_curr_prev, measured, far = match_recent(reference, age, points, self.T_curr_prev, *args)
+        if self._unscaled is not None and predict:  # the interval changed: the step as it was, too
+            other = match_recent(reference, age, points, self._unscaled, *args)
+            if np.count_nonzero(other[0] != NO_MATCH) > np.count_nonzero(row != NO_MATCH):
+                row, T_curr_prev, measured, far = other
+        self._unscaled = None
         self.T_curr_prev = T_curr_prev
         return LocalMatches(row, bool(measured), int(far))
 
@@ -156,6 +178,11 @@ class LocalMatches(NamedTuple):
 
 
 MOTION_COLLINEAR_TOLERANCE = 0.05
+#: Most the motion is stretched (or shrunk) for an interval longer (shorter) than the one it was
+#: measured over: beyond it, constant velocity is a guess rather than a prediction.
+MAX_INTERVAL_RATIO = 10.0
+#: Relative change of the interval below which the motion is not rescaled (a steady driver's jitter).
+INTERVAL_TOLERANCE = 0.05
 """RMS distance (m) off their best line below which matched points give no motion (collinear)."""
 
 
