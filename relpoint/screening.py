@@ -118,7 +118,8 @@ class InputScreen:
         self._filled = min(RANGE_WINDOW, self._filled + n)
 
     def fix(self, fix: PositionFix) -> PositionFix | None:
-        """``fix``, or None (counted) when its position or covariance is not finite or implausible."""
+        """``fix``, or None (counted) when its position or covariance is not finite or implausible, or its
+        covariance is all zero (unknown)."""
         if (
             not np.all(np.isfinite(fix.position))
             or np.any(np.abs(fix.position) > MAX_FIX_COORDINATE)
@@ -126,6 +127,11 @@ class InputScreen:
             or np.any(np.diag(fix.covariance) < 0)
         ):
             self._count("fixes: non-finite or implausible", 1, f"position {fix.position.tolist()}")
+            return None
+        if not np.any(np.diag(fix.covariance) > 0):
+            # All zero is how ROS messages say "unknown" (REP 145); taken as exact, one such fix would
+            # override the filter, and the next make its covariance singular.
+            self._count("fixes: no covariance", 1, "all position variances are zero: its noise is unknown")
             return None
         return fix
 

@@ -126,6 +126,10 @@ def test_the_screen_keeps_real_ranges_and_drops_absurd_ones() -> None:
     assert len(kept) == 3 and screen.skipped["points: implausible range (far beyond the data's own)"] == 1
     assert screen.fix(PositionFix(0, [np.inf, 0, 0], np.eye(3))) is None
     assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], np.eye(3))) is not None
+    # an all-zero covariance is ROS's "unknown": such a fix cannot be weighed
+    assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], np.zeros((3, 3)))) is None
+    assert screen.skipped["fixes: no covariance"] == 1
+    assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], np.diag([0.04, 0.04, 0.0]))) is not None
     assert screen.odometry(OdometryMeasurement(0, [3e8, 0, 0], [0, 0, 0])) is None
     assert screen.odometry(OdometryMeasurement(0, [1.0, 0, 0], [0, 0, 0.1])) is not None
 
