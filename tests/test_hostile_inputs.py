@@ -270,3 +270,18 @@ def test_info_on_a_log_whose_every_cloud_is_unreadable_says_so(tmp_path: Path, m
     assert observations["points_mean"] is None and sum(observations["skipped"].values()) == 5
     code, err = invoke("run", str(log), "-e", "ekf", "-o", str(tmp_path / "out"))
     assert code == 3 and err.strip().splitlines()[-1].startswith("relpoint: error: the log holds no usable"), err
+
+
+def test_the_run_line_counts_what_run_json_counts(tmp_path: Path) -> None:
+    # result.mcap reads the observations again; what it meets unusable was already counted by the run.
+    def empty_every_fifth(
+        k: int, stamp: int, points: np.ndarray, ids: np.ndarray
+    ) -> tuple[int, np.ndarray, np.ndarray]:
+        return (stamp, points[:0], ids[:0]) if k % 5 == 4 else (stamp, points, ids)
+
+    log = write_log(tmp_path / "gaps.mcap", SimulationConfig(iterations=40, density=25, seed=2), empty_every_fifth)
+    result = CliRunner().invoke(cli, ["run", str(log), "-e", "ekf", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.stderr
+    skipped = json.loads((tmp_path / "out" / "run.json").read_text())["skipped"]
+    assert sum(skipped.values()) == 8
+    assert ", 8 unusable items skipped" in result.stderr
