@@ -33,6 +33,7 @@ from formats.log import LogReader
 from formats.ply import read_ply
 from formats.signatures import MCAP_MAGIC, is_log
 from formats.tables import read_map_csv
+from formats.topics import Topics
 from formats.trajectory_files import (
     TrajectoryFormat,
     describe_unknown,
@@ -139,6 +140,7 @@ class _Edge:
     def arrays(self) -> tuple[np.ndarray, FloatArray]:
         """(stamps sorted, (n, 4, 4) matrices in that order)."""
         from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
         stamps = np.asarray(self.stamps, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         T = np.tile(np.eye(4), (len(stamps), 1, 1))
@@ -200,6 +202,7 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
         Unknown frames, frames in different trees, a chain of static transforms only, or no poses.
     """
     from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
     parent, child = _frame(parent), _frame(child)
     topics = [tf_topic] + ([TF_STATIC_TOPIC] if TF_STATIC_TOPIC in reader.topic_infos else [])
     if tf_topic not in reader.topic_infos:
@@ -346,9 +349,7 @@ def is_index_stamped(path: str | os.PathLike[str], times: str | os.PathLike[str]
     return times is None and path.is_file() and not is_mcap(path) and detect_format(path) is TrajectoryFormat.KITTI
 
 
-def check_index_pairing(
-    reference: tuple[Path, Trajectory, bool], estimate: tuple[Path, Trajectory, bool]
-) -> None:
+def check_index_pairing(reference: tuple[Path, Trajectory, bool], estimate: tuple[Path, Trajectory, bool]) -> None:
     """Refuse pairings that KITTI poses without times cannot make: ``(path, trajectory, index_stamped)`` each.
 
     Index-stamped poses pair by index, as evo's ``kitti`` mode: only with other index-stamped poses
@@ -388,12 +389,14 @@ def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
     return landmarks
 
 
-def load_ground_truth_landmarks(path: str | os.PathLike[str]) -> GroundTruthLandmarks | None:
-    """The last ``/ground_truth/landmarks`` message of a relpoint log, or None for other inputs."""
+def load_ground_truth_landmarks(path: str | os.PathLike[str], topic: str | None = None) -> GroundTruthLandmarks | None:
+    """The last ground-truth landmarks message (``topic``, default ``/ground_truth/landmarks``) of a
+    relpoint log, or None for other inputs."""
     path = Path(path)
     if not is_log(path):
         return None
-    with LogReader(path) as reader:
+    topics = Topics(ground_truth_landmarks=topic) if topic is not None else Topics()
+    with LogReader(path, topics) as reader:
         return ground_truth_landmarks(reader)
 
 

@@ -73,13 +73,16 @@ def evaluate_files(
     reference_times: Path | None = None,
     times: Path | None = None,
     window: TimeWindow | None = None,
+    landmarks_topic: str | None = None,
 ) -> FileEvaluation:
     """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
-    landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks)."""
+    landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks,
+    on ``landmarks_topic`` if given)."""
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
     est = load_trajectory(estimate, topic=estimate_topic, times=times)
     check_index_pairing(
-        (reference, ref, is_index_stamped(reference, reference_times)), (estimate, est, is_index_stamped(estimate, times))
+        (reference, ref, is_index_stamped(reference, reference_times)),
+        (estimate, est, is_index_stamped(estimate, times)),
     )
     if window is not None and not window.is_open:  # both cropped to the same stretch of the reference's time
         first_ns = int(ref.stamps_ns[0])
@@ -90,7 +93,7 @@ def evaluate_files(
                 "the window counts seconds from the reference's first pose",
             )
     landmarks = load_landmark_map(estimate)
-    truth = load_ground_truth_landmarks(reference) if landmarks is not None else None
+    truth = load_ground_truth_landmarks(reference, landmarks_topic) if landmarks is not None else None
     history = estimate / "map_history.csv"
     snapshots = read_map_history_csv(history) if landmarks is not None and history.is_file() else []
     return measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)

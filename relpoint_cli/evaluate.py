@@ -134,6 +134,10 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
 )
 @click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
 @click.option("--estimate-topic", help="Pose topic of an MCAP estimate (default /relpoint/pose or /ground_truth/pose).")
+@click.option(
+    "--landmarks-topic", metavar="TOPIC",
+    help="The reference log's ground-truth landmarks topic (default /ground_truth/landmarks).",
+)  # fmt: skip
 @click.option("--parent", help="Reference from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Reference from a TF chain: child frame (e.g. base_footprint).")
 @click.option(
@@ -217,7 +221,7 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
 @click.pass_context
 @handle_errors
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
-             estimate_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
+             estimate_topic: str | None, landmarks_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
              plot_format: str, save_results: Path | None, save_rpe_results: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
@@ -247,6 +251,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     evaluation = evaluate_files(
         estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
         parent=parent, child=child, reference_times=reference_times, times=times, window=window,
+        landmarks_topic=landmarks_topic,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
     if reference_cloud is not None:
@@ -260,6 +265,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         "reference": str(reference),
         "reference_topic": reference_topic,
         "estimate_topic": estimate_topic,
+        "landmarks_topic": landmarks_topic,
         "parent": parent,
         "child": child,
     }

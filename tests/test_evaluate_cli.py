@@ -188,6 +188,13 @@ def test_run_directory_with_landmarks_csv_and_plots(tmp_path: Path, small_log: P
     assert all((plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("errors.png",))
 
 
+def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
+    named = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/ground_truth/landmarks")
+    assert named["lm_matched"] > 20
+    elsewhere = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/mocap/landmarks")
+    assert "lm_matched" not in elsewhere and elsewhere["ate_rmse"] == named["ate_rmse"]
+
+
 def test_fail_above_gates(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     json_path = tmp_path / "gate.json"
     base = ("evaluate", run_dir, "-r", small_log, "--json", json_path)
