@@ -285,3 +285,14 @@ def test_the_run_line_counts_what_run_json_counts(tmp_path: Path) -> None:
     skipped = json.loads((tmp_path / "out" / "run.json").read_text())["skipped"]
     assert sum(skipped.values()) == 8
     assert ", 8 unusable items skipped" in result.stderr
+
+
+@pytest.mark.parametrize("name", POINT_ESTIMATORS)
+def test_a_log_without_one_usable_point_is_an_input_error(name: str, tmp_path: Path) -> None:
+    def nothing(k: int, stamp: int, points: np.ndarray, ids: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+        return stamp, np.full_like(points[:3], np.nan), ids[:3]
+
+    log = write_log(tmp_path / "nothing.mcap", SimulationConfig(iterations=20, density=25, seed=2), nothing)
+    code, err = invoke("run", str(log), "-e", name, "-o", str(tmp_path / "out"))
+    assert code == 3 and err.strip().splitlines()[-1].startswith("relpoint: error: the log holds no usable point"), err
+    assert not (tmp_path / "out").exists()
