@@ -36,7 +36,7 @@ import numpy as np
 from PIL import Image
 
 from formats.log import LogWriter, Topics, metadata_json
-from relpoint.errors import InputError
+from relpoint.errors import InputError, UsageError
 from relpoint.types import Intrinsics, Pose
 
 log = logging.getLogger(__name__)
@@ -229,6 +229,11 @@ def seven_scenes_frames(
 
     ``first`` and ``count`` select a range of frames (by position in the sorted frame list).
     """
+    if not 0.0 < rate <= 1e6 or first < 0 or (count is not None and count < 1):
+        raise UsageError(
+            f"7-Scenes import: rate {rate} Hz, first {first}, count {count}",
+            "the rate must be in (0, 1e6] Hz (stamps are nanoseconds), first >= 0 and count >= 1",
+        )
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: no such folder")

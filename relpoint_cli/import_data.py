@@ -46,9 +46,14 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 @click.option(
     "--tolerance", type=float, default=0.02, show_default=True, help="TUM: timestamp association tolerance, s."
 )
-@click.option("--rate", type=float, default=30.0, show_default=True, help="7-Scenes: frames per second.")
-@click.option("--first", type=int, default=0, show_default=True, help="7-Scenes: first frame to import.")
-@click.option("--count", type=int, help="7-Scenes: number of frames (default: all).")
+@click.option(
+    "--rate", type=click.FloatRange(min=0.0, min_open=True, max=1e6), default=30.0, show_default=True,
+    help="7-Scenes: frames per second (the stamps are nanoseconds: at most 1e6).",
+)  # fmt: skip
+@click.option(
+    "--first", type=click.IntRange(min=0), default=0, show_default=True, help="7-Scenes: first frame to import."
+)
+@click.option("--count", type=click.IntRange(min=1), help="7-Scenes: number of frames (default: all).")
 @click.option(
     "--points", is_flag=True,
     help="Write tracked corners as /points (with the ground truth) instead of the images: a log for relpoint, ekf "

@@ -86,3 +86,18 @@ def test_dense_runs_are_deterministic(tmp_path: Path) -> None:
     result = LogReader(outs[0] / "result.mcap")
     assert result.topic_infos["/relpoint/map"].count >= 2 and result.topic_infos["/relpoint/path"].count >= 2
     assert "/relpoint/observations" not in result.topic_infos  # depth frames are not copied
+
+
+def test_seven_scenes_import_refuses_impossible_ranges(tmp_path: Path) -> None:
+    import pytest
+
+    from formats.rgbd_import import seven_scenes_frames
+    from relpoint.errors import UsageError
+
+    folder = shared_data("7scenes-redkitchen-0000-0399")
+    for options in (["--rate", "0"], ["--rate", "-30"], ["--rate", "1e12"], ["--count", "-3"], ["--first", "-5"]):
+        code, _, err = invoke("import", "7scenes", str(folder), "-o", str(tmp_path / "x.mcap"), *options)
+        assert code == 2 and len(err.strip().splitlines()) == 1, (options, err)
+        assert not (tmp_path / "x.mcap").exists()
+    with pytest.raises(UsageError):
+        next(iter(seven_scenes_frames(folder, rate=0.0)))
