@@ -236,7 +236,7 @@ def test_dense_config_is_validated() -> None:
     with pytest.raises(UsageError):
         DenseConfig(depth_weighting=1)  # type: ignore[arg-type]
     assert DenseConfig().depth_weighting and not DenseConfig().constant_velocity
-    assert DenseConfig.from_mapping({"icp-distance": 0.2}).icp_distance == 0.2
+    assert DenseConfig.from_mapping({"icp-distance": 0.3}).icp_distance == 0.3
     assert SPEC.needs == frozenset({"depth"})
 
 
