@@ -170,7 +170,11 @@ def run(
             snapshots.pop()
         snapshots.append((len(stamps) - 1, stamps[-1], landmarks))
     dense_map = estimator.dense_map()
+    summary = estimator.summary()
     warnings = _result_warnings(estimator.name, len(stamps), failed, len(landmarks), dense_map, observed)
+    if summary.get("lost_frames"):
+        warnings.append(f"{estimator.name} lost tracking in {summary['lost_frames']} of {len(stamps)} frames "
+                        "(each held at the last pose and not fused)")  # fmt: skip
     for warning in warnings:
         log.warning("%s", warning)
     return RunResult(
@@ -179,7 +183,7 @@ def run(
         observed=np.asarray(observed, dtype=np.int64),
         map_size=np.asarray(map_size, dtype=np.int64),
         seconds=np.asarray(seconds, dtype=np.float64),
-        summary=estimator.summary(),
+        summary=summary,
         map_history=tuple(snapshots),
         dense_map=dense_map,
         seconds_finish=seconds_finish,
@@ -196,12 +200,16 @@ def _result_warnings(
     """What makes a finished run doubtful: no map at all, or most iterations failed or unobserved."""
     warnings = []
     if dense_map is None and landmarks == 0:
-        warnings.append(f"{name} mapped no landmark in {iterations} iterations; the trajectory is not anchored to a map")
+        warnings.append(
+            f"{name} mapped no landmark in {iterations} iterations; the trajectory is not anchored to a map"
+        )
     if dense_map is not None and len(dense_map[0]) == 0:
         warnings.append(f"{name} fused no map point in {iterations} frames")
     if failed and failed >= iterations:
         warnings.append(f"{name}: {failed} of {iterations + failed} iterations failed numerically")
     empty = sum(1 for n in observed if n < 3)
     if iterations and empty >= iterations:
-        warnings.append(f"every one of the {iterations} iterations observed fewer than 3 points: nothing to locate with")
+        warnings.append(
+            f"every one of the {iterations} iterations observed fewer than 3 points: nothing to locate with"
+        )
     return warnings

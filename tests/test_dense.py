@@ -358,3 +358,23 @@ def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> 
     np.testing.assert_array_equal(depth[1] > 0, valid)
     np.testing.assert_allclose(depth[1][valid], frame.depth[valid], atol=5e-4)  # 16UC1 millimetres
     np.testing.assert_allclose(truth[1].as_matrix(), room.poses[1], atol=1e-9)
+
+
+def test_a_frame_that_cannot_be_tracked_is_held_not_fused_and_reported() -> None:
+    from relpoint import pipeline
+
+    sim = simulate_rgbd(RgbdConfig(frames=12, noise=False, seed=3))
+    frames = list(sim.frames())
+    # Frame 6 sees almost nothing: a few pixels of depth, too few pairs to track.
+    sparse = np.zeros_like(frames[6].depth)
+    sparse[120, 150:160] = frames[6].depth[120, 150:160]
+    frames[6] = dataclasses.replace(frames[6], depth=sparse)
+    estimator = DenseFusion(DenseConfig())
+    sizes = []
+    result = pipeline.run(iter(frames), estimator, on_iteration=lambda *_: sizes.append(estimator.map_size))
+    assert result.summary["lost_frames"] == 1 and sizes[6] == sizes[5]
+    np.testing.assert_allclose(result.trajectory.positions[6], result.trajectory.positions[5])
+    assert any("lost tracking in 1 of 12 frames" in warning for warning in result.warnings)
+    truth = (invert_pose(sim.poses[0]) @ sim.poses)[:, :3, 3]  # in the first camera's frame, as the run
+    later = np.linalg.norm(result.trajectory.positions[7:] - truth[7:], axis=1)
+    assert later.max() < 0.01  # tracking resumes from the held pose

@@ -210,7 +210,8 @@ class DenseFusion(Estimator[DepthFrame]):
         points, normals = sources[coarse]
         n_prev, cost_prev = alignment_cost(invert_pose(previous), points, normals, pyramid[coarse], self._icp)
         n_pred, cost_pred = alignment_cost(invert_pose(predicted), points, normals, pyramid[coarse], self._icp)
-        if n_pred >= 0.9 * n_prev and cost_pred <= cost_prev:
+        # a cost is inf with too few pairs: two infinities say nothing for the prediction
+        if math.isfinite(cost_pred) and n_pred >= 0.9 * n_prev and cost_pred <= cost_prev:
             self.predicted_frames += 1
             return predicted
         return previous
@@ -249,11 +250,16 @@ class DenseFusion(Estimator[DepthFrame]):
             if result.ok:
                 T_world_camera = invert_pose(result.T_camera_world)
             else:
+                # Held, and not fused: a frame placed at a pose it was not tracked to would corrupt the map.
                 self.lost_frames += 1
                 logger.warning(
-                    "frame %d: tracking failed (%d pairs); pose predicted", self._frames, result.correspondences
+                    "frame %d: tracking failed (%d pairs); pose held, frame not fused",
+                    self._frames,
+                    result.correspondences,
                 )
-                T_world_camera = self._T_world_camera
+                self._frames += 1
+                self._last_stamp = frame.stamp_ns
+                return Pose.from_matrix(frame.stamp_ns, self._T_world_camera)
 
         index_map = self.map.render(invert_pose(T_world_camera), level0)
         confidence = self._confidence(level0) if self.config.radial_sigma > 0 else None
