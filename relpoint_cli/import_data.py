@@ -98,6 +98,12 @@ def import_command(
         raise UsageError("an RGB-D log is already a relpoint log", "add --points to track its corners into /points")
     if params and not points:
         raise UsageError("--param sets keypoint settings and needs --points")
+    if layout == "tum" and intrinsics is None and not ctx.find_root().obj.get("quiet"):
+        click.echo(
+            "relpoint: warning: no --intrinsics: the TUM Freiburg 1 camera's are used (fr2 and fr3 differ; "
+            "wrong intrinsics bend every frame's points)",
+            err=True,
+        )
     if points:
         _import_points(ctx, layout, source, output, intrinsics, tolerance, rate, first, count, params, compression,
                        topics_from(topic_params))  # fmt: skip
