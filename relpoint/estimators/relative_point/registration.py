@@ -178,12 +178,12 @@ class LocalMatches(NamedTuple):
 
 
 MOTION_COLLINEAR_TOLERANCE = 0.05
+"""RMS distance (m) off their best line below which matched points give no motion (collinear)."""
 #: Most the motion is stretched (or shrunk) for an interval longer (shorter) than the one it was
 #: measured over: beyond it, constant velocity is a guess rather than a prediction.
 MAX_INTERVAL_RATIO = 10.0
 #: Relative change of the interval below which the motion is not rescaled (a steady driver's jitter).
 INTERVAL_TOLERANCE = 0.05
-"""RMS distance (m) off their best line below which matched points give no motion (collinear)."""
 
 
 _KEY_SCALE = 1 << 21
