@@ -1426,3 +1426,19 @@ def test_open_group_kernel_equals_numpy() -> None:
         assert rel_sum.tobytes() == expected.tobytes()
         outcomes.add(outcome)
     assert _kernels.OPEN_GROUP_CLOSES in outcomes and _kernels.OPEN_GROUP_AVERAGED in outcomes
+
+
+def test_scaled_motion_holds_the_body_velocity_over_a_longer_or_shorter_interval() -> None:
+    from relpoint.estimators.relative_point.registration import scaled_motion
+    from relpoint.geometry import body_twist, integrate_twist, so3_exp
+
+    rng = np.random.default_rng(0)
+    for angle in (0.0, 1e-8, 0.3, 1.5, 3.1):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(rng.normal(size=3) / np.sqrt(3) * angle) if angle else np.eye(3)
+        T[:3, 3] = rng.normal(size=3)
+        for ratio in (0.1, 0.5, 2.0, 10.0):
+            linear, angular = body_twist(np.eye(4), T, 1.0)
+            expected = integrate_twist(np.eye(4), linear * ratio, angular * ratio, 1.0)
+            np.testing.assert_allclose(scaled_motion(T, ratio), expected, atol=1e-9)
+        np.testing.assert_allclose(scaled_motion(T, 1.0), T, atol=1e-9)

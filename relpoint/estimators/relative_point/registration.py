@@ -119,8 +119,7 @@ class MotionModel:
             ratio = min(max(seconds / self.interval_s, 1.0 / MAX_INTERVAL_RATIO), MAX_INTERVAL_RATIO)
             if abs(ratio - 1.0) > INTERVAL_TOLERANCE:
                 self._unscaled = self.T_curr_prev
-                linear, angular = body_twist(np.eye(4), self.T_curr_prev, 1.0)
-                self.T_curr_prev = integrate_twist(np.eye(4), linear * ratio, angular * ratio, 1.0)
+                self.T_curr_prev = scaled_motion(self.T_curr_prev, ratio)
         self.interval_s = seconds
 
     def predict(self, points: FloatArray, age: IntArray) -> FloatArray:
@@ -165,6 +164,30 @@ class MotionModel:
         self._unscaled = None
         self.T_curr_prev = T_curr_prev
         return LocalMatches(row, bool(measured), int(far))
+
+
+def scaled_motion(T: FloatArray, ratio: float) -> FloatArray:
+    """The rigid motion ``T`` (4, 4) held ``ratio`` times as long at the same body-frame velocity:
+    rotation ``exp(ratio log R)``, translation ``ratio t`` (the first-order model of
+    :func:`relpoint.geometry.integrate_twist`, in a few microseconds rather than scipy's 150)."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, 3] = ratio * t
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin(angle) axis
+    sine, cosine = 0.5 * float(np.linalg.norm(w)), 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    angle = math.atan2(sine, cosine)
+    if angle > 3.0:  # near a half turn the axis from the antisymmetric part is ill-conditioned
+        linear, angular = body_twist(np.eye(4), T, 1.0)
+        return integrate_twist(np.eye(4), linear * ratio, angular * ratio, 1.0)
+    rotvec = 0.5 * w * (angle / sine if sine > 1e-12 else 1.0)
+    scaled = ratio * rotvec
+    theta = float(np.linalg.norm(scaled))
+    K = np.array([[0.0, -scaled[2], scaled[1]], [scaled[2], 0.0, -scaled[0]], [-scaled[1], scaled[0], 0.0]])
+    if theta > 1e-12:
+        out[:3, :3] = np.eye(3) + (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta**2) * (K @ K)
+    else:
+        out[:3, :3] = np.eye(3) + K
+    return out
 
 
 class LocalMatches(NamedTuple):
