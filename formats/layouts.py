@@ -177,9 +177,14 @@ def _rosbag2_metadata(path: Path) -> dict[str, Any]:
         if not isinstance(info, dict):
             raise TypeError("rosbag2_bagfile_information is not a mapping")
     except (OSError, yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as error:
+        detail = f"{type(error).__name__}: {error}"
+        mark = getattr(error, "problem_mark", None)
+        if isinstance(error, yaml.YAMLError) and mark is not None:  # the parser's report spans lines
+            detail = (
+                f"YAML {getattr(error, 'problem', None) or 'error'} at line {mark.line + 1}, column {mark.column + 1}"
+            )
         raise InputError(
-            f"{path / ROSBAG2_METADATA}: not a rosbag2 metadata file ({type(error).__name__}: {error})",
-            Layout.ROSBAG2.repair_hint,
+            f"{path / ROSBAG2_METADATA}: not a rosbag2 metadata file ({detail})", Layout.ROSBAG2.repair_hint
         ) from None
     return info
 

@@ -95,5 +95,7 @@ def quiet_broken_pipe() -> None:
 
 
 def _fail(message: str, code: int) -> None:
-    click.echo(f"relpoint: error: {message}", err=True)
+    """One line on stderr, whatever a library put into the message (a parser's multi-line report)."""
+    line = " ".join(part.strip() for part in message.splitlines() if part.strip())
+    click.echo(f"relpoint: error: {line}", err=True)
     sys.exit(code)

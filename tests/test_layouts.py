@@ -393,3 +393,16 @@ def test_a_logs_hash_is_read_once_and_again_when_the_file_changes(tmp_path: Path
         os.utime(log, ns=(1, 1))
         changed = log_sha256(log, Layout.MCAP)
     assert changed == hashlib.sha256(log.read_bytes()).hexdigest() != first
+
+
+def test_a_malformed_metadata_file_is_one_line(tmp_path: Path) -> None:
+    from relpoint_cli.main import cli
+
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
+    (bag / "bag_0.db3").write_bytes(b"")
+    result = CliRunner().invoke(cli, ["info", str(bag)])
+    assert result.exit_code == 3
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not a rosbag2 metadata file (YAML" in lines[0] and "line 2" in lines[0], lines
