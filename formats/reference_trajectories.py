@@ -40,6 +40,7 @@ from formats.trajectory_files import (
     detect_format,
     read_euroc_csv,
     read_kitti,
+    read_relpoint_csv,
     read_tum,
 )
 from relpoint.errors import InputError
@@ -334,12 +335,14 @@ def load_trajectory(
         return read_tum(path)
     if fmt is TrajectoryFormat.EUROC:
         return read_euroc_csv(path)
+    if fmt is TrajectoryFormat.RELPOINT_CSV:
+        return read_relpoint_csv(path)
     if fmt is TrajectoryFormat.KITTI:
         return read_kitti(path, times)
     raise InputError(
         f"{path}: unknown trajectory format ({describe_unknown(path)})",
         "give a TUM file (8 values per line), a EuRoC ground-truth CSV, KITTI poses (12 values per line), "
-        "a relpoint run directory or an MCAP file",
+        "relpoint's trajectory.csv, a relpoint run directory or an MCAP file",
     )
 
 

@@ -278,6 +278,36 @@ def read_kitti(path: str | os.PathLike[str], times_path: str | os.PathLike[str] 
     return _build(path, stamps, positions.tolist(), quats, stamp_lines)
 
 
+def read_relpoint_csv(path: str | os.PathLike[str]) -> Trajectory:
+    """Read relpoint's own ``trajectory.csv`` (``iteration,timestamp,x,y,z,qx,qy,qz,qw``, seconds).
+
+    Raises
+    ------
+    InputError
+        As :func:`read_tum`: no poses, a row without 9 values, a non-numeric or non-finite value, a zero
+        quaternion, or stamps that do not increase - naming the file and line.
+    """
+    path = Path(path)
+    stamps: list[int] = []
+    positions: list[list[float]] = []
+    quats: list[list[float]] = []
+    lines: list[int] = []
+    for number, fields in _data_lines(path):
+        if fields == RELPOINT_CSV_HEADER:
+            continue
+        if len(fields) != len(RELPOINT_CSV_HEADER):
+            raise InputError(f"{path}:{number}: expected 9 values ({','.join(RELPOINT_CSV_HEADER)}), got {len(fields)}")
+        try:
+            stamps.append(parse_stamp_ns(fields[1]))
+        except ValueError:
+            raise InputError(f"{path}:{number}: bad timestamp {fields[1]!r}") from None
+        values = _floats(fields[2:], path, number)
+        positions.append(values[:3])
+        quats.append(values[3:])
+        lines.append(number)
+    return _build(path, stamps, positions, np.array(quats, dtype=np.float64).reshape(-1, 4), lines)
+
+
 def read_euroc_csv(path: str | os.PathLike[str]) -> Trajectory:
     """Read EuRoC ground truth (``state_groundtruth_estimate0/data.csv``; see the module docstring).
 
@@ -317,6 +347,11 @@ class TrajectoryFormat(Enum):
     TUM = "tum"
     KITTI = "kitti"
     EUROC = "euroc"
+    RELPOINT_CSV = "relpoint-csv"
+
+
+#: The header of relpoint's own ``trajectory.csv`` (:func:`formats.tables.write_trajectory_csv`).
+RELPOINT_CSV_HEADER = ["iteration", "timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
 
 #: Column names of EuRoC's ground-truth header; any of them in a ``#`` line marks the file as EuRoC.
@@ -351,6 +386,7 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
     """The format of a text trajectory file from its first 64 KiB, or None if it is none of them.
 
     * a ``#`` line naming EuRoC's columns (``p_RS_R_x``, ``q_RS_w``): EuRoC;
+    * a first line ``iteration,timestamp,x,y,z,qx,qy,qz,qw``: relpoint's own ``trajectory.csv``;
     * else by the first data line: 12 values KITTI; 8 values TUM, unless the file is named ``*.csv``,
       the values are comma-separated and the first is an integer (nanoseconds), which is EuRoC; more
       than 8 comma-separated values with an integer first one (EuRoC's velocity and bias columns): EuRoC.
@@ -367,6 +403,8 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
     comments, fields = head
     if any(mark in line for line in comments for mark in _EUROC_HEADER_MARKS):
         return TrajectoryFormat.EUROC
+    if fields[: len(RELPOINT_CSV_HEADER)] == RELPOINT_CSV_HEADER:
+        return TrajectoryFormat.RELPOINT_CSV
     commas = fields[-1:] == [","]
     values = fields[:-1] if commas else fields
     integer_stamp_csv = commas and values[0].isascii() and values[0].isdigit()

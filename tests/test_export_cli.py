@@ -95,6 +95,21 @@ def test_run_directory_to_csv(run_dir: Path, tmp_path: Path) -> None:
     np.testing.assert_allclose(values[:, 5:], estimate.quats_xyzw, rtol=0, atol=1e-9)
 
 
+def test_relpoints_own_trajectory_csv_reads_back(run_dir: Path, tmp_path: Path) -> None:
+    from formats.reference_trajectories import load_trajectory
+
+    exported = tmp_path / "est.csv"
+    export_ok(run_dir, "-o", exported)
+    estimate = read_tum(run_dir / "trajectory.tum")
+    for path in (exported, run_dir / "trajectory.csv"):
+        again = load_trajectory(path)
+        np.testing.assert_array_equal(again.stamps_ns, estimate.stamps_ns)
+        np.testing.assert_allclose(again.positions, estimate.positions, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(again.quats_xyzw, estimate.quats_xyzw, rtol=0, atol=1e-9)
+    export_ok(exported, "-o", tmp_path / "again.tum")
+    assert len(read_tum(tmp_path / "again.tum")) == len(estimate)
+
+
 def test_tum_file_to_kitti_and_back_through_times(run_dir: Path, tmp_path: Path) -> None:
     kitti, times = tmp_path / "a.kitti", tmp_path / "a_times.txt"
     export_ok(run_dir / "trajectory.tum", "-o", kitti, "--out-times", times)
