@@ -18,7 +18,7 @@ import click
 from formats.atomic import write_text
 from formats.evo_results import write_evo_result
 from formats.outputs import check_output_file
-from relpoint.errors import GateExceeded, UsageError
+from relpoint.errors import GateExceeded, InputError, UsageError
 from relpoint.evaluation import (
     STATISTICS,
     AlignMode,
@@ -26,6 +26,7 @@ from relpoint.evaluation import (
     EvaluationSettings,
     PoseRelation,
 )
+from relpoint.evaluation.evaluate import APE_RELATIONS
 from relpoint.settings import split_item
 from relpoint_app.evaluator import (
     check_gates,
@@ -159,8 +160,8 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
     "--interpolate", is_flag=True, help="Interpolate the denser trajectory (linear + slerp) instead of nearest."
 )
 @click.option(
-    "--pose-relation", type=click.Choice([r.value for r in PoseRelation]), default="trans_part", show_default=True,
-    help="Relation of the ape_*/rpe_* figures (evo -r).",
+    "--pose-relation", type=click.Choice([r.value for r in APE_RELATIONS]), default="trans_part", show_default=True,
+    help="Relation of the ape_*/rpe_* figures (evo -r; evo's RPE-only point_distance_error_ratio is not offered).",
 )  # fmt: skip
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair separation.")
 @click.option(
@@ -254,6 +255,15 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         landmarks_topic=landmarks_topic,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
+    if not ctx.find_root().obj.get("quiet"):
+        for note in result.notes:
+            click.echo(f"relpoint: warning: {note}", err=True)
+    if save_rpe_results is not None and result.rpe is None:  # before any output is written
+        raise InputError(
+            f"--save-rpe-results {save_rpe_results}: this evaluation has no RPE"
+            + (f" ({result.notes[0]})" if result.notes else ""),
+            "choose a smaller --delta (or --delta-unit), or leave --save-rpe-results out",
+        )
     if reference_cloud is not None:
         points, reference_points = dense_map_clouds(estimate, reference_cloud, result, settings)
         with progress_bar(len(points) + len(reference_points), "dense map", unit="point") as bar:

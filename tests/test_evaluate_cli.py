@@ -259,3 +259,23 @@ def test_info_names_the_pose_topics_a_bag_can_be_evaluated_against() -> None:
     assert document["reference_topics"] == ["/odom", "/amcl_pose"] and document["tf_topics"] == ["/tf", "/tf_static"]
     code, out, _ = invoke("info", bag)
     assert "trajectory with --reference-topic" in out and "/amcl_pose" in out
+
+
+def test_an_estimate_too_short_for_the_rpe_still_gets_its_ape(tmp_path: Path, small_log: Path) -> None:
+    from formats.reference_trajectories import load_trajectory
+    from formats.trajectory_files import write_tum
+
+    reference = load_trajectory(small_log)
+    one = tmp_path / "one.tum"
+    write_tum(one, Trajectory(reference.stamps_ns[5:6], reference.positions[5:6], reference.quats_xyzw[5:6]))
+    code, _, err = invoke("evaluate", one, "-r", small_log, "--json", tmp_path / "s.json")
+    assert code == 0 and "no pose pairs" in err, err
+    summary = json.loads((tmp_path / "s.json").read_text())["summary"]
+    assert summary["matched_poses"] == 1 and summary["rpe_pairs"] == 0 and "rpe_trans_rmse" not in summary
+    code, _, err = invoke("evaluate", one, "-r", small_log, "--save-rpe-results", tmp_path / "r.zip")
+    assert code == 3 and "has no RPE" in err and not (tmp_path / "r.zip").exists()
+    # a gate on a figure this evaluation could not measure fails (exit 5); a misspelt key is a usage error
+    code, _, err = invoke("evaluate", one, "-r", small_log, "--fail-above", "rpe_trans_rmse=1")
+    assert code == 5 and "rpe_trans_rmse not measured" in err, err
+    code, _, err = invoke("evaluate", one, "-r", small_log, "--fail-above", "ate_rmsee=1")
+    assert code == 2, err

@@ -588,9 +588,13 @@ def test_bad_settings_raise_usage_error(kwargs: dict) -> None:
 def test_rpe_delta_without_pairs_and_bad_angle() -> None:
     rng = np.random.default_rng(7)
     reference = _random_trajectory(rng)
-    with pytest.raises(EvaluationError, match="no pose pairs"):
-        evaluate_trajectory(reference, reference, EvaluationSettings(delta=1000.0, delta_unit="m"))
+    # evo_rpe refuses a delta that makes no pair; the evaluation keeps its APE and says why it has no RPE
+    result = evaluate_trajectory(reference, reference, EvaluationSettings(delta=1000.0, delta_unit="m"))
+    assert result.rpe is None and result.summary["rpe_pairs"] == 0 and "ate_rmse" in result.summary
+    assert len(result.notes) == 1 and "no pose pairs" in result.notes[0]
     matched = associate(reference, reference)
+    with pytest.raises(EvaluationError, match="no pose pairs"):
+        rpe_errors(matched, delta=1000.0, delta_unit="m")
     with pytest.raises(UsageError):
         rpe_errors(matched, delta=200.0, delta_unit="d")
 

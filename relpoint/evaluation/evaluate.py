@@ -120,6 +120,7 @@ class EvaluationResult:
     rpe_translation, rpe_rotation_deg, rpe: relative errors (None without RPE); their ``second`` indices
         index ``stamps_ns``.
     kitti: KITTI segment errors (None when disabled).
+    notes: what was left out and why (an RPE without a pose pair at its delta: ``rpe_pairs`` is 0).
     """
 
     summary: dict[str, float]
@@ -134,6 +135,7 @@ class EvaluationResult:
     rpe_rotation_deg: RelativeErrors | None = None
     rpe: RelativeErrors | None = None
     kitti: KittiSegmentErrors | None = field(default=None)
+    notes: tuple[str, ...] = ()
 
 
 def _prefixed(prefix: str, errors: FloatArray) -> dict[str, float]:
@@ -200,8 +202,14 @@ def evaluate_trajectory(
         "pairs_from_reference": settings.pairs_from_reference,
     }
     rpe_t = rpe_r = rpe_sel = None
+    notes: list[str] = []
     if settings.rpe:
-        rpe_t = rpe_errors(aligned, PoseRelation.TRANS_PART, **rpe_kwargs)
+        try:
+            rpe_t = rpe_errors(aligned, PoseRelation.TRANS_PART, **rpe_kwargs)
+        except EvaluationError as error:  # too few or too close poses for the delta: the APE still stands
+            notes.append(f"{error.message}: no RPE figures")
+            summary["rpe_pairs"] = 0.0
+    if rpe_t is not None:
         rpe_r = rpe_errors(aligned, PoseRelation.ANGLE_DEG, **rpe_kwargs)
         rpe_sel = {PoseRelation.TRANS_PART: rpe_t, PoseRelation.ANGLE_DEG: rpe_r}.get(settings.pose_relation)
         if rpe_sel is None:
@@ -231,6 +239,7 @@ def evaluate_trajectory(
         rpe_rotation_deg=rpe_r,
         rpe=rpe_sel,
         kitti=kitti,
+        notes=tuple(notes),
     )
 
 
@@ -261,7 +270,9 @@ def frame_mismatch(result: EvaluationResult) -> str | None:
     offset_deg = float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
     # An offset under 5 cm or 1 % of the path does not change the figures' meaning, whatever the noise.
     floor_m = max(0.05, 0.01 * float(accumulated_distances(matched.reference_positions)[-1]))
-    if offset_m > max(FRAME_MISMATCH_FACTOR * noise_m, floor_m) or offset_deg > max(FRAME_MISMATCH_FACTOR * noise_deg, 10.0):
+    if offset_m > max(FRAME_MISMATCH_FACTOR * noise_m, floor_m) or offset_deg > max(
+        FRAME_MISMATCH_FACTOR * noise_deg, 10.0
+    ):
         return (
             f"the estimate's first pose is {offset_m:.3g} m and {offset_deg:.3g} deg from the reference's, far "
             f"beyond the {noise_m:.3g} m left after an SE(3) alignment: they look to be in different frames; "
