@@ -381,8 +381,10 @@ def check_index_pairing(reference: tuple[Path, Trajectory, bool], estimate: tupl
 def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
     """The ``map.csv`` of a run directory, or None when ``path`` is not a directory holding one."""
     map_csv = Path(path) / "map.csv"
-    if not (Path(path).is_dir() and map_csv.is_file()):
+    if not Path(path).is_dir() or not map_csv.exists():
         return None
+    if not map_csv.is_file():
+        raise InputError(f"{map_csv}: not a file", "a run directory's map.csv is the landmark table")
     landmarks = read_map_csv(map_csv)
     map_ply = Path(path) / "map.ply"
     if map_ply.is_file():  # the PLY carries the per-landmark association purity when the estimator knows it

@@ -80,8 +80,16 @@ def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
             np.array([int(r["gt_id"]) for r in rows], dtype=np.int64),
             first_iteration=np.array([int(r[FIRST_ITERATION]) for r in rows], dtype=np.int64) if has_first else None,
         )
-    except (ValueError, TypeError) as error:
-        raise InputError(f"{path}: malformed row ({error})") from None
+    except (ValueError, TypeError):
+        for number, row in enumerate(rows, start=2):  # the header is line 1
+            try:
+                for column in ("x", "y", "z"):
+                    float(row[column])
+                for column in ("observations", "dynamic", "gt_id"):
+                    int(row[column])
+            except (ValueError, TypeError) as error:
+                raise InputError(f"{path}:{number}: malformed row ({error})") from None
+        raise InputError(f"{path}: malformed rows") from None
 
 
 def write_timing_csv(

@@ -280,3 +280,18 @@ def test_map_csv_keeps_the_contracts_columns_and_map_ply_carries_the_first_itera
     lines = [text[0] + ",first_iteration", text[1] + ",0", text[2] + ",12"]
     (tmp_path / "other.csv").write_text("\n".join(lines) + "\n")
     assert read_map_csv(tmp_path / "other.csv").first_iteration.tolist() == [0, 12]
+
+
+def test_an_unusable_map_csv_is_an_input_error_naming_the_line(run_dir: Path, tmp_path: Path, small_log: Path) -> None:
+    import shutil
+
+    broken = tmp_path / "run"
+    shutil.copytree(run_dir, broken)
+    lines = (broken / "map.csv").read_text().splitlines()
+    (broken / "map.csv").write_text("\n".join([*lines[:5], lines[5][:8]]) + "\n")
+    code, _, err = invoke("evaluate", broken, "-r", small_log)
+    assert code == 3 and "map.csv:6: malformed row" in err, err
+    (broken / "map.csv").unlink()
+    (broken / "map.csv").mkdir()
+    code, _, err = invoke("evaluate", broken, "-r", small_log)
+    assert code == 3 and "map.csv: not a file" in err, err
