@@ -488,3 +488,23 @@ def test_dropped_frames_and_jittered_stamps_are_followed() -> None:
     jittered, _ = rms(1.0, 0.045)
     assert dropped < 1.5 * every and degenerate == 0
     assert jittered < 1.1 * every
+
+
+def test_iterations_without_points_are_placed_between_their_neighbours() -> None:
+    # An empty cloud holds the pose during the run; at the end it is interpolated in time.
+    from relpoint import pipeline
+
+    simulation = simulate(SimulationConfig(scenario="figure8", density=25, noise=NOISE, iterations=120, seed=2))
+    empty = {k for k in range(5, 120, 9)}
+    observations = [
+        PointObservation(s.observation.stamp_ns, s.observation.points[:0], s.observation.ids[:0])
+        if s.index in empty else s.observation
+        for s in simulation.steps()
+    ]  # fmt: skip
+    result = pipeline.run(iter(observations), RelativePointEstimator())
+    estimated = in_world(simulation, result.trajectory.positions)
+    errors = np.linalg.norm(estimated - simulation.ground_truth.positions, axis=1)
+    rows = sorted(empty)
+    assert result.summary["unobserved_interpolated"] == len(rows)
+    neighbours = np.concatenate([errors[[k - 1 for k in rows]], errors[[k + 1 for k in rows]]])
+    assert errors[rows].max() < 2.0 * neighbours.max() + NOISE

@@ -153,6 +153,7 @@ class RelativePointEstimator(
         self._motion_measured = False
         self._iteration = 0
         self._previous_stamp_ns: int | None = None  # the last iteration's stamp (ns)
+        self._unobserved: list[int] = []  # iterations without a point: their pose is interpolated at the end
         self._regroup_queue: deque[int] = deque()
         self._first_groups: deque[int] = deque()
         self._over_grouped: set[int] = set()
@@ -169,7 +170,7 @@ class RelativePointEstimator(
         self._merged_uid: dict[int, int] = {}
         self.counts: dict[str, int] = dict.fromkeys(
             (
-                "degenerate_iterations", "empty_iterations", "nonfinite_points", "new_points", "local_matches",
+                "degenerate_iterations", "empty_iterations", "unobserved_interpolated", "nonfinite_points", "new_points", "local_matches",
                 "global_matches", "first_groups", "root_groups", "regroups", "failed_groupings",
                 "first_groups_retired", "groups_pruned", "merges", "dynamic_flagged", "dynamic_comparisons",
                 "dropped_points", "reabsorbed", "far_matches", "loop_closures", "dynamic_by_grouping",
@@ -203,6 +204,7 @@ class RelativePointEstimator(
         if len(points) == 0:
             self.counts["empty_iterations"] += 1
             self.counts["degenerate_iterations"] += 1
+            self._unobserved.append(k)
             self.charting.chart(k, np.zeros(0, np.int64))
             self._support.append(None)
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)

@@ -168,6 +168,36 @@ class FinalAdjustment(EstimatorState):
     """
 
     def finish(self, trajectory: Trajectory) -> Trajectory:
+        """The final adjustment (:meth:`_adjusted`), then the iterations that observed no point placed
+        between their neighbours (:meth:`_unobserved_interpolated`)."""
+        return self._unobserved_interpolated(self._adjusted(trajectory))
+
+    def _unobserved_interpolated(self, trajectory: Trajectory) -> Trajectory:
+        """``trajectory`` with the poses of iterations that observed no point (which held the pose
+        before them) interpolated in time between the nearest observed iterations around them:
+        positions linearly, rotations by slerp; before the first and after the last observed
+        iteration, that iteration's pose. ``unobserved_interpolated`` in :meth:`summary` counts them.
+        """
+        unobserved = np.asarray(self._unobserved, dtype=np.int64)
+        if len(unobserved) == 0 or len(trajectory) != self._iteration:
+            return trajectory
+        observed = np.setdiff1d(np.arange(len(trajectory)), unobserved)
+        if len(observed) < 2:
+            return trajectory
+        from scipy.spatial.transform import Rotation, Slerp  # here, not at import: scipy costs start-up time
+
+        stamps = trajectory.stamps_ns.astype(np.float64)
+        at = np.clip(stamps[unobserved], stamps[observed[0]], stamps[observed[-1]])
+        positions = trajectory.positions.copy()
+        quats = trajectory.quats_xyzw.copy()
+        for axis in range(3):
+            positions[unobserved, axis] = np.interp(at, stamps[observed], trajectory.positions[observed, axis])
+        slerp = Slerp(stamps[observed], Rotation.from_quat(trajectory.quats_xyzw[observed]))
+        quats[unobserved] = slerp(at).as_quat(canonical=True)
+        self.counts["unobserved_interpolated"] = len(unobserved)
+        return Trajectory(trajectory.stamps_ns, positions, quats)
+
+    def _adjusted(self, trajectory: Trajectory) -> Trajectory:
         """Adjust the whole map by least squares and locate every iteration again on it.
 
         With ``final_adjustment`` (the default) every group pose and point position is solved jointly
