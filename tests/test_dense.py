@@ -378,3 +378,15 @@ def test_a_frame_that_cannot_be_tracked_is_held_not_fused_and_reported() -> None
     truth = (invert_pose(sim.poses[0]) @ sim.poses)[:, :3, 3]  # in the first camera's frame, as the run
     later = np.linalg.norm(result.trajectory.positions[7:] - truth[7:], axis=1)
     assert later.max() < 0.01  # tracking resumes from the held pose
+
+
+def test_a_frame_that_moves_beyond_max_step_counts_as_lost() -> None:
+    from relpoint import pipeline
+
+    sim = simulate_rgbd(RgbdConfig(frames=6, noise=False, seed=3))
+    steps = np.linalg.norm(np.diff(sim.poses[:, :3, 3], axis=0), axis=1)
+    bound = 0.5 * float(steps.min())  # every true step is larger: each tracked frame "diverges"
+    result = pipeline.run(sim.frames(), DenseFusion(DenseConfig(max_step=bound)))
+    assert result.summary["lost_frames"] == 5
+    np.testing.assert_allclose(result.trajectory.positions, 0.0, atol=1e-12)  # held at the first pose
+    assert DenseConfig().max_step == 0.5

@@ -56,6 +56,9 @@ class DenseConfig(Settings):
     frames (the coarse levels start from the last pose): on the 7-Scenes kitchen at 3 frames a second
     (every 10th frame, 12 cm between frames) 0.1 m left ATE at 25.4 cm and 0.2 m gives 3.1 cm; at 30
     frames a second both give 2.2 cm (320x240), and the simulated room 2.5 mm."""
+    max_step: float = setting(0.5, above=0)
+    """Most a frame may move from the one before, metres: a larger ICP result is a divergence (a hand-held
+    camera at 3 frames a second moves 12 cm, and the depth reaches 4 m), so the frame counts as lost."""
     icp_normal_angle: float = setting(30.0, above=0, high=180)
     """Association gate on the angle between map and frame normals, degrees."""
     huber_delta: float = setting(0.02, low=0)
@@ -247,7 +250,8 @@ class DenseFusion(Estimator[DepthFrame]):
             result = track(sources, pyramid, invert_pose(prediction), self._icp)
             self._icp_iterations += result.iterations
             self.last_track = result
-            if result.ok:
+            step = invert_pose(self._T_world_camera) @ invert_pose(result.T_camera_world) if result.ok else None
+            if step is not None and float(np.linalg.norm(step[:3, 3])) <= self.config.max_step:
                 T_world_camera = invert_pose(result.T_camera_world)
             else:
                 # Held, and not fused: a frame placed at a pose it was not tracked to would corrupt the map.
