@@ -206,7 +206,8 @@ def tum_frames(
         depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
         h, w = depth.shape
         if camera is None:
-            camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy)
+            # given intrinsics are the user's images'; the defaults are a 640x480 camera's
+            camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy) if intrinsics else resized(base, w, h)
         pose = None
         if truth is not None:
             nearest = _nearest_pose(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
@@ -217,6 +218,19 @@ def tum_frames(
             colour = _read_rgb(folder / rgb_rows[colour_index][1][0], (w, h))
         previous = stamp
         yield RgbdFrame(stamp, depth, camera, colour, pose)
+
+
+def resized(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """``intrinsics`` of a ``intrinsics.width`` x ``intrinsics.height`` camera for its images resized to
+    ``width`` x ``height`` (focal lengths and principal point scaled per axis; the same when the size is)."""
+    if (width, height) == (intrinsics.width, intrinsics.height):
+        return intrinsics
+    sx, sy = width / intrinsics.width, height / intrinsics.height
+    log.warning(
+        "images of %dx%d against a %dx%d calibration: its intrinsics are scaled to the images",
+        width, height, intrinsics.width, intrinsics.height,
+    )  # fmt: skip
+    return Intrinsics(width, height, intrinsics.fx * sx, intrinsics.fy * sy, intrinsics.cx * sx, intrinsics.cy * sy)
 
 
 _SEVEN_SCENES_FRAME = re.compile(r"frame-(\d+)\.depth\.png$")
@@ -253,8 +267,8 @@ def seven_scenes_frames(
         stamp = _stamp_ns(number / rate)
         depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
         h, w = depth.shape
-        if camera is None:
-            camera = Intrinsics(w, h, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+        if camera is None:  # the dataset's calibration is for its 640x480 images
+            camera = resized(intrinsics, w, h)
         stem = depth_path.name[: -len(".depth.png")]
         pose = None
         pose_path = folder / f"{stem}.pose.txt"
@@ -318,8 +332,12 @@ def import_tum(
     """Convert a TUM RGB-D folder to a relpoint log (see :func:`tum_frames` for the parameters)."""
     skipped: Counter[str] = Counter()
     frames = tum_frames(folder, intrinsics=intrinsics, tolerance=tolerance, skipped=skipped)
-    metadata = {"relpoint.import": metadata_json({"layout": "tum", "source": Path(folder).name, "tolerance": tolerance})}
-    counts = write_rgbd_log(frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame)
+    metadata = {
+        "relpoint.import": metadata_json({"layout": "tum", "source": Path(folder).name, "tolerance": tolerance})
+    }
+    counts = write_rgbd_log(
+        frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame
+    )
     return dataclasses.replace(counts, skipped_depth=skipped["depth"])
 
 

@@ -123,3 +123,23 @@ def test_a_camera_at_three_frames_a_second_is_followed(tmp_path: Path) -> None:
     )
     assert code == 0, err
     assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.06
+
+
+def test_seven_scenes_frames_resized_take_scaled_intrinsics(tmp_path: Path) -> None:
+    from PIL import Image
+
+    from formats.rgbd_import import seven_scenes_frames
+
+    source = shared_data("7scenes-redkitchen-0000-0399")
+    folder = tmp_path / "half"
+    folder.mkdir()
+    for number in range(2):
+        stem = f"frame-{number:06d}"
+        depth = np.asarray(Image.open(source / f"{stem}.depth.png"))
+        Image.fromarray(np.ascontiguousarray(depth[::2, ::2])).save(folder / f"{stem}.depth.png")
+        Image.open(source / f"{stem}.color.jpg").resize((320, 240)).save(folder / f"{stem}.color.jpg")
+        (folder / f"{stem}.pose.txt").write_text((source / f"{stem}.pose.txt").read_text())
+    frames = list(seven_scenes_frames(folder))
+    camera = frames[0].intrinsics
+    assert (camera.width, camera.height) == (320, 240)
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (292.5, 292.5, 160.0, 120.0)
