@@ -177,7 +177,8 @@ class LogReader:
     def __init__(self, path: str | os.PathLike[str], topics: Topics | None = None) -> None:
         self.path = Path(path)
         self.topics = topics or Topics()
-        #: Counts of skipped data, e.g. ``{"points: non-finite points": 12}``.
+        #: Counts of skipped data, e.g. ``{"points: non-finite points": 12}``: the most one pass over the
+        #: log met (every pass over a topic meets the same messages, so reading it again adds nothing).
         self.skipped: Counter[str] = Counter()
         #: How the log is laid out on disk.
         self.layout = detect_layout(self.path)
@@ -365,8 +366,9 @@ class LogReader:
 
         Checks that stamps strictly increase per topic (else :class:`InputError`). Invalid data inside
         valid messages (non-finite points, empty clouds, malformed messages) is skipped, counted in
-        :attr:`skipped` and logged once per kind.
+        :attr:`skipped` (once however many passes read it) and logged once per kind.
         """
+        counts: Counter[str] = Counter()  # this pass's
         roles = [r for r in roles if self.role_present(r)]
         topic_roles = {self.topics.roles()[r]: r for r in roles}
         previous: dict[str, int] = {}
@@ -381,17 +383,17 @@ class LogReader:
                 topic = connection.topic
                 role = topic_roles[topic]
                 if len(raw) > ros2.MAX_MESSAGE_BYTES:  # refused before a byte of it is decoded
-                    self._skip(f"{topic}: oversized messages",
+                    self._skip(counts, f"{topic}: oversized messages",
                                f"{len(raw)} bytes, over the limit of {ros2.MAX_MESSAGE_BYTES} bytes")  # fmt: skip
                     continue
                 try:
-                    record = self._convert(role, decode(raw, ROLE_TYPES[role]))
+                    record = self._convert(role, decode(raw, ROLE_TYPES[role]), counts)
                 except InputError as error:
-                    self._skip(f"{topic}: {getattr(error, 'kind', 'malformed messages')}", str(error))
+                    self._skip(counts, f"{topic}: {getattr(error, 'kind', 'malformed messages')}", str(error))
                     continue
                 except (AttributeError, TypeError, ValueError, IndexError, KeyError, OverflowError) as error:
                     # The bytes decoded under the file's own schema but are not the message they claim.
-                    self._skip(f"{topic}: malformed messages", f"{type(error).__name__}: {error}")
+                    self._skip(counts, f"{topic}: malformed messages", f"{type(error).__name__}: {error}")
                     continue
                 before = previous.get(topic)
                 if before is not None and record.stamp_ns <= before:
@@ -413,19 +415,21 @@ class LogReader:
             raise
         self._release(reader)
 
-    def _skip(self, kind: str, detail: str, count: int = 1) -> None:
+    def _skip(self, counts: Counter[str], kind: str, detail: str, count: int = 1) -> None:
+        """Count ``count`` items of ``kind`` in this pass's ``counts``; :attr:`skipped` keeps the largest pass."""
         if kind not in self.skipped:
             log.warning("skipping %s (%s); further ones are counted in the summary", kind, detail)
-        self.skipped[kind] += count
+        counts[kind] += count
+        self.skipped[kind] = max(self.skipped[kind], counts[kind])
 
-    def _convert(self, role: str, message: Any) -> Record | None:
+    def _convert(self, role: str, message: Any, counts: Counter[str]) -> Record | None:
         value: Any
         if role == "points":
             observation, dropped = ros2.msg_to_observation(message)
             if dropped:
-                self._skip(f"{self.topics.points}: non-finite points", "NaN or inf coordinates", dropped)
+                self._skip(counts, f"{self.topics.points}: non-finite points", "NaN or inf coordinates", dropped)
             if len(observation) == 0:
-                self._skip(f"{self.topics.points}: empty clouds", "no valid point in the message")
+                self._skip(counts, f"{self.topics.points}: empty clouds", "no valid point in the message")
             return Record(role, observation.stamp_ns, observation)
         if role == "ground_truth_pose":
             value = ros2.msg_to_pose(message)

@@ -160,11 +160,7 @@ def execute_run(
         (record.value for record in cropped_records(reader.records(["points"]), window or TimeWindow()))
         if "points" in roles else ()
     )  # fmt: skip
-    counted = reader.skipped.copy()
     write_run_directory(output, result, run_info, observations=observations, reference=reference_path(reader))
-    # result.mcap reads the observations again: what it meets unusable was counted by the run already
-    reader.skipped.clear()
-    reader.skipped.update(counted)
     return result
 
 
