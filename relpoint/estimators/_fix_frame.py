@@ -319,23 +319,30 @@ def frame_summary(rigid: bool, fit: FrameFit | None) -> dict[str, Any]:
 
 
 def placed_in_one_frame(
-    trajectory: Trajectory, local_stamps: npt.ArrayLike, local_poses: npt.ArrayLike, T_world_local: FloatArray
+    trajectory: Trajectory, local_poses: list[tuple[int, FloatArray]], fit: FrameFit | None, frame: FixFrame | None
 ) -> Trajectory:
     """``trajectory`` with each pose output before the frame was pinned placed again by one transform.
 
     Before the pinning a filter outputs its local pose under the provisional transform of that
     iteration, which changes as fixes arrive: the early poses are then in as many frames as there
-    were transforms. At the end, the poses at ``local_stamps`` (ns) are replaced by
-    ``T_world_local @ local_poses`` ((K, 4, 4), the filter's local poses at those stamps):
-    ``T_world_local`` is the pinning's transform, or the last provisional one for a frame never
-    pinned. The other poses (after the pinning, already in ``world``) are kept.
+    were transforms. At the end, the poses at the stamps of ``local_poses`` ((stamp ns, the filter's
+    local pose (4, 4)) per iteration before the pinning) are replaced by ``T_world_local @ pose``:
+    ``T_world_local`` is the pinning's (``fit``), or the last provisional one of ``frame`` when the
+    fixes never pinned it. The other poses (after the pinning, already in ``world``) are kept; so is
+    the whole trajectory when no fix arrived.
     """
-    stamps = np.asarray(local_stamps, dtype=np.int64)
-    if stamps.size == 0:
+    if fit is not None:
+        T_world_local = fit.T_world_local
+    elif frame is not None and frame.fix_count:
+        T_world_local = frame.provisional
+    else:
         return trajectory
+    if not local_poses:
+        return trajectory
+    stamps = np.array([stamp for stamp, _ in local_poses], dtype=np.int64)
+    poses = np.stack([pose for _, pose in local_poses])
     matrices = trajectory.matrices().copy()
-    rows = np.searchsorted(trajectory.stamps_ns, stamps)
-    rows = np.minimum(rows, len(trajectory.stamps_ns) - 1)
+    rows = np.minimum(np.searchsorted(trajectory.stamps_ns, stamps), len(trajectory.stamps_ns) - 1)
     found = trajectory.stamps_ns[rows] == stamps
-    matrices[rows[found]] = np.asarray(T_world_local) @ np.asarray(local_poses)[found]
+    matrices[rows[found]] = T_world_local @ poses[found]
     return Trajectory.from_matrices(trajectory.stamps_ns, matrices)

@@ -300,12 +300,7 @@ class EkfSlam(Estimator[PointObservation]):
         A run that skipped iterations, or whose pairs place no iteration on the final map, is not
         smoothed, and ``smoothing`` in :meth:`summary` says why.
         """
-        T_world_local = self._frame_fit.T_world_local if self._frame_fit is not None else None
-        if T_world_local is None and self._frame is not None and self._frame.fix_count:
-            T_world_local = self._frame.provisional  # never pinned: the last provisional transform
-        if self._local_poses and T_world_local is not None:
-            stamps, poses = zip(*self._local_poses, strict=True)
-            trajectory = placed_in_one_frame(trajectory, stamps, np.stack(poses), T_world_local)
+        trajectory = placed_in_one_frame(trajectory, self._local_poses, self._frame_fit, self._frame)
         if self._pairs is None:
             return trajectory
         static = ~self._moving

@@ -430,14 +430,7 @@ class FastSlam(Estimator[PointObservation]):
         (:func:`~relpoint.estimators._fix_frame.placed_in_one_frame`). Without fused fixes, or when
         the run skipped iterations, there is no smoothing (``smoothing`` in :meth:`summary` says so).
         """
-        T_world_local = self._frame_fit.T_world_local if self._frame_fit is not None else None
-        if T_world_local is None and self._frame is not None and self._frame.fix_count:
-            T_world_local = self._frame.provisional  # never pinned: the last provisional transform
-        before = 0
-        if self._local_poses and T_world_local is not None:
-            stamps, poses = zip(*self._local_poses, strict=True)
-            trajectory = placed_in_one_frame(trajectory, stamps, np.stack(poses), T_world_local)
-            before = len(self._local_poses)
+        trajectory = placed_in_one_frame(trajectory, self._local_poses, self._frame_fit, self._frame)
         if not self.config.smooth_trajectory or not self._fix_jumps:
             return trajectory
         iterations = self._stats["iterations"]
@@ -450,7 +443,7 @@ class FastSlam(Estimator[PointObservation]):
         smoothed, self._smoothing = smoothed_on_fixes(
             trajectory, summed_fix_jumps(self._fix_jumps, iterations), stamps, positions, variances
         )
-        self._smoothing["poses_placed_in_pinned_frame"] = before
+        self._smoothing["poses_placed_in_pinned_frame"] = len(self._local_poses)  # fixes were fused: it was pinned
         return smoothed
 
     def pose(self) -> Pose:
