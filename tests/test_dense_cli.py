@@ -54,6 +54,18 @@ def test_room_rejects_point_options(tmp_path: Path) -> None:
     assert code == 2 and "--density" in err and "room" in err
 
 
+def dense_ate(log: Path, tmp_path: Path) -> float:
+    """``relpoint run LOG -e dense`` (downsample 2) into ``tmp_path/out``, then its SE(3)-aligned ATE (m)."""
+    out = tmp_path / "out"
+    code, _, err = invoke("run", str(log), "--estimator", "dense", "--param", "downsample=2", "-o", str(out))
+    assert code == 0, err
+    code, _, err = invoke(
+        "evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json")
+    )
+    assert code == 0, err
+    return float(json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"])
+
+
 def test_seven_scenes_import_and_dense_run(tmp_path: Path) -> None:
     folder = shared_data("7scenes-redkitchen-0000-0399")
     log = tmp_path / "kitchen.mcap"
@@ -63,14 +75,7 @@ def test_seven_scenes_import_and_dense_run(tmp_path: Path) -> None:
     assert reader.topic_infos["/camera/depth/image"].count == 20
     depth = next(r.value for r in reader.records(["depth"]))
     assert depth.shape == (480, 640) and 0.3 < float(np.median(depth[depth > 0])) < 5.0
-    out = tmp_path / "out"
-    code, _, err = invoke("run", str(log), "--estimator", "dense", "--param", "downsample=2", "-o", str(out))
-    assert code == 0, err
-    code, _, err = invoke(
-        "evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json")
-    )
-    assert code == 0, err
-    assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.03
+    assert dense_ate(log, tmp_path) < 0.03
 
 
 def test_dense_runs_are_deterministic(tmp_path: Path) -> None:
@@ -115,14 +120,7 @@ def test_a_camera_at_three_frames_a_second_is_followed(tmp_path: Path) -> None:
     log = tmp_path / "slow.mcap"
     code, _, err = invoke("import", "7scenes", str(folder), "-o", str(log))
     assert code == 0, err
-    out = tmp_path / "out"
-    code, _, err = invoke("run", str(log), "--estimator", "dense", "--param", "downsample=2", "-o", str(out))
-    assert code == 0, err
-    code, _, err = invoke(
-        "evaluate", str(out), "--reference", str(log), "--align", "se3", "--json", str(tmp_path / "e.json")
-    )
-    assert code == 0, err
-    assert json.loads((tmp_path / "e.json").read_text())["summary"]["ate_rmse"] < 0.06
+    assert dense_ate(log, tmp_path) < 0.06
 
 
 def test_seven_scenes_frames_resized_take_scaled_intrinsics(tmp_path: Path) -> None:

@@ -76,6 +76,12 @@ def test_registry_lists_builtins_and_registered_specs_and_refuses_unknown_names(
     assert "nope" not in registry
 
 
+def in_a_fresh_interpreter(code: str) -> None:
+    """Run ``code`` in a new Python process from the repository (its imports are its own); it must pass."""
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
 def test_info_imports_no_estimator_scipy_or_numba() -> None:
     # What `relpoint info` imports to describe a log: the registry answers from its declarations.
     code = (
@@ -86,8 +92,7 @@ def test_info_imports_no_estimator_scipy_or_numba() -> None:
         " or m.startswith('relpoint.estimators.') and m.split('.')[2] not in ('base', '_noise', 'spec'))\n"
         "assert not heavy, heavy\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
+    in_a_fresh_interpreter(code)
 
 
 def test_batch_checks_a_plan_without_scipy_or_the_estimators(tmp_path: Path) -> None:
@@ -108,5 +113,4 @@ def test_batch_checks_a_plan_without_scipy_or_the_estimators(tmp_path: Path) -> 
         " 'relpoint.estimators.relative_point.estimator'))\n"
         "assert not heavy, heavy\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
+    in_a_fresh_interpreter(code)
