@@ -10,6 +10,7 @@ import pytest
 
 from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
+from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
 from relpoint.estimators.dense.estimator import DenseConfig
 from relpoint.estimators.ekf import EkfConfig
@@ -25,7 +26,7 @@ from relpoint_app.batch_plan import RunOptions
 
 CLASSES = (
     RelativePointConfig, EkfConfig, FastSlamConfig, DenseConfig, FusionConfig, SimulationConfig, RgbdConfig,
-    KeypointSettings, EvaluationSettings, RunOptions, MovingLandmarkSettings,
+    KeypointSettings, EvaluationSettings, RunOptions, MovingLandmarkSettings, FixFusionSettings,
 )  # fmt: skip
 NUMERIC = ("int", "float", "int | None", "float | None", "tuple[int, ...]", "tuple[float, ...]")
 

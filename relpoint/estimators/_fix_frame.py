@@ -40,6 +40,7 @@ import numpy.typing as npt
 
 from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation
 from relpoint.lagrange import interpolate_fixes
+from relpoint.settings import Settings, setting
 from relpoint.statistics import chi2_gate
 from relpoint.types import PositionFix, Trajectory
 
@@ -79,6 +80,23 @@ class FrameFit:
         J[:, :, :3] = np.eye(3)
         J[:, :, 3:] = -skew(y - self.centre)
         return J
+
+
+@dataclass(frozen=True)
+class FixFusionSettings(Settings):
+    """The settings of fusing position fixes that the EKF and FastSLAM share: the fix gate
+    (:mod:`relpoint.estimators._fix_gate`) and the spread that pins the frame (:class:`FixFrame`)."""
+
+    fix_gate_probability: float = setting(0.999, low=0, high=1)
+    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
+    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
+    fix_gate_patience: int = setting(3, low=0, high=1_000_000)
+    """Fixes in a row outside the gate that are held back; the ones after are fused with their
+    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
+    fix_min_spread: float | None = setting(None, low=1e-3, high=1e6)
+    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame. Unset
+    (the default): 8 times the fixes' noise (the RMS of their per-axis standard deviations): 8 m for
+    1 m fixes, 1.6 m for 0.2 m ones (``relpoint.estimators._fix_frame.FixFrame.required_spread``)."""
 
 
 def line_spread(points: npt.ArrayLike) -> float:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from relpoint.errors import UsageError
+from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
 from relpoint.settings import setting
 
@@ -24,7 +25,7 @@ CONSENSUS_MIN_PAIRS = 6
 
 
 @dataclass(frozen=True)
-class EkfConfig(MovingLandmarkSettings):
+class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "ekf"
@@ -97,16 +98,6 @@ class EkfConfig(MovingLandmarkSettings):
     frame, then fuses every later fix as a position measurement; ``none`` fuses every fix at once
     in one frame (the first fix places the start, the orientation prior is
     ``initial_orientation_sigma``)."""
-    fix_gate_probability: float = setting(0.999, low=0, high=1)
-    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
-    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
-    fix_gate_patience: int = setting(3, low=0, high=1_000_000)
-    """Fixes in a row outside the gate that are held back; the ones after are fused with their
-    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
-    fix_min_spread: float | None = setting(None, low=1e-3, high=1e6)
-    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame. Unset
-    (the default): 8 times the fixes' noise (the RMS of their per-axis standard deviations): 8 m for
-    1 m fixes, 1.6 m for 0.2 m ones (``relpoint.estimators._fix_frame.FixFrame.required_spread``)."""
     fix_drift: float = setting(0.0, low=0, high=10)
     """``rigid``: before each fix, the pose and the landmarks seen within ``fix_window`` iterations
     may have drifted together in ``world`` by this much per metre travelled since the previous fix

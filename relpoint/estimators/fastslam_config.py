@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from relpoint.errors import UsageError
+from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.settings import setting
@@ -24,7 +25,7 @@ SEARCH_RADIUS_SIGMAS = 5.0 / SIMULATOR_SIGMA
 
 
 @dataclass(frozen=True)
-class FastSlamConfig(MovingLandmarkSettings):
+class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
     """Settings of the FastSLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "fastslam"
@@ -80,16 +81,6 @@ class FastSlamConfig(MovingLandmarkSettings):
     positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
     by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
     proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
-    fix_gate_probability: float = setting(0.999, low=0, high=1)
-    """Chi-square probability of the gate a fix must pass before it is fused (its innovation against
-    the predicted position and both covariances; ``relpoint.estimators._fix_gate``); 1 fuses every fix."""
-    fix_gate_patience: int = setting(3, low=0, high=1_000_000)
-    """Fixes in a row outside the gate that are held back; the ones after are fused with their
-    covariance inflated onto the gate's edge (the filter, not the fixes, has drifted)."""
-    fix_min_spread: float | None = setting(None, low=1e-3, high=1e6)
-    """``rigid``: RMS distance of the fixes from their best line (m) needed to pin the frame. Unset
-    (the default): 8 times the fixes' noise (the RMS of their per-axis standard deviations): 8 m for
-    1 m fixes, 1.6 m for 0.2 m ones (``relpoint.estimators._fix_frame.FixFrame.required_spread``)."""
     fix_drift: float = setting(0.1, low=0, high=10)
     """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
     (m/m, per axis), the drift of the local map that the fixes correct."""
