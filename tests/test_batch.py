@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 from pathlib import Path
@@ -135,6 +136,7 @@ def test_bad_plans_are_usage_errors(tmp_path: Path, text: str, message: str) -> 
     assert message in str(caught.value)
     outcome = invoke(str(path))
     assert outcome.exit_code == 2 and message in outcome.stderr
+    assert gc.isenabled()  # the start-up's pause of the garbage collector ends with the command's error too
 
 
 def test_local_pool_runs_evaluates_and_writes_every_job(local_run: tuple[Path, list[dict[str, Any]]]) -> None:
