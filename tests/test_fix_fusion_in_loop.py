@@ -290,6 +290,9 @@ def test_output_before_the_frame_is_pinned_is_placed_by_one_transform(name: str,
     positions = matrices[:, :3, 3]
     R, t, _ = umeyama(positions, truth[:, :3, 3])
     assert np.sqrt(np.mean(np.sum((positions @ R.T + t - truth[:, :3, 3]) ** 2, axis=1))) < 1.0
+    if name == "fastslam":  # pinned: the drift rate measured on the fixes, the poses in the final draw's frame
+        summary = estimator.summary()
+        assert ("drift_rate" in summary and "frame_refined_deg" in summary) == pinned
 
 
 @pytest.mark.parametrize("sigma", [0.2, 1.0, 5.0])

@@ -153,9 +153,10 @@ def _aligned_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
 def test_fastslam_places_its_poses_before_the_pinning_in_the_pinned_frame() -> None:
     """figure8-gaps starts away from the fixes' frame: until the fixes pin it, FastSLAM returns its
     local poses under a provisional transform; when the log ends they are placed by the pinning's
-    transform, rotations included (with or without the smoothing), and the smoothed path is nearer
-    the truth than the filter's."""
+    transform and the particles' final frame draw, rotations included (with or without the
+    smoothing), and the smoothed path is nearer the truth than the filter's."""
     from relpoint import pipeline
+    from relpoint.estimators._fix_frame import drawn_frame_transform
     from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
     from relpoint.simulation import SimulationConfig, simulate
 
@@ -175,9 +176,11 @@ def test_fastslam_places_its_poses_before_the_pinning_in_the_pinned_frame() -> N
     report = result.summary["smoothing"]
     pinned = result.summary["frame_pinned_at"] - 1  # the iteration that pinned it returned a pinned pose
     assert report["applied"] and report["poses_placed_in_pinned_frame"] == pinned > 50
-    T = estimator.frame_fit.T_world_local
+    # The first pose is the local frame's origin; placed by the pinning's transform, then moved with
+    # every pose to the frame the particles' draws from the fit's uncertainty end in.
+    final = drawn_frame_transform(estimator.frame_fit.centre, estimator.mean_frame_draw)
+    T = final @ estimator.frame_fit.T_world_local
     filtered = runs[False][0].trajectory.matrices()
-    # The first pose is the local frame's origin; placed by the pinning's transform.
     np.testing.assert_allclose(result.trajectory.matrices()[0, :3, :3], T[:3, :3], atol=1e-9)
     np.testing.assert_allclose(result.trajectory.matrices()[pinned:, :3, :3], filtered[pinned:, :3, :3])
     np.testing.assert_allclose(filtered[:, :3, :3], result.trajectory.matrices()[:, :3, :3], atol=1e-9)

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation
+from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation, so3_exp
 from relpoint.lagrange import interpolate_fixes
 from relpoint.settings import Settings, setting
 from relpoint.statistics import chi2_gate
@@ -363,4 +363,38 @@ def placed_in_one_frame(
     rows = np.minimum(np.searchsorted(trajectory.stamps_ns, stamps), len(trajectory.stamps_ns) - 1)
     found = trajectory.stamps_ns[rows] == stamps
     matrices[rows[found]] = T_world_local @ poses[found]
+    return Trajectory.from_matrices(trajectory.stamps_ns, matrices)
+
+
+def drawn_frame_transform(centre: FloatArray, draw: FloatArray) -> FloatArray:
+    """The rigid transform (4, 4) in ``world`` of a draw ``(dt, dphi)`` (6,) from a frame fit's uncertainty:
+    ``x -> c + Exp(dphi) (x - c) + dt``, with ``c`` the fit's ``centre`` (m; ``dt`` in m, ``dphi`` in rad)."""
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.asarray(draw[3:], dtype=np.float64))
+    T[:3, 3] = centre - T[:3, :3] @ centre + draw[:3]
+    return T
+
+
+def moved_to_final_frame(
+    trajectory: Trajectory, stamps_ns: npt.NDArray[np.int64], draws: FloatArray, final_draw: FloatArray,
+    centre: FloatArray,
+) -> Trajectory:  # fmt: skip
+    """``trajectory`` with each pose at ``stamps_ns`` moved from the frame it was output in to the final one.
+
+    A particle filter pinned to the fixes' frame gives each particle its own draw from the fit's
+    uncertainty (:meth:`relpoint.estimators.fastslam.FastSlam._pin_frame`); the later fixes select
+    among them, so the particles' mean draw at an iteration (``draws`` (K, 6), the pinning's own
+    transform before it: zeros) is the frame its mean pose was output in, and the mean draw when the
+    log ends (``final_draw``) is the frame every fix has informed. The frame is one constant of the
+    whole run, so its estimate at the end holds for every pose: each is moved by
+    ``F(final) F(draw_k)^-1`` (:func:`drawn_frame_transform`). Poses at other stamps are kept.
+    """
+    if len(stamps_ns) == 0:
+        return trajectory
+    final = drawn_frame_transform(centre, final_draw)
+    matrices = trajectory.matrices().copy()
+    rows = np.minimum(np.searchsorted(trajectory.stamps_ns, stamps_ns), len(trajectory.stamps_ns) - 1)
+    found = trajectory.stamps_ns[rows] == stamps_ns
+    for row, draw in zip(rows[found], np.asarray(draws)[found], strict=True):
+        matrices[row] = final @ np.linalg.inv(drawn_frame_transform(centre, draw)) @ matrices[row]
     return Trajectory.from_matrices(trajectory.stamps_ns, matrices)

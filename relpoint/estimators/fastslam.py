@@ -48,7 +48,15 @@ from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
 from relpoint.estimators import _fastslam_kernels
-from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary, placed_in_one_frame
+from relpoint.estimators._drift_rate import DRIFT_PRIOR, DriftRate
+from relpoint.estimators._fix_frame import (
+    FixFrame,
+    FrameFit,
+    drawn_frame_transform,
+    frame_summary,
+    moved_to_final_frame,
+    placed_in_one_frame,
+)
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._fix_smoothing import smoothed_on_fixes
 from relpoint.estimators._landmark_motion import (
@@ -100,7 +108,7 @@ _SLOT_ARRAYS = {
 """Attributes indexed by particle and landmark slot, with the value of an empty slot: capacity grows
 and a dropped landmark's gap closes in each of them."""
 #: Attributes indexed by particle; resampling copies each of them.
-_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", *_SLOT_ARRAYS)
+_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", "_frame_draws", *_SLOT_ARRAYS)
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
@@ -158,6 +166,12 @@ class FastSlam(Estimator[PointObservation]):
         self._seen = np.zeros((n, self._capacity), dtype=np.int64)
         self._last = np.zeros((n, self._capacity), dtype=np.int64)  # iteration each landmark was last seen
         self._frame_cov = np.zeros((n, 3, 3))  # covariance of each particle's position in the fixes' frame
+        # Each particle's draw (dt (m), dphi (rad)) from the frame fit's uncertainty at the pinning
+        # (zeros before it): resampled with the particle, so the fixes' selection among the draws shows.
+        self._frame_draws = np.zeros((n, 6))
+        # The rate the particles' place in world drifts at between fixes (m/m): fix_drift, or measured
+        # on the fused fixes' innovations when it is unset (relpoint.estimators._drift_rate).
+        self._drift_rate = DriftRate(DRIFT_PRIOR) if cfg.fix_drift is None else None
         self._vote_id = np.full((n, self._capacity), -1, dtype=np.int64)
         self._vote_n = np.zeros((n, self._capacity), dtype=np.int64)
         self._drift = np.zeros((n, self._capacity, 3))  # smoothed innovation of each landmark (world, m)
@@ -194,6 +208,10 @@ class FastSlam(Estimator[PointObservation]):
         # (stamp ns, mean pose (local, 4 x 4)) of each iteration before the pinning: placed again by one
         # transform at the end (placed_in_one_frame)
         self._local_poses: list[tuple[int, FloatArray]] = []
+        # (stamp ns, the particles' mean frame draw (6,)) of each iteration: the frame its pose was
+        # output in, moved to the final one at the end (moved_to_final_frame)
+        self._draw_means: list[tuple[int, FloatArray]] = []
+        self._frame_refined: dict[str, float] = {}  # the final mean draw's size (run.json)
         self._smoothing: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------ interface
@@ -232,13 +250,17 @@ class FastSlam(Estimator[PointObservation]):
         if self._frame_fit is not None:
             # The pose drawn each iteration carries the proposal's spread into the particle's place in
             # ``world``: its frame covariance grows by it (most in stretches without landmarks).
-            self._frame_cov += (Sigma if proposal else prior)[:, :3, :3]
+            drawn = (Sigma if proposal else prior)[:, :3, :3]
+            self._frame_cov += drawn
             # A turned map drifts in proportion to the distance travelled, which the collapsed
-            # particles' spread does not show: a random walk of fix_drift per metre stands for it.
+            # particles' spread does not show: a random walk of the drift rate per metre stands for it.
             if self._step_stamp_ns is not None:
                 dt = (observation.stamp_ns - self._step_stamp_ns) * 1e-9
                 distance = np.linalg.norm(self.twists[:, :3], axis=1) * dt
-                self._frame_cov += (self.config.fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
+                self._frame_cov += (self._fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
+                if self._drift_rate is not None:
+                    w = self.weights
+                    self._drift_rate.travel(float(w @ distance), float(w @ np.trace(drawn, axis1=1, axis2=2)) / 3.0)
         self._step_stamp_ns = observation.stamp_ns
         self.log_weights = self.log_weights + log_likelihood
         self.log_weights -= logsumexp(self.log_weights)
@@ -263,6 +285,8 @@ class FastSlam(Estimator[PointObservation]):
                 self._pin_frame(fit)
             else:  # the local pose, placed again by one transform at the end
                 self._local_poses.append((observation.stamp_ns, self._mean_pose()))
+        if self.config.fix_alignment == "rigid":
+            self._draw_means.append((observation.stamp_ns, self.weights @ self._frame_draws))
         return self.pose()
 
     def add_fix(self, fix: PositionFix) -> None:
@@ -307,7 +331,9 @@ class FastSlam(Estimator[PointObservation]):
             C = C * self._filter_inflation(nu, C, P_fix)
             S = C + P_fix + np.eye(3) * 1e-12
             S_inv = np.linalg.inv(S)
-        mean_before = self.weights @ self.positions
+        mean_before, draw_before = self.weights @ self.positions, self.weights @ self._frame_draws
+        if self._drift_rate is not None:
+            self._drift_rate.fix(np.asarray(fix.position, dtype=np.float64) - mean_before, fix_variances)
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
@@ -321,9 +347,21 @@ class FastSlam(Estimator[PointObservation]):
         fused = C - K @ C
         self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
         self._stats["fixes"] += 1
-        if self.config.smooth_trajectory:  # the jump of the mean pose (weights and positions both moved)
-            self._fix_jumps.append((self._stats["iterations"], self.weights @ self.positions - mean_before))
+        if self.config.smooth_trajectory:
+            # The jump of the mean position (weights and positions both moved), but for the change of
+            # the particles' mean frame draw, which finish() takes out for every pose alike.
+            centre = self._frame_fit.centre
+            reframed = drawn_frame_transform(centre, self.weights @ self._frame_draws) @ np.linalg.inv(
+                drawn_frame_transform(centre, draw_before)
+            )
+            jump = self.weights @ self.positions - apply_transform(reframed, mean_before[None])[0]
+            self._fix_jumps.append((self._stats["iterations"], jump))
             self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
+
+    @property
+    def _fix_drift(self) -> float:
+        """The drift rate in use (m of position per axis per m travelled)."""
+        return self._drift_rate.rate if self._drift_rate is not None else float(self.config.fix_drift)
 
     def _filter_inflation(self, nu: FloatArray, C: FloatArray, P_fix: FloatArray) -> float:
         """The factor ``a`` of the particles' position covariances ``C`` (n, 3, 3) that puts the fix
@@ -350,6 +388,13 @@ class FastSlam(Estimator[PointObservation]):
         """The fit that moved the particles into the fixes' frame (``rigid``), or None before (or without) it."""
         return self._frame_fit
 
+    @property
+    def mean_frame_draw(self) -> FloatArray:
+        """The particles' weighted mean draw ``(dt (m), dphi (rad))`` (6,) from the frame fit's uncertainty
+        (zeros before the pinning): at the end, the frame every pose is placed in
+        (:func:`~relpoint.estimators._fix_frame.moved_to_final_frame`)."""
+        return self.weights @ self._frame_draws
+
     def _pin_frame(self, fit: FrameFit) -> None:
         """Move every particle into the fixes' frame by ``fit``, each by a transform drawn from its uncertainty.
 
@@ -362,6 +407,7 @@ class FastSlam(Estimator[PointObservation]):
         values, vectors = np.linalg.eigh(fit.covariance)
         draws = self._rng.standard_normal((n, 6)) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
         R_T, t = fit.T_world_local[:3, :3], fit.T_world_local[:3, 3]
+        self._frame_draws = draws
         turn = so3_exp(draws[:, 3:])  # (n, 3, 3)
         R = turn @ R_T  # (n, 3, 3): each particle's rotation local -> world
         offset = fit.centre + draws[:, :3] - np.einsum("pij,j->pi", turn, fit.centre)  # (n, 3)
@@ -372,6 +418,8 @@ class FastSlam(Estimator[PointObservation]):
         self.covs = R[:, None] @ self.covs @ np.swapaxes(R, 1, 2)[:, None]
         J = fit.perturbation_jacobian(self.positions)
         self._frame_cov = J @ fit.covariance @ np.swapaxes(J, 1, 2)
+        if self._drift_rate is not None:
+            self._drift_rate.start(float(self.weights @ np.trace(self._frame_cov, axis1=1, axis2=2)) / 3.0)
         self._Sigma[:, :3, :] = np.einsum("pij,pjk->pik", R, self._Sigma[:, :3, :])
         self._Sigma[:, :, :3] = np.einsum("pki,pji->pkj", self._Sigma[:, :, :3], R)
         self._frame = None
@@ -416,6 +464,8 @@ class FastSlam(Estimator[PointObservation]):
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
+            **(self._drift_rate.summary() if self._drift_rate is not None and self._frame_fit is not None else {}),
+            **self._frame_refined,
             **({"smoothing": self._smoothing} if self._smoothing is not None else {}),
         }
 
@@ -431,6 +481,13 @@ class FastSlam(Estimator[PointObservation]):
         the run skipped iterations, there is no smoothing (``smoothing`` in :meth:`summary` says so).
         """
         trajectory = placed_in_one_frame(trajectory, self._local_poses, self._frame_fit, self._frame)
+        if self._frame_fit is not None and self._draw_means:
+            stamps = np.array([stamp for stamp, _ in self._draw_means], dtype=np.int64)
+            draws = np.stack([draw for _, draw in self._draw_means])
+            final = self.mean_frame_draw
+            trajectory = moved_to_final_frame(trajectory, stamps, draws, final, self._frame_fit.centre)
+            self._frame_refined = {"frame_refined_m": round(float(np.linalg.norm(final[:3])), 4),
+                                   "frame_refined_deg": round(float(np.degrees(np.linalg.norm(final[3:]))), 3)}  # fmt: skip
         if not self.config.smooth_trajectory or not self._fix_jumps:
             return trajectory
         iterations = self._stats["iterations"]

@@ -81,9 +81,11 @@ class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
     positions and the Lagrange-interpolated fixes, moves every particle into the fixes' frame (each
     by a transform drawn from the fit's uncertainty), then fuses every later fix in each particle's
     proposal and weights the particles by its likelihood; ``ignore`` leaves the fixes out."""
-    fix_drift: float = setting(0.1, low=0, high=10)
+    fix_drift: float | None = setting(None, low=0, high=10)
     """``rigid``: growth of each particle's position uncertainty in ``world`` per metre travelled
-    (m/m, per axis), the drift of the local map that the fixes correct."""
+    (m/m, per axis), the drift of the local map that the fixes correct. Unset (the default): measured
+    on the fused fixes' innovations, 0.1 until three are in (``relpoint.estimators._drift_rate``;
+    ``drift_rate`` in ``run.json``)."""
     close_loops: bool = setting(True)
     """Close loops the particles' drift keeps open (:mod:`relpoint.estimators._loop_closure`): when the
     best particle's landmarks started in the last 50 iterations sit at one offset from landmarks not
