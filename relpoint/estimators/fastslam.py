@@ -205,6 +205,7 @@ class FastSlam(Estimator[PointObservation]):
         # position (m), per-axis variance (m^2)) and each fused fix's jump of the mean position.
         self._fixes_taken: list[tuple[int, FloatArray, FloatArray]] = []
         self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m))
+        self._jumps = np.zeros(3)  # the fused fixes' jumps of the mean position so far (m)
         # (stamp ns, mean pose (local, 4 x 4)) of each iteration before the pinning: placed again by one
         # transform at the end (placed_in_one_frame)
         self._local_poses: list[tuple[int, FloatArray]] = []
@@ -332,8 +333,10 @@ class FastSlam(Estimator[PointObservation]):
             S = C + P_fix + np.eye(3) * 1e-12
             S_inv = np.linalg.inv(S)
         mean_before, draw_before = self.weights @ self.positions, self.weights @ self._frame_draws
-        if self._drift_rate is not None:
-            self._drift_rate.fix(np.asarray(fix.position, dtype=np.float64) - mean_before, fix_variances)
+        if self._drift_rate is not None:  # the correction the fix measures of the path without its jumps
+            self._drift_rate.fix(
+                np.asarray(fix.position, dtype=np.float64) - (mean_before - self._jumps), fix_variances
+            )
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
@@ -347,14 +350,15 @@ class FastSlam(Estimator[PointObservation]):
         fused = C - K @ C
         self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
         self._stats["fixes"] += 1
+        # The jump of the mean position (weights and positions both moved), but for the change of the
+        # particles' mean frame draw, which finish() takes out for every pose alike.
+        centre = self._frame_fit.centre
+        reframed = drawn_frame_transform(centre, self.mean_frame_draw) @ np.linalg.inv(
+            drawn_frame_transform(centre, draw_before)
+        )
+        jump = self.weights @ self.positions - apply_transform(reframed, mean_before[None])[0]
+        self._jumps = self._jumps + jump
         if self.config.smooth_trajectory:
-            # The jump of the mean position (weights and positions both moved), but for the change of
-            # the particles' mean frame draw, which finish() takes out for every pose alike.
-            centre = self._frame_fit.centre
-            reframed = drawn_frame_transform(centre, self.weights @ self._frame_draws) @ np.linalg.inv(
-                drawn_frame_transform(centre, draw_before)
-            )
-            jump = self.weights @ self.positions - apply_transform(reframed, mean_before[None])[0]
             self._fix_jumps.append((self._stats["iterations"], jump))
             self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
 
