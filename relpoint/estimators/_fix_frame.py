@@ -27,6 +27,14 @@ centroid ``c``: a point ``y`` placed by the fit is truly at ``c + Exp(dphi) (y -
 ``R^T dphi``. Its covariance is the inverse of the fit's information, counted once per fix (the
 interpolated pairs between two fixes share their noise), and inflated to the residuals when the
 residuals exceed what the fixes and the local positions claim.
+
+Fixes need not measure every axis: a GNSS receiver in a local frame often reports its altitude with a
+variance of 1e6 m^2 or more (ROS's "unknown" is 1e9), and an acoustic fix may measure depth badly.
+An axis whose standard deviation is over 100 times the best one's is left out of the frame's
+noise, spread and fit (:func:`relpoint.geometry.measured_basis`): with one axis unmeasured only the
+rotation about it is fitted (a yaw for fixes in the horizontal plane) and the offset in the plane;
+with two, only the offset along the measured axis. The transform leaves the rest at the identity,
+without uncertainty, as the frames that agree.
 """
 
 from __future__ import annotations
@@ -38,7 +46,16 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.geometry import FloatArray, apply_transform, fit_rigid, skew, smallest_rotation, so3_exp
+from relpoint.geometry import (
+    FloatArray,
+    apply_transform,
+    fit_rigid_on_axes,
+    fitted_parameters,
+    measured_basis,
+    skew,
+    smallest_rotation,
+    so3_exp,
+)
 from relpoint.lagrange import interpolate_fixes
 from relpoint.settings import Settings, setting
 from relpoint.statistics import chi2_gate
@@ -148,6 +165,11 @@ class FixFrame:
     def fix_count(self) -> int:
         return len(self._fix_stamps)
 
+    @property
+    def measured_basis(self) -> FloatArray:
+        """The directions (3, k) the fixes kept so far measure (:func:`~relpoint.geometry.measured_basis`)."""
+        return measured_basis(self._fix_covariances)
+
     def add_fix(self, fix: PositionFix) -> None:
         """Keep a fix (one not after the last kept fix is dropped: the interpolation needs increasing stamps)."""
         if self._fix_stamps and fix.stamp_ns <= self._fix_stamps[-1]:
@@ -251,24 +273,34 @@ class FixFrame:
         if self._agree_with_local(local, local_cov, world, world_cov):
             self._provisional = np.eye(4)
             return
+        basis = self.measured_basis
+        measured = basis.shape[1]
         rotation = np.eye(3)
         travel_local, travel_world = local[-1] - local[0], world[-1] - world[0]
-        if len(local) >= 2 and np.linalg.norm(travel_world) > 3.0 * np.sqrt(np.trace(self._fix_covariances[-1])):
-            rotation = smallest_rotation(travel_local, travel_world)
+        if measured == 3:
+            if len(local) >= 2 and np.linalg.norm(travel_world) > 3.0 * np.sqrt(np.trace(self._fix_covariances[-1])):
+                rotation = smallest_rotation(travel_local, travel_world)
+            offset = world.mean(axis=0) - rotation @ local.mean(axis=0)
+        else:  # turned about the unmeasured axis only (with one), moved only where the fixes measure
+            noise = np.sqrt(np.trace(basis.T @ self._fix_covariances[-1] @ basis))
+            if measured == 2 and len(local) >= 2 and np.linalg.norm(basis.T @ travel_world) > 3.0 * noise:
+                rotation = fit_rigid_on_axes(local[[0, -1]], world[[0, -1]], np.ones(2), basis).rotation
+            offset = basis @ basis.T @ (world.mean(axis=0) - rotation @ local.mean(axis=0))
         T = np.eye(4)
         T[:3, :3] = rotation
-        T[:3, 3] = world.mean(axis=0) - rotation @ local.mean(axis=0)
+        T[:3, 3] = offset
         self._provisional = T
 
     def required_spread(self) -> float:
         """The fixes' spread (m) a fit needs: ``min_spread``, or :data:`SPREAD_SIGMAS` times the fixes'
-        noise (the RMS of their per-axis standard deviations; the local positions' when the fixes
-        claim none), so that the rotation is pinned as well at any noise and scale: 8 m for 1 m fixes
+        noise (the RMS of their standard deviations along the axes they measure,
+        :func:`~relpoint.geometry.measured_basis`; the local positions' when the fixes claim none), so that the rotation is pinned as well at any noise and scale: 8 m for 1 m fixes
         (the fixed default before), 1.6 m for 0.2 m fixes, 40 m for 5 m ones."""
         if self.min_spread is not None:
             return self.min_spread
+        basis = self.measured_basis
         sigma = (
-            float(np.sqrt(np.mean([np.trace(c) / 3.0 for c in self._fix_covariances])))
+            float(np.sqrt(np.mean([np.trace(basis.T @ c @ basis) / basis.shape[1] for c in self._fix_covariances])))
             if self._fix_covariances
             else 0.0
         )
@@ -281,7 +313,10 @@ class FixFrame:
         (:meth:`required_spread`); else None."""
         if len(self._fix_stamps) < self.min_fixes:
             return None
-        spread = line_spread(np.asarray(self._fix_positions))
+        basis = self.measured_basis
+        measured = basis.shape[1]
+        projector = basis @ basis.T  # onto the directions the fixes measure
+        spread = line_spread(np.asarray(self._fix_positions) @ projector)
         required = self.required_spread()
         if spread < required:
             return None
@@ -289,12 +324,15 @@ class FixFrame:
         if pairs is None or len(pairs[0]) < 3:
             return None
         local, local_cov, world, world_cov = pairs
-        if line_spread(local) < 0.5 * required:
+        if line_spread(local @ projector) < 0.5 * required:
             return None  # the local path has not spread (yet) as the fixes have: no rotation to fit
-        weights = 1.0 / np.maximum(np.trace(world_cov + local_cov, axis1=1, axis2=2), 1e-12)
-        result = fit_rigid(local, world, weights=weights)
+        noise_measured = np.einsum("ai,nab,bj->nij", basis, world_cov + local_cov, basis)
+        weights = 1.0 / np.maximum(np.trace(noise_measured, axis1=1, axis2=2), 1e-12)
+        w = weights / weights.sum()
+        result = fit_rigid_on_axes(local, world, weights, basis)
+        fitted, fit_rms = result.as_matrix(), result.rms
         agree = self._agree_with_local(local, local_cov, world, world_cov)
-        T = np.eye(4) if agree else result.as_matrix()
+        T = np.eye(4) if agree else fitted
         placed = apply_transform(T, local)
         # Information of (dt, dphi) about the weighted centroid, from every pair, counted once per fix.
         noise = world_cov + T[:3, :3] @ local_cov @ T[:3, :3].T
@@ -302,18 +340,21 @@ class FixFrame:
             W = np.linalg.inv(noise)
         except np.linalg.LinAlgError:
             return None
-        centre = (weights / weights.sum()) @ world
+        # the centroid of the fixes where they measure, of the placed path where they do not
+        centre = projector @ (w @ world) + (np.eye(3) - projector) @ (w @ placed)
         J = np.zeros((len(local), 3, 6))
         J[:, :, :3] = np.eye(3)
         J[:, :, 3:] = -skew(placed - centre)
         fixes_spanned = int(np.count_nonzero(np.asarray(self._fix_stamps) <= self._stamps[-1]))
         information = np.einsum("nai,nab,nbj->ij", J, W, J) * min(1.0, max(fixes_spanned, 3) / len(local))
         residual = world - placed
-        chi2 = 1.0 if agree else float(np.mean(np.einsum("na,nab,nb->n", residual, W, residual))) / 3.0
+        chi2 = 1.0 if agree else float(np.mean(np.einsum("na,nab,nb->n", residual, W, residual))) / measured
+        parameters = fitted_parameters(basis)  # the rest stay exact: no uncertainty
         try:
-            covariance = np.linalg.inv(information) * max(1.0, chi2)
+            reduced = np.linalg.inv(parameters.T @ information @ parameters)
         except np.linalg.LinAlgError:
             return None
+        covariance = parameters @ reduced @ parameters.T * max(1.0, chi2)
         # Frames that agree are one frame: no transform, so no transform error for the filter to carry.
         covariance = np.zeros((6, 6)) if agree else 0.5 * (covariance + covariance.T)
         logger.debug(
@@ -321,9 +362,13 @@ class FixFrame:
             fixes_spanned,
             len(local),
             spread,
-            result.rms,
+            fit_rms,
         )
-        rms = float(np.sqrt(np.sum(weights * np.sum(residual**2, axis=1)) / np.sum(weights))) if agree else result.rms
+        rms = (
+            float(np.sqrt(np.sum(weights * np.sum((residual @ projector) ** 2, axis=1)) / np.sum(weights)))
+            if agree
+            else fit_rms
+        )
         return FrameFit(T, covariance, centre, len(local), fixes_spanned, rms, spread)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._trajectory_smoothing import smooth_corrections
-from relpoint.geometry import FloatArray
+from relpoint.geometry import FloatArray, measured_basis
 from relpoint.types import Trajectory
 
 #: Log-likelihood (nats) a random walk of the correction must gain over a constant correction to be
@@ -88,8 +88,11 @@ def smoothed_on_fixes(
     if not np.isfinite(variances).any():
         return trajectory, {"applied": False, "reason": "no fix with a usable covariance"}
     smoothing = smooth_corrections(measured, variances, min_gain=WALK_MIN_GAIN)
+    # Only where the fixes measure: an axis they leave unmeasured (a horizontal fix's altitude, with a
+    # variance of 1e6 m^2) would otherwise be moved to the fixes' mean there, whatever its variance.
+    basis = measured_basis(np.stack([np.diag(v) for v in np.asarray(fix_variances, dtype=np.float64)]))
     poses = trajectory.matrices().copy()
-    poses[:, :3, 3] = path + smoothing.corrections
+    poses[:, :3, 3] = path + smoothing.corrections @ (basis @ basis.T)
     shift = np.linalg.norm(poses[:, :3, 3] - trajectory.positions, axis=1)
     report = {
         "applied": True,

@@ -13,7 +13,15 @@ functions and say so (:func:`~.se3.apply_transform`, :func:`~.se3.rigid_inverse`
 compiled kernels fuse their own fits into whole phases (``relative_point/_kernels.py``).
 """
 
-from relpoint.geometry.fitting import RigidFit, fit_rigid, kabsch, rigid_consensus
+from relpoint.geometry.fitting import (
+    RigidFit,
+    fit_rigid,
+    fit_rigid_on_axes,
+    fitted_parameters,
+    kabsch,
+    measured_basis,
+    rigid_consensus,
+)
 from relpoint.geometry.se3 import (
     apply_transform,
     body_twist,
@@ -39,8 +47,9 @@ from relpoint.geometry.so3 import (
 )
 
 __all__ = [
-    "FloatArray", "RigidFit", "apply_transform", "body_twist", "check_points", "fit_rigid", "homogeneous",
-    "integrate_twist", "invert_pose", "kabsch", "matrix_to_position_quat", "pose_matrix", "quat_to_matrix",
-    "quaternion_xyzw", "rigid_consensus", "rigid_inverse", "skew", "smallest_rotation", "so3_exp", "so3_right_jacobian",
+    "FloatArray", "RigidFit", "apply_transform", "body_twist", "check_points", "fit_rigid",
+    "fit_rigid_on_axes", "fitted_parameters", "homogeneous", "integrate_twist", "invert_pose", "kabsch",
+    "matrix_to_position_quat", "measured_basis", "pose_matrix", "quat_to_matrix", "quaternion_xyzw",
+    "rigid_consensus", "rigid_inverse", "skew", "smallest_rotation", "so3_exp", "so3_right_jacobian",
     "transform_points", "transform_soa32", "twist_step",
 ]  # fmt: skip

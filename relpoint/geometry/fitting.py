@@ -1,5 +1,5 @@
-"""Least-squares rigid fitting of point pairs: the weighted Umeyama/Kabsch fit, plain Kabsch, and a
-RANSAC consensus of the pairs one rigid motion explains.
+"""Least-squares rigid fitting of point pairs: the weighted Umeyama/Kabsch fit, plain Kabsch, the fit
+on the axes a set of targets measures, and a RANSAC consensus of the pairs one rigid motion explains.
 
 Conventions (see ``docs/log-format.md``): a pose ``T_a_b`` is a 4x4 homogeneous matrix that maps
 coordinates in frame ``b`` to frame ``a`` (``p_a = T_a_b @ p_b``); quaternions are ``(x, y, z, w)``;
@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.geometry.se3 import check_points
-from relpoint.geometry.so3 import FloatArray
+from relpoint.geometry.so3 import FloatArray, so3_exp
 
 
 class RigidFit(NamedTuple):
@@ -92,6 +92,68 @@ def fit_rigid(
     residual = target - (scale * source @ rotation.T + translation)
     rms = float(np.sqrt(w @ np.sum(residual**2, axis=1)))
     return RigidFit(rotation, translation, scale, rms)
+
+
+#: Ratio of an axis's standard deviation to the best-measured one's beyond which a set of targets is
+#: taken not to measure it (the altitude of a horizontal GNSS fix: variance 1e6-1e9 m^2 against 1 m^2).
+UNMEASURED_RATIO = 100.0
+
+
+def measured_basis(covariances: npt.ArrayLike) -> FloatArray:
+    """Orthonormal basis (3, k) of the directions that targets of ``covariances`` (n, 3, 3) m^2 measure.
+
+    Their mean information (inverse covariance) is split into its principal directions; those whose
+    information is at least ``1 / UNMEASURED_RATIO^2`` of the largest are measured: k = 3 for
+    targets whose per-axis standard deviations are within a factor of 100 of each other, 2 for a
+    horizontal fix whose altitude is a placeholder of unknown variance.
+    """
+    covs = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    if len(covs) == 0:
+        return np.eye(3)
+    information = np.mean(np.linalg.pinv(covs + 1e-12 * np.eye(3), hermitian=True), axis=0)
+    values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+    measured = values >= values.max() / UNMEASURED_RATIO**2
+    return np.eye(3) if measured.all() else vectors[:, measured]  # every axis: the axes themselves
+
+
+def fit_rigid_on_axes(source: FloatArray, target: FloatArray, weights: FloatArray, basis: FloatArray) -> RigidFit:
+    """The rigid fit of ``source`` onto ``target`` (n, 3) on the directions ``basis`` (3, k) measures.
+
+    k = 3 is :func:`fit_rigid`. With k = 2 (one axis unmeasured) the rotation is about that axis
+    only, a weighted 2-D Procrustes fit in the measured plane; with k = 1 there is no rotation. The
+    translation moves only along the measured directions, and ``rms`` is the weighted residual on
+    them: what the targets say of the unmeasured axis (a placeholder value) is not used.
+    """
+    k = basis.shape[1]
+    if k == 3:
+        return fit_rigid(source, target, weights=weights)
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    rotation = np.eye(3)
+    if k == 2:
+        axis = np.cross(basis[:, 0], basis[:, 1])  # (basis, axis) is right-handed
+        a = source @ basis
+        b = target @ basis
+        H = ((a - w @ a) * w[:, None]).T @ (b - w @ b)
+        rotation = so3_exp(float(np.arctan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])) * axis)
+    projector = basis @ basis.T
+    translation = projector @ (w @ target - rotation @ (w @ source))
+    residual = (target - source @ rotation.T - translation) @ projector
+    return RigidFit(rotation, translation, 1.0, float(np.sqrt(w @ np.sum(residual**2, axis=1))))
+
+
+def fitted_parameters(basis: FloatArray) -> FloatArray:
+    """The directions (6, m) of an error ``(dt, dphi)`` (m, rad) that :func:`fit_rigid_on_axes` fits:
+    all six with three measured axes; else the translation along the measured ones and, with two,
+    the rotation about the third. The others are not fitted, so they carry no uncertainty."""
+    k = basis.shape[1]
+    if k == 3:
+        return np.eye(6)
+    directions = np.vstack([basis, np.zeros((3, k))])
+    if k == 2:
+        axis = np.cross(basis[:, 0], basis[:, 1])
+        directions = np.hstack([directions, np.concatenate([np.zeros(3), axis])[:, None]])
+    return directions
 
 
 def kabsch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArray]:
