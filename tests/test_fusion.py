@@ -479,3 +479,21 @@ def test_landmarks_go_to_the_iteration_the_estimator_says_they_were_first_seen()
     )
     owner, rule = _landmark_iterations(unknown, path, shrank)
     assert rule == "first iteration (nearest position where unknown)" and owner.tolist() == [2, 1, 5]
+
+
+def test_horizontal_fixes_place_segments_by_yaw_and_leave_their_altitude(gaps_run) -> None:  # type: ignore[no-untyped-def]
+    # The same run with fixes that measure x and y only, their altitude a placeholder 0 of ROS's
+    # "unknown" variance: each segment is turned about z and moved in the plane, not tilted to z = 0.
+    simulation, run = gaps_run
+    truth = simulation.ground_truth
+    horizontal = [
+        PositionFix(f.stamp_ns, np.array([f.position[0], f.position[1], 0.0]), np.diag([1.0, 1.0, 1e9]))
+        for f in run.fixes
+    ]
+    result = fuse(run.trajectory, run.landmarks, run.matched, horizontal, landmark_iterations=run.landmark_iterations)
+    assert result.summary["segments"] >= 3 and result.summary["segments_left_out"] == 0
+    for segment in result.segments:
+        rows = segment.iterations
+        error = result.trajectory.positions[rows, :2] - truth.positions[rows, :2]
+        assert np.sqrt(np.mean(np.sum(error**2, axis=1))) < 1.2  # the fixes are 1 m per axis
+        np.testing.assert_allclose(result.trajectory.positions[rows, 2], segment.local_trajectory.positions[:, 2])

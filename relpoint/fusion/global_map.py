@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from relpoint.errors import EstimatorError
 from relpoint.fusion.bspline import PathSpline
-from relpoint.geometry import FloatArray, apply_transform, fit_rigid
+from relpoint.geometry import FloatArray, apply_transform, fit_rigid_on_axes, fitted_parameters, measured_basis
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,14 +123,18 @@ def fit_segment(
             f"below the {min_spread:g} m needed to fix the rotation to the global frame",
             "it is left out of the global map (collinear fixes leave the rotation about the line undetermined)",
         )
-    variances = np.trace(target_cov + local_cov, axis1=1, axis2=2) / 3.0
+    # The axes the fixes measure (a horizontal fix's altitude is a placeholder: relpoint.geometry.measured_basis)
+    basis = measured_basis(target_cov)
+    measured = basis.shape[1]
+    variances = np.trace(np.einsum("ai,nab,bj->nij", basis, target_cov + local_cov, basis), axis1=1, axis2=2) / measured
     weights = 1.0 / np.maximum(variances, 1e-12)
-    fit = fit_rigid(local, targets, weights=weights)
-    mean_cov = target_cov.mean(axis=0) + local_cov.mean(axis=0)
-    # Residual variance per axis, with the 6 fitted parameters' degrees of freedom taken out.
-    dof = max(3 * n - 6, 1)
-    residual_var = fit.rms**2 * 3 * n / dof / 3.0
-    scale = max(1.0, residual_var / max(np.trace(mean_cov) / 3.0, 1e-12))
+    fit = fit_rigid_on_axes(local, targets, weights, basis)
+    projector = basis @ basis.T
+    mean_cov = projector @ (target_cov.mean(axis=0) + local_cov.mean(axis=0)) @ projector
+    # Residual variance per measured axis, with the fitted parameters' degrees of freedom taken out.
+    dof = max(measured * n - fitted_parameters(basis).shape[1], 1)
+    residual_var = fit.rms**2 * n / dof
+    scale = max(1.0, residual_var / max(np.trace(mean_cov) / measured, 1e-12))
     return SegmentTransform(
         rotation=fit.rotation,
         translation=fit.translation,

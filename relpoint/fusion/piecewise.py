@@ -34,7 +34,7 @@ import numpy.typing as npt
 
 from relpoint.errors import EstimatorError
 from relpoint.fusion.bspline import PathSpline
-from relpoint.geometry import FloatArray, fit_rigid
+from relpoint.geometry import FloatArray, fit_rigid_on_axes, fitted_parameters, measured_basis
 from relpoint.statistics import chi2_gate
 
 
@@ -69,11 +69,13 @@ def rigid_fit_statistic(local: FloatArray, targets: FloatArray, target_cov: Floa
     ``target_cov`` and ``local_cov`` are (n, 3, 3) m²; the weights are those of
     :func:`.global_map.fit_segment` (inverse mean variance per pair).
     """
-    total_cov = target_cov + local_cov
-    weights = 1.0 / np.maximum(np.trace(total_cov, axis1=1, axis2=2) / 3.0, 1e-12)
-    fit = fit_rigid(local, targets, weights=weights)
-    residuals = targets - fit.apply(local)
+    basis = measured_basis(target_cov)
+    total_cov = np.einsum("ai,nab,bj->nij", basis, target_cov + local_cov, basis)
+    weights = 1.0 / np.maximum(np.trace(total_cov, axis1=1, axis2=2) / basis.shape[1], 1e-12)
+    fit = fit_rigid_on_axes(local, targets, weights, basis)
+    residuals = (targets - fit.apply(local)) @ basis  # on the measured axes
     S = target_cov + np.einsum("ab,nbc,dc->nad", fit.rotation, local_cov, fit.rotation)
+    S = np.einsum("ai,nab,bj->nij", basis, S, basis)
     return float(np.einsum("na,na->", residuals, np.linalg.solve(S, residuals[..., None])[..., 0]))
 
 
@@ -128,6 +130,8 @@ def split_segment(
     local_cov = spline.covariance(fix_stamps)
     targets = np.asarray(fix_positions, dtype=np.float64).reshape(-1, 3)[inside]
     target_cov = np.asarray(fix_covariances, dtype=np.float64).reshape(-1, 3, 3)[inside]
+    basis = measured_basis(target_cov)  # the axes the fixes measure, and the parameters fitted on them
+    measured, parameters = basis.shape[1], fitted_parameters(basis).shape[1]
 
     steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
 
@@ -152,7 +156,7 @@ def split_segment(
     def test(a: int, b: int) -> tuple[float, float, int]:
         """Statistic, threshold and degrees of freedom of the rigid fit of fixes ``[a, b)``."""
         if (a, b) not in cache:
-            dof = 3 * (b - a) - 6
+            dof = measured * (b - a) - parameters
             if dof <= 0:
                 cache[a, b] = (math.nan, math.nan, 0)
             else:
