@@ -16,6 +16,20 @@ from formats.atomic import atomic_path
 from relpoint.errors import InputError
 from relpoint.types import LandmarkMap
 
+#: Largest error (m) that storing coordinates as float32 may make before they are stored as float64:
+#: float32 keeps a millimetre up to 8 km from the origin, but a map in UTM coordinates (5e6 m north)
+#: would be rounded to 0.5 m.
+COORDINATE_TOLERANCE = 1e-4
+
+
+def coordinate_dtype(positions: np.ndarray) -> np.dtype:
+    """``<f4`` when float32 holds ``positions`` (N, 3) m within :data:`COORDINATE_TOLERANCE`, else ``<f8``."""
+    values = np.asarray(positions, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    if finite.size == 0 or np.max(np.abs(finite - finite.astype(np.float32))) <= COORDINATE_TOLERANCE:
+        return np.dtype("<f4")
+    return np.dtype("<f8")
+
 
 def write_ply(path: str | os.PathLike[str], vertices: np.ndarray, *, comments: list[str] | None = None) -> None:
     """Write a structured array as the ``vertex`` element of a binary little-endian PLY, atomically."""
@@ -50,9 +64,10 @@ def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
-    """A landmark map as PLY vertices: x, y, z float32 and observations, dynamic, gt_id (and purity and
-    first_iteration where known)."""
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
+    """A landmark map as PLY vertices: x, y, z float32 (float64 far from the origin:
+    :func:`coordinate_dtype`) and observations, dynamic, gt_id (and purity and first_iteration where known)."""
+    xyz = coordinate_dtype(landmarks.positions)
+    fields = [("x", xyz), ("y", xyz), ("z", xyz), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
     if landmarks.purity is not None:
         fields.append(("purity", "<f4"))
     if landmarks.first_iteration is not None:

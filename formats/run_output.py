@@ -17,7 +17,7 @@ import numpy as np
 from formats import ros2
 from formats.atomic import atomic_directory, write_text
 from formats.log import LogWriter
-from formats.ply import landmark_vertices, write_ply
+from formats.ply import coordinate_dtype, landmark_vertices, write_ply
 from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
@@ -41,11 +41,15 @@ def _packed_rgb(dynamic: np.ndarray) -> np.ndarray:
     return packed.astype(np.uint32).view(np.float32)
 
 
+def _xyz_columns(positions: np.ndarray) -> dict[str, np.ndarray]:
+    """FLOAT32 x, y, z fields, FLOAT64 far from the origin (:func:`formats.ply.coordinate_dtype`)."""
+    dtype = coordinate_dtype(positions)
+    return {axis: positions[:, i].astype(dtype) for i, axis in enumerate("xyz")}
+
+
 def _map_columns(positions: np.ndarray, dynamic: np.ndarray) -> dict[str, np.ndarray]:
     return {
-        "x": positions[:, 0].astype(np.float32),
-        "y": positions[:, 1].astype(np.float32),
-        "z": positions[:, 2].astype(np.float32),
+        **_xyz_columns(positions),
         "rgb": _packed_rgb(dynamic),
         "dynamic": dynamic.astype(np.uint8),
     }
@@ -97,7 +101,7 @@ def write_result_mcap(
                 if pending.stamp_ns == stamp and len(pending.points):
                     T = rotations[k]
                     world = apply_transform(T, pending.points)
-                    columns = {axis: world[:, i].astype(np.float32) for i, axis in enumerate("xyz")}
+                    columns = _xyz_columns(world)
                     if pending.ids is not None:
                         columns["id"] = pending.ids.astype(np.int32)
                     writer.write("/relpoint/observations", ros2.POINT_CLOUD2,
