@@ -116,3 +116,28 @@ def test_the_fit_on_measured_axes_ignores_the_placeholder_axis() -> None:
     assert fitted_parameters(plane).shape == (6, 3) and fitted_parameters(line).shape == (6, 1)
     np.testing.assert_allclose(np.abs(fitted_parameters(plane)[5, 2]), 1.0)  # the rotation about z
     np.testing.assert_array_equal(fitted_parameters(np.eye(3)), np.eye(6))
+
+
+def test_fixes_at_ten_per_iteration_keep_their_whole_span_and_pin_the_frame() -> None:
+    # GNSS at 10 Hz beside clouds at 1 Hz: the kept fixes must still span the whole path (halving them
+    # at every pass kept only the last few seconds and the first fix: the frame never pinned).
+    angle = np.arange(250) * 1.5 / 30.0
+    local = np.stack([30.0 * np.sin(angle), 30.0 * (1.0 - np.cos(angle)), np.zeros(250)], axis=1)
+    rng = np.random.default_rng(2)
+    pinned = {}
+    for per_iteration in (1, 10):
+        frame = FixFrame()
+        for k, x in enumerate(local):
+            fit = frame.update(k * DT_NS, x, np.zeros((3, 3)))
+            if fit is not None:
+                pinned[per_iteration] = k
+                break
+            if k + 1 < len(local):
+                for j in range(per_iteration):
+                    f = j / per_iteration
+                    position = (1 - f) * x + f * local[k + 1] + rng.normal(0.0, 1.0, 3)
+                    frame.add_fix(PositionFix(k * DT_NS + int(f * DT_NS) + 1, position, np.eye(3)))
+        stamps = frame.fix_stamps
+        assert len(stamps) <= frame.max_fixes and np.max(np.diff(stamps)) < 0.1 * (stamps[-1] - stamps[0])
+    assert set(pinned) == {1, 10}
+    assert pinned[10] <= pinned[1] + 5  # ten times the fixes pin it no later

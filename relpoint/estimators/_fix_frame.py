@@ -116,13 +116,34 @@ class FixFusionSettings(Settings):
     1 m fixes, 1.6 m for 0.2 m ones (``relpoint.estimators._fix_frame.FixFrame.required_spread``)."""
 
 
-def line_spread(points: npt.ArrayLike) -> float:
-    """RMS distance (m) of points (n, 3) from their least-squares line; 0 for fewer than three."""
+def line_spread(points: npt.ArrayLike, weights: npt.ArrayLike | None = None) -> float:
+    """RMS distance (m) of points (n, 3) from their least-squares line, weighted by ``weights`` (n,)
+    when given; 0 for fewer than three."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) < 3:
         return 0.0
-    singular = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
-    return float(np.sqrt(np.sum(singular[1:] ** 2) / len(p)))
+    w = np.full(len(p), 1.0 / len(p)) if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
+    centred = (p - w @ p) * np.sqrt(w)[:, None]
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return float(np.sqrt(np.sum(singular[1:] ** 2)))
+
+
+def time_weights(stamps_ns: npt.ArrayLike) -> FloatArray:
+    """The stretch of time (ns) each of ``stamps_ns`` (n,) stands for: half the gaps to its neighbours
+    (the whole gap to its one neighbour at either end, so that evenly spaced stamps weigh alike).
+
+    Kept fixes thin out unevenly (:meth:`FixFrame._thin` halves the older ones, the newest stay
+    dense), so counted alike they would favour the latest stretch of the path."""
+    t = np.asarray(stamps_ns, dtype=np.float64)
+    if len(t) < 2:
+        return np.ones(len(t))
+    gaps = np.diff(t)
+    weights = np.zeros(len(t))
+    weights[:-1] += gaps / 2.0
+    weights[1:] += gaps / 2.0
+    weights[0] += gaps[0] / 2.0
+    weights[-1] += gaps[-1] / 2.0
+    return np.maximum(weights, 1e-9 * max(float(gaps.max()), 1.0))
 
 
 #: The fixes' spread (RMS distance from their best line) a frame fit needs, in units of the fixes'
@@ -166,6 +187,11 @@ class FixFrame:
         return len(self._fix_stamps)
 
     @property
+    def fix_stamps(self) -> npt.NDArray[np.int64]:
+        """Stamps (ns) of the fixes kept for the fit, in time order."""
+        return np.asarray(self._fix_stamps, dtype=np.int64)
+
+    @property
     def measured_basis(self) -> FloatArray:
         """The directions (3, k) the fixes kept so far measure (:func:`~relpoint.geometry.measured_basis`)."""
         return measured_basis(self._fix_covariances)
@@ -182,15 +208,23 @@ class FixFrame:
         self._update_provisional()
 
     def _thin(self) -> None:
-        """Drop every other fix, and the local positions up to the last fix but those nearest a kept one.
+        """Keep about half the fixes, evenly spread in time over all of them (the first and the last
+        always), and the local positions up to the last fix only where they are nearest a kept one.
 
         This bounds the cost when the fixes never spread (a straight run) but keeps their whole span:
         a window of the latest fixes at a high rate covers too short a stretch of a curving path to
-        ever reach ``min_spread``. The pairs before the last fix then sit on the kept fixes, where
-        the interpolation is exact, instead of between fixes that are now far apart.
+        ever reach ``min_spread``. Even in time, not every other one: halving the kept fixes each
+        time left the oldest ones thinned again at every pass, so with fixes at 10 per iteration the
+        kept ones were the last few seconds and the first fix. The pairs before the last fix then
+        sit on the kept fixes, where the interpolation is exact, instead of between fixes that are
+        now far apart.
         """
+        fix_stamps = np.asarray(self._fix_stamps, dtype=np.int64)
+        grid = np.linspace(float(fix_stamps[0]), float(fix_stamps[-1]), max(self.max_fixes // 2, self.min_fixes))
+        chosen = np.abs(fix_stamps[None, :].astype(np.float64) - grid[:, None]).argmin(axis=1)
+        chosen = np.unique(np.concatenate([[0, len(fix_stamps) - 1], chosen])).tolist()
         for kept in (self._fix_stamps, self._fix_positions, self._fix_covariances):
-            kept[:] = kept[-1::-2][::-1]
+            kept[:] = [kept[i] for i in chosen]
         if not self._stamps:
             return
         stamps = np.asarray(self._stamps, dtype=np.int64)
@@ -316,7 +350,7 @@ class FixFrame:
         basis = self.measured_basis
         measured = basis.shape[1]
         projector = basis @ basis.T  # onto the directions the fixes measure
-        spread = line_spread(np.asarray(self._fix_positions) @ projector)
+        spread = line_spread(np.asarray(self._fix_positions) @ projector, time_weights(self._fix_stamps))
         required = self.required_spread()
         if spread < required:
             return None
