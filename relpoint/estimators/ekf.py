@@ -58,6 +58,7 @@ from relpoint.estimators._landmark_motion import (
 )
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators._recent_path import RecentPath
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators._trajectory_smoothing import PairHistory, smoothed_trajectory, summed_fix_jumps
 from relpoint.estimators._vanished import VanishedLandmarks
@@ -115,6 +116,8 @@ class EkfSlam(Estimator[PointObservation]):
             self._P[6:9, 6:9] = np.eye(3) * self.config.initial_speed_sigma**2
             self._P[9:12, 9:12] = np.eye(3) * self.config.initial_turn_rate_sigma**2
         self._stamp_ns: int | None = None
+        # The positions of the latest iterations, to carry a fix stamped before the state's time to it.
+        self._recent = RecentPath()
         self._odometry: OdometryMeasurement | None = None
         self._observations: list[int] = []
         self._id_votes: list[Counter[int]] = []
@@ -212,6 +215,7 @@ class EkfSlam(Estimator[PointObservation]):
                 self._pin_frame(fit)
             else:
                 self._local_poses.append((observation.stamp_ns, self._local_pose()))
+        self._recent.add(observation.stamp_ns, self._position)
         return self.pose()
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
@@ -238,9 +242,15 @@ class EkfSlam(Estimator[PointObservation]):
             self._P[3:6, 3:6] = np.eye(3) * self.config.initial_orientation_sigma**2
             return
         self._predict_to(fix.stamp_ns)
+        # A fix stamped before the state's time (a receiver's latency) is carried forward along the
+        # filter's own motion since its stamp (relpoint.estimators._recent_path).
+        moved = self._recent.displacement(fix.stamp_ns, self._stamp_ns, self._position)
+        if moved is None:
+            self._stats["fixes_too_old"] += 1
+            return
         if self._frame_fit is not None:
             self._add_drift()
-        innovation = np.asarray(fix.position) - self._position
+        innovation = np.asarray(fix.position) + moved - self._position
         R_fix = np.asarray(fix.covariance, dtype=np.float64)
         d2 = float(innovation @ np.linalg.solve(self._P[:3, :3] + R_fix, innovation))
         inflation = self._fix_gate.inflation(d2)
@@ -251,6 +261,7 @@ class EkfSlam(Estimator[PointObservation]):
         # and its small covariance already limits the step. Inflating the fix as well left the
         # filter lost on figure8-gaps seed 3 (84.6 m, 3,940 landmarks; 4.3 m fused as given).
         self._kalman_update(np.arange(3), np.eye(3), innovation, R_fix)
+        self._recent.shift(self._position - before)
         if self._pairs is not None:  # the jump the fix made, from the next pose on (trajectory smoothing)
             self._fix_jumps.append((self._stats["iterations"], self._position - before))
         self._stats["fixes"] += 1
@@ -360,6 +371,7 @@ class EkfSlam(Estimator[PointObservation]):
         R_T, t = fit.T_world_local[:3, :3], fit.T_world_local[:3, 3]
         first = 0
         self._position = R_T @ self._position + t
+        self._recent.transform(fit.T_world_local)
         self._rotation = R_T @ self._rotation
         self._landmarks[first:] = self._landmarks[first:] @ R_T.T + t
         P = self._P

@@ -73,6 +73,7 @@ from relpoint.estimators._loop_closure import (
     register_loop,
 )
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators._recent_path import RecentPath
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators._trajectory_smoothing import summed_fix_jumps
 from relpoint.estimators._vanished import (
@@ -206,6 +207,9 @@ class FastSlam(Estimator[PointObservation]):
         self._fixes_taken: list[tuple[int, FloatArray, FloatArray]] = []
         self._fix_jumps: list[tuple[int, FloatArray]] = []  # (iteration, position shift (m))
         self._jumps = np.zeros(3)  # the fused fixes' jumps of the mean position so far (m)
+        # The mean positions of the latest iterations, to carry a fix stamped before the particles'
+        # time to it (relpoint.estimators._recent_path).
+        self._recent = RecentPath()
         # (stamp ns, mean pose (local, 4 x 4)) of each iteration before the pinning: placed again by one
         # transform at the end (placed_in_one_frame)
         self._local_poses: list[tuple[int, FloatArray]] = []
@@ -288,6 +292,7 @@ class FastSlam(Estimator[PointObservation]):
                 self._local_poses.append((observation.stamp_ns, self._mean_pose()))
         if self.config.fix_alignment == "rigid":
             self._draw_means.append((observation.stamp_ns, self.weights @ self._frame_draws))
+        self._recent.add(observation.stamp_ns, self.weights @ self.positions)
         return self.pose()
 
     def add_fix(self, fix: PositionFix) -> None:
@@ -314,11 +319,19 @@ class FastSlam(Estimator[PointObservation]):
             return
         if self._stamp_ns is not None:
             self._predict_to(fix.stamp_ns)
+        # A fix stamped before the particles' time (a receiver's latency) is carried forward along the
+        # filter's own motion since its stamp.
+        now = self._stamp_ns if self._stamp_ns is not None else fix.stamp_ns
+        moved = self._recent.displacement(fix.stamp_ns, now, self.weights @ self.positions)
+        if moved is None:
+            self._stats["fixes_too_old"] += 1
+            return
+        fix_position = np.asarray(fix.position, dtype=np.float64) + moved
         P_fix = np.asarray(fix.covariance, dtype=np.float64)
         C = self._frame_cov  # (n, 3, 3): covariance of each particle's position in world
         S = C + P_fix + np.eye(3) * 1e-12  # the floor keeps a zero-covariance fix invertible
         S_inv = np.linalg.inv(S)
-        nu = np.asarray(fix.position, dtype=np.float64) - self.positions  # (n, 3)
+        nu = fix_position - self.positions  # (n, 3)
         # Gated as a whole: held back only if no particle can explain it (relpoint.estimators._fix_gate).
         inflation = self._fix_gate.inflation(float(np.min(np.einsum("pa,pab,pb->p", nu, S_inv, nu))))
         if inflation is None:
@@ -334,9 +347,7 @@ class FastSlam(Estimator[PointObservation]):
             S_inv = np.linalg.inv(S)
         mean_before, draw_before = self.weights @ self.positions, self.weights @ self._frame_draws
         if self._drift_rate is not None:  # the correction the fix measures of the path without its jumps
-            self._drift_rate.fix(
-                np.asarray(fix.position, dtype=np.float64) - (mean_before - self._jumps), fix_variances
-            )
+            self._drift_rate.fix(fix_position - (mean_before - self._jumps), fix_variances)
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
@@ -358,6 +369,7 @@ class FastSlam(Estimator[PointObservation]):
         )
         jump = self.weights @ self.positions - apply_transform(reframed, mean_before[None])[0]
         self._jumps = self._jumps + jump
+        self._recent.shift(self.weights @ self.positions - mean_before)
         if self.config.smooth_trajectory:
             self._fix_jumps.append((self._stats["iterations"], jump))
             self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
@@ -412,6 +424,7 @@ class FastSlam(Estimator[PointObservation]):
         draws = self._rng.standard_normal((n, 6)) @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
         R_T, t = fit.T_world_local[:3, :3], fit.T_world_local[:3, 3]
         self._frame_draws = draws
+        self._recent.transform(fit.T_world_local)
         turn = so3_exp(draws[:, 3:])  # (n, 3, 3)
         R = turn @ R_T  # (n, 3, 3): each particle's rotation local -> world
         offset = fit.centre + draws[:, :3] - np.einsum("pij,j->pi", turn, fit.centre)  # (n, 3)
@@ -802,6 +815,7 @@ class FastSlam(Estimator[PointObservation]):
         slot = np.arange(self._capacity)[None, :]
         lately = (self._last >= iteration - OLD_ITERATIONS) & (slot < self.counts[:, None])
         self.positions = self.positions + loop.shift
+        self._recent.shift(loop.shift)
         self.means += np.where(lately[:, :, None], loop.shift, 0.0)
         particles, slots = [], []
         for p in range(self.config.particles):
