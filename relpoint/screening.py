@@ -48,6 +48,10 @@ MIN_DEPTH_SIDE = 16
 #: Largest plausible fix coordinate (m): beyond the Earth-centred frame's reach.
 MAX_FIX_COORDINATE = 1e8
 
+#: Variance (m^2) given to a fix axis whose variance is zero while another's is not: unmeasured
+#: (:func:`relpoint.geometry.measured_basis` leaves it out), as a horizontal fix's altitude.
+UNMEASURED_VARIANCE = 1e12
+
 #: Largest plausible odometry speed (m/s) and turn rate (rad/s).
 MAX_SPEED = 1e4
 MAX_TURN_RATE = 1e3
@@ -64,6 +68,7 @@ class InputScreen:
     _ranges: np.ndarray = field(default_factory=lambda: np.zeros(RANGE_WINDOW))
     _filled: int = 0
     _next: int = 0
+    unmeasured_axes: int = 0  # fixes with an axis of zero variance taken as unmeasured
 
     def points(self, observation: PointObservation) -> PointObservation:
         """``observation`` without its implausible points (the same object when none is dropped)."""
@@ -119,7 +124,8 @@ class InputScreen:
 
     def fix(self, fix: PositionFix) -> PositionFix | None:
         """``fix``, or None (counted) when its position or covariance is not finite or implausible, or its
-        covariance is all zero (unknown)."""
+        covariance is all zero (unknown); an axis of zero variance beside positive ones is given
+        :data:`UNMEASURED_VARIANCE` (warned once)."""
         if (
             not np.all(np.isfinite(fix.position))
             or np.any(np.abs(fix.position) > MAX_FIX_COORDINATE)
@@ -133,6 +139,21 @@ class InputScreen:
             # override the filter, and the next make its covariance singular.
             self._count("fixes: no covariance", 1, "all position variances are zero: its noise is unknown")
             return None
+        variances = np.diag(fix.covariance)
+        if np.any(variances == 0):
+            # Zero beside positive variances: an axis the message does not fill (a horizontal GNSS fix's
+            # altitude, often a placeholder 0), not one measured exactly, which would pin the filter to
+            # the placeholder. It is given a variance that leaves it unmeasured.
+            zero = variances == 0
+            covariance = np.array(fix.covariance, dtype=np.float64)
+            covariance[zero, :] = 0.0
+            covariance[:, zero] = 0.0
+            covariance[zero, zero] = UNMEASURED_VARIANCE
+            self.unmeasured_axes += 1
+            if self.unmeasured_axes == 1:
+                log.warning("a position fix has zero variance on axis %s beside positive ones: that axis is "
+                            "taken as not measured", ", ".join("xyz"[i] for i in np.flatnonzero(zero)))  # fmt: skip
+            return PositionFix(fix.stamp_ns, fix.position, covariance)
         return fix
 
     def odometry(self, odometry: OdometryMeasurement) -> OdometryMeasurement | None:

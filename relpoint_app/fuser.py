@@ -32,6 +32,7 @@ from relpoint.errors import InputError, UsageError
 from relpoint.estimators import ESTIMATORS, SIMULATOR_SIGMA
 from relpoint.fusion import FusionConfig, FusionResult, fuse, matched_counts_from_map_growth
 from relpoint.fusion.segmented import RestartingEstimator, RestartRule
+from relpoint.screening import InputScreen
 from relpoint.types import LandmarkMap, RunResult
 from relpoint_app.roles import NEED_ROLES
 from relpoint_app.runner import drive
@@ -71,7 +72,8 @@ def fuse_run(
         observed, map_size, seconds = read_timing(run_dir / "timing.csv")
         if len(observed) != len(trajectory):
             raise InputError(f"{run_dir}: timing.csv has {len(observed)} rows for {len(trajectory)} poses")
-        fixes = [record.value for record in reader.records(["fix"])]
+        screen = InputScreen()  # as a run's fixes are: unusable ones dropped, unfilled axes unmeasured
+        fixes = [fix for fix in (screen.fix(record.value) for record in reader.records(["fix"])) if fix is not None]
         matched = matched_counts_from_map_growth(observed, map_size)
         result = fuse(trajectory, landmarks, matched, fixes, config, map_size=map_size)
         roles = ["fix"]

@@ -12,6 +12,7 @@ from relpoint.estimators._fix_smoothing import smoothed_on_fixes
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
 from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
 from relpoint.geometry import fit_rigid, fit_rigid_on_axes, fitted_parameters, measured_basis, so3_exp
+from relpoint.screening import UNMEASURED_VARIANCE, InputScreen
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PositionFix, Trajectory
 
@@ -19,9 +20,11 @@ DT_NS = 100_000_000
 UNKNOWN = 1e9  # ROS's variance for what a message does not measure
 
 
-def _horizontal_fix(stamp_ns: int, position: np.ndarray, sigma: float) -> PositionFix:
-    """A fix measuring x and y (``sigma`` m), its altitude a placeholder 0 of unknown variance."""
-    return PositionFix(stamp_ns, np.array([position[0], position[1], 0.0]), np.diag([sigma**2, sigma**2, UNKNOWN]))
+def _horizontal_fix(stamp_ns: int, position: np.ndarray, sigma: float, z_variance: float = UNKNOWN) -> PositionFix:
+    """A fix measuring x and y (``sigma`` m), its altitude a placeholder 0 of unknown variance (ROS's 1e9,
+    or a 0 the writer left unfilled)."""
+    covariance = np.diag([sigma**2, sigma**2, z_variance])
+    return PositionFix(stamp_ns, np.array([position[0], position[1], 0.0]), covariance)
 
 
 def test_measured_basis_leaves_out_axes_of_unknown_variance() -> None:
@@ -71,8 +74,9 @@ def test_smoothing_on_horizontal_fixes_leaves_the_altitude() -> None:
     np.testing.assert_allclose(smoothed.positions[:, :2] - positions[:, :2], [[0.3, -0.2]] * 50, atol=0.05)
 
 
+@pytest.mark.parametrize("z_variance", [UNKNOWN, 0.0])
 @pytest.mark.parametrize("name", ["ekf", "fastslam"])
-def test_filters_use_horizontal_fixes_in_a_turned_frame(name: str) -> None:
+def test_filters_use_horizontal_fixes_in_a_turned_frame(name: str, z_variance: float) -> None:
     yaw = np.radians(90.0)
     R = so3_exp(np.array([0.0, 0.0, yaw]))
     t = np.array([40.0, -10.0, 0.0])
@@ -82,7 +86,7 @@ def test_filters_use_horizontal_fixes_in_a_turned_frame(name: str) -> None:
         for step in sim.steps():
             yield step.observation
             if step.fix is not None:
-                yield _horizontal_fix(step.fix.stamp_ns, R @ step.fix.position + t, 0.5)
+                yield _horizontal_fix(step.fix.stamp_ns, R @ step.fix.position + t, 0.5, z_variance)
 
     if name == "ekf":
         estimator = EkfSlam(EkfConfig(observation_sigma=0.3))
@@ -141,3 +145,13 @@ def test_fixes_at_ten_per_iteration_keep_their_whole_span_and_pin_the_frame() ->
         assert len(stamps) <= frame.max_fixes and np.max(np.diff(stamps)) < 0.1 * (stamps[-1] - stamps[0])
     assert set(pinned) == {1, 10}
     assert pinned[10] <= pinned[1] + 5  # ten times the fixes pin it no later
+
+
+def test_an_unfilled_axis_of_zero_variance_is_taken_as_unmeasured() -> None:
+    screen = InputScreen()
+    fix = screen.fix(_horizontal_fix(0, np.array([1.0, 2.0, 3.0]), 0.2, z_variance=0.0))
+    assert fix is not None and fix.covariance[2, 2] == UNMEASURED_VARIANCE
+    np.testing.assert_allclose(fix.covariance[:2, :2], np.diag([0.04, 0.04]))
+    assert measured_basis([fix.covariance]).shape == (3, 2)
+    assert screen.unmeasured_axes == 1 and not screen.skipped
+    assert screen.fix(PositionFix(1, np.zeros(3), np.zeros((3, 3)))) is None  # all zero: unknown, dropped
