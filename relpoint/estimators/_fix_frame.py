@@ -51,10 +51,11 @@ from relpoint.geometry import (
     apply_transform,
     fit_rigid_on_axes,
     fitted_parameters,
-    measured_basis,
+    information_basis,
     skew,
     smallest_rotation,
     so3_exp,
+    summed_information,
 )
 from relpoint.lagrange import interpolate_fixes
 from relpoint.settings import Settings, setting
@@ -175,10 +176,14 @@ class FixFrame:
         self._fix_stamps: list[int] = []
         self._fix_positions: list[FloatArray] = []
         self._fix_covariances: list[FloatArray] = []
+        self._fix_information = np.zeros((3, 3))  # summed over the kept fixes (measured_basis)
         self._stamps: list[int] = []
         self._positions: list[FloatArray] = []
         self._covariances: list[FloatArray] = []
         self._provisional = np.eye(4)
+        # The pairs changed since the provisional transform was fitted: fitted again when next asked
+        # for (once an iteration at most, however many fixes arrived in it).
+        self._provisional_stale = False
         self._fixes_received = 0
         self._fixes_tried = 0
 
@@ -194,7 +199,7 @@ class FixFrame:
     @property
     def measured_basis(self) -> FloatArray:
         """The directions (3, k) the fixes kept so far measure (:func:`~relpoint.geometry.measured_basis`)."""
-        return measured_basis(self._fix_covariances)
+        return information_basis(self._fix_information)
 
     def add_fix(self, fix: PositionFix) -> None:
         """Keep a fix (one not after the last kept fix is dropped: the interpolation needs increasing stamps)."""
@@ -205,7 +210,8 @@ class FixFrame:
         self._fix_stamps.append(int(fix.stamp_ns))
         self._fix_positions.append(np.array(fix.position, dtype=np.float64))
         self._fix_covariances.append(np.array(fix.covariance, dtype=np.float64))
-        self._update_provisional()
+        self._fix_information += summed_information(self._fix_covariances[-1])
+        self._provisional_stale = True
 
     def _thin(self) -> None:
         """Keep about half the fixes, evenly spread in time over all of them (the first and the last
@@ -225,6 +231,7 @@ class FixFrame:
         chosen = np.unique(np.concatenate([[0, len(fix_stamps) - 1], chosen])).tolist()
         for kept in (self._fix_stamps, self._fix_positions, self._fix_covariances):
             kept[:] = [kept[i] for i in chosen]
+        self._fix_information = summed_information(self._fix_covariances)
         if not self._stamps:
             return
         stamps = np.asarray(self._stamps, dtype=np.int64)
@@ -246,7 +253,7 @@ class FixFrame:
         if len(self._fix_stamps) > self.max_fixes:
             self._thin()  # here, not in add_fix: the local position at the newest fix is now in
         if len(self._fix_stamps) == 1 or (self._fix_stamps and self._stamps[-1] <= self._fix_stamps[-1]):
-            self._update_provisional()  # otherwise the pairs, and so the transform, have not changed
+            self._provisional_stale = True  # otherwise the pairs, and so the transform, have not changed
 
     def update(self, stamp_ns: int, position: npt.ArrayLike, covariance: npt.ArrayLike) -> FrameFit | None:
         """:meth:`add_local`, then :meth:`fit` if a fix arrived since the last attempt (else ``None``)."""
@@ -259,6 +266,9 @@ class FixFrame:
     @property
     def provisional(self) -> FloatArray:
         """Best ``T_world_local`` (4, 4) so far, for the output before the frame is pinned (identity without fixes)."""
+        if self._provisional_stale:
+            self._update_provisional()
+            self._provisional_stale = False
         return self._provisional.copy()
 
     def _pairs(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
@@ -334,10 +344,11 @@ class FixFrame:
             return self.min_spread
         basis = self.measured_basis
         sigma = (
-            float(np.sqrt(np.mean([np.trace(basis.T @ c @ basis) / basis.shape[1] for c in self._fix_covariances])))
+            float(np.sqrt(np.mean(np.einsum("ai,nab,bi->n", basis, np.asarray(self._fix_covariances), basis))
+                          / basis.shape[1]))
             if self._fix_covariances
             else 0.0
-        )
+        )  # fmt: skip
         if sigma <= 0.0 and self._covariances:
             sigma = float(np.sqrt(max(np.mean([np.trace(c) / 3.0 for c in self._covariances]), 0.0)))
         return SPREAD_SIGMAS * max(sigma, MIN_SPREAD_NOISE)

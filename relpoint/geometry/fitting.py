@@ -107,11 +107,21 @@ def measured_basis(covariances: npt.ArrayLike) -> FloatArray:
     targets whose per-axis standard deviations are within a factor of 100 of each other, 2 for a
     horizontal fix whose altitude is a placeholder of unknown variance.
     """
+    return information_basis(summed_information(covariances))
+
+
+def summed_information(covariances: npt.ArrayLike) -> FloatArray:
+    """The summed information (3, 3) m^-2 of targets of ``covariances`` (n, 3, 3) m^2 (pseudo-inverses,
+    with a 1e-12 m^2 floor, so that an exact target counts as very well measured, not as a singularity)."""
     covs = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
-    if len(covs) == 0:
-        return np.eye(3)
-    information = np.mean(np.linalg.pinv(covs + 1e-12 * np.eye(3), hermitian=True), axis=0)
+    return np.sum(np.linalg.pinv(covs + 1e-12 * np.eye(3), hermitian=True), axis=0)
+
+
+def information_basis(information: FloatArray) -> FloatArray:
+    """The basis (3, k) of :func:`measured_basis` from summed (or mean) ``information`` (3, 3)."""
     values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+    if values.max() <= 0.0:  # no target yet
+        return np.eye(3)
     measured = values >= values.max() / UNMEASURED_RATIO**2
     return np.eye(3) if measured.all() else vectors[:, measured]  # every axis: the axes themselves
 
