@@ -473,18 +473,18 @@ def moved_to_final_frame(
 
     A particle filter pinned to the fixes' frame gives each particle its own draw from the fit's
     uncertainty (:meth:`relpoint.estimators.fastslam.FastSlam._pin_frame`); the later fixes select
-    among them, so the particles' mean draw at an iteration (``draws`` (K, 6), the pinning's own
-    transform before it: zeros) is the frame its mean pose was output in, and the mean draw when the
-    log ends (``final_draw``) is the frame every fix has informed. The frame is one constant of the
-    whole run, so its estimate at the end holds for every pose: each is moved by
-    ``F(final) F(draw_k)^-1`` (:func:`drawn_frame_transform`). Poses at other stamps are kept.
+    among them, so the particles' mean draw at an iteration (``draws`` (K, 6) at ``stamps_ns``) is
+    the frame its mean pose was output in, and the mean draw when the log ends (``final_draw``) is
+    the frame every fix has informed. The frame is one constant of the whole run, so its estimate at
+    the end holds for every pose: each is moved by ``F(final) F(draw_k)^-1``
+    (:func:`drawn_frame_transform`). A pose at another stamp (before the pinning: placed by the
+    pinning's own transform) was output under no draw and is moved by ``F(final)``.
     """
-    if len(stamps_ns) == 0:
-        return trajectory
     final = drawn_frame_transform(centre, final_draw)
-    matrices = trajectory.matrices().copy()
-    rows = np.minimum(np.searchsorted(trajectory.stamps_ns, stamps_ns), len(trajectory.stamps_ns) - 1)
-    found = trajectory.stamps_ns[rows] == stamps_ns
-    for row, draw in zip(rows[found], np.asarray(draws)[found], strict=True):
-        matrices[row] = final @ np.linalg.inv(drawn_frame_transform(centre, draw)) @ matrices[row]
-    return Trajectory.from_matrices(trajectory.stamps_ns, matrices)
+    moves = np.broadcast_to(final, (len(trajectory), 4, 4)).copy()
+    if len(stamps_ns):
+        rows = np.minimum(np.searchsorted(trajectory.stamps_ns, stamps_ns), len(trajectory.stamps_ns) - 1)
+        found = trajectory.stamps_ns[rows] == stamps_ns
+        for row, draw in zip(rows[found], np.asarray(draws)[found], strict=True):
+            moves[row] = final @ np.linalg.inv(drawn_frame_transform(centre, draw))
+    return Trajectory.from_matrices(trajectory.stamps_ns, moves @ trajectory.matrices())

@@ -213,8 +213,8 @@ class FastSlam(Estimator[PointObservation]):
         # (stamp ns, mean pose (local, 4 x 4)) of each iteration before the pinning: placed again by one
         # transform at the end (placed_in_one_frame)
         self._local_poses: list[tuple[int, FloatArray]] = []
-        # (stamp ns, the particles' mean frame draw (6,)) of each iteration: the frame its pose was
-        # output in, moved to the final one at the end (moved_to_final_frame)
+        # (stamp ns, the particles' mean frame draw (6,)) of each iteration after a pinning that drew:
+        # the frame its pose was output in, moved to the final one at the end (moved_to_final_frame)
         self._draw_means: list[tuple[int, FloatArray]] = []
         self._frame_refined: dict[str, float] = {}  # the final mean draw's size (run.json)
         self._smoothing: dict[str, Any] | None = None
@@ -290,8 +290,8 @@ class FastSlam(Estimator[PointObservation]):
                 self._pin_frame(fit)
             else:  # the local pose, placed again by one transform at the end
                 self._local_poses.append((observation.stamp_ns, self._mean_pose()))
-        if self.config.fix_alignment == "rigid":
-            self._draw_means.append((observation.stamp_ns, self.weights @ self._frame_draws))
+        if self._frame_fit is not None and self._frame_fit.covariance.any():  # draws only from an uncertain fit
+            self._draw_means.append((observation.stamp_ns, self.mean_frame_draw))
         self._recent.add(observation.stamp_ns, self.weights @ self.positions)
         return self.pose()
 
@@ -498,7 +498,7 @@ class FastSlam(Estimator[PointObservation]):
         the run skipped iterations, there is no smoothing (``smoothing`` in :meth:`summary` says so).
         """
         trajectory = placed_in_one_frame(trajectory, self._local_poses, self._frame_fit, self._frame)
-        if self._frame_fit is not None and self._draw_means:
+        if self._draw_means:
             stamps = np.array([stamp for stamp, _ in self._draw_means], dtype=np.int64)
             draws = np.stack([draw for _, draw in self._draw_means])
             final = self.mean_frame_draw
