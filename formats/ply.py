@@ -22,13 +22,16 @@ from relpoint.types import LandmarkMap
 COORDINATE_TOLERANCE = 1e-4
 
 
-def coordinate_dtype(positions: np.ndarray) -> np.dtype:
-    """``<f4`` when float32 holds ``positions`` (N, 3) m within :data:`COORDINATE_TOLERANCE`, else ``<f8``."""
+def stored_coordinates(positions: np.ndarray) -> np.ndarray:
+    """``positions`` (N, 3) m as float32 when that holds them within :data:`COORDINATE_TOLERANCE`, else
+    as float64 (non-finite values, which no storage rounds, are not counted)."""
     values = np.asarray(positions, dtype=np.float64)
-    finite = values[np.isfinite(values)]
-    if finite.size == 0 or np.max(np.abs(finite - finite.astype(np.float32))) <= COORDINATE_TOLERANCE:
-        return np.dtype("<f4")
-    return np.dtype("<f8")
+    single = values.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        error = np.abs(values - single)
+    if not np.any(error > COORDINATE_TOLERANCE):  # NaN compares False
+        return single
+    return values
 
 
 def write_ply(path: str | os.PathLike[str], vertices: np.ndarray, *, comments: list[str] | None = None) -> None:
@@ -65,9 +68,9 @@ def read_ply(path: str | os.PathLike[str]) -> np.ndarray:
 
 def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
     """A landmark map as PLY vertices: x, y, z float32 (float64 far from the origin:
-    :func:`coordinate_dtype`) and observations, dynamic, gt_id (and purity and first_iteration where known)."""
-    xyz = coordinate_dtype(landmarks.positions)
-    fields = [("x", xyz), ("y", xyz), ("z", xyz), ("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
+    :func:`stored_coordinates`) and observations, dynamic, gt_id (and purity and first_iteration where known)."""
+    xyz = stored_coordinates(landmarks.positions)
+    fields = [(axis, xyz.dtype) for axis in "xyz"] + [("observations", "<i4"), ("dynamic", "u1"), ("gt_id", "<i4")]
     if landmarks.purity is not None:
         fields.append(("purity", "<f4"))
     if landmarks.first_iteration is not None:
@@ -77,7 +80,7 @@ def landmark_vertices(landmarks: LandmarkMap) -> np.ndarray:
         vertices["purity"] = landmarks.purity
     if landmarks.first_iteration is not None:
         vertices["first_iteration"] = landmarks.first_iteration
-    vertices["x"], vertices["y"], vertices["z"] = landmarks.positions.T
+    vertices["x"], vertices["y"], vertices["z"] = xyz.T
     vertices["observations"] = landmarks.observations
     vertices["dynamic"] = landmarks.dynamic
     vertices["gt_id"] = landmarks.gt_id

@@ -17,7 +17,7 @@ import numpy as np
 
 from formats import ros2
 from formats.log import LogWriter, Topics, metadata_json
-from formats.ply import coordinate_dtype, write_ply
+from formats.ply import stored_coordinates, write_ply
 from relpoint.geometry import FloatArray
 from relpoint.types import DepthFrame, Pose
 
@@ -79,15 +79,15 @@ def dense_map_vertices(
 ) -> np.ndarray:
     """A dense map (``DenseFusion.dense_map()``) as PLY vertices for :func:`formats.ply.write_ply`.
 
-    Fields: x, y, z float32 (float64 far from the origin: :func:`formats.ply.coordinate_dtype`), nx, ny,
-    nz float32, red, green, blue uint8 and weight float32.
+    Fields: x, y, z float32 (float64 far from the origin: :func:`formats.ply.stored_coordinates`), nx,
+    ny, nz float32, red, green, blue uint8 and weight float32.
     """
-    xyz = coordinate_dtype(positions)
-    fields = [(n, xyz) for n in ("x", "y", "z")] + [(n, "<f4") for n in ("nx", "ny", "nz")]
+    xyz = stored_coordinates(positions)
+    fields = [(n, xyz.dtype) for n in ("x", "y", "z")] + [(n, "<f4") for n in ("nx", "ny", "nz")]
     fields += [("red", "u1"), ("green", "u1"), ("blue", "u1"), ("weight", "<f4")]
     vertices = np.empty(len(positions), dtype=fields)
     for k, name in enumerate(("x", "y", "z")):
-        vertices[name] = positions[:, k]
+        vertices[name] = xyz[:, k]
         vertices["n" + name] = normals[:, k]
     for k, name in enumerate(("red", "green", "blue")):
         vertices[name] = colors[:, k]

@@ -17,7 +17,7 @@ import numpy as np
 from formats import ros2
 from formats.atomic import atomic_directory, write_text
 from formats.log import LogWriter
-from formats.ply import coordinate_dtype, landmark_vertices, write_ply
+from formats.ply import landmark_vertices, stored_coordinates, write_ply
 from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
 from formats.trajectory_files import write_tum
@@ -42,9 +42,9 @@ def _packed_rgb(dynamic: np.ndarray) -> np.ndarray:
 
 
 def _xyz_columns(positions: np.ndarray) -> dict[str, np.ndarray]:
-    """FLOAT32 x, y, z fields, FLOAT64 far from the origin (:func:`formats.ply.coordinate_dtype`)."""
-    dtype = coordinate_dtype(positions)
-    return {axis: positions[:, i].astype(dtype) for i, axis in enumerate("xyz")}
+    """FLOAT32 x, y, z fields, FLOAT64 far from the origin (:func:`formats.ply.stored_coordinates`)."""
+    xyz = stored_coordinates(positions)
+    return {axis: xyz[:, i] for i, axis in enumerate("xyz")}
 
 
 def _map_columns(positions: np.ndarray, dynamic: np.ndarray) -> dict[str, np.ndarray]:

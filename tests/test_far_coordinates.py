@@ -11,7 +11,7 @@ import numpy as np
 from click.testing import CliRunner
 from mcap_ros2.reader import read_ros2_messages
 
-from formats.ply import coordinate_dtype, read_ply
+from formats.ply import read_ply, stored_coordinates
 from formats.pointcloud2 import Field, decode_cloud
 from formats.trajectory_files import read_tum
 from relpoint.simulation import SimulationConfig, simulate
@@ -23,9 +23,9 @@ UTM = np.array([500_000.0, 5_000_000.0, 100.0])
 
 
 def test_coordinates_are_float32_unless_that_rounds_them() -> None:
-    assert coordinate_dtype(np.array([[12.5, -3.25, 1.0], [4000.1, 2.0, 0.0]])) == np.dtype("<f4")
-    assert coordinate_dtype(UTM[None] + np.array([[0.123, 0.456, 0.789]])) == np.dtype("<f8")
-    assert coordinate_dtype(np.zeros((0, 3))) == np.dtype("<f4")
+    assert stored_coordinates(np.array([[12.5, -3.25, 1.0], [4000.1, 2.0, 0.0]])).dtype == np.dtype("<f4")
+    assert stored_coordinates(UTM[None] + np.array([[0.123, 0.456, 0.789]])).dtype == np.dtype("<f8")
+    assert stored_coordinates(np.zeros((0, 3))).dtype == np.dtype("<f4")
 
 
 def _utm_log(path: Path) -> None:
