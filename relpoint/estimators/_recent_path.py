@@ -36,8 +36,8 @@ class RecentPath:
     def __init__(self, length: int = HISTORY) -> None:
         self._stamps: deque[int] = deque(maxlen=length)
         self._positions: deque[FloatArray] = deque(maxlen=length)
-        self.carried = 0  # fixes carried forward
-        self.too_old = 0  # fixes older than every kept iteration
+        self.carried = 0  # fixes carried forward (stamped before the filter's time)
+        self.too_old = 0  # fixes older than every kept iteration (skipped by the filter)
 
     def add(self, stamp_ns: int, position: FloatArray) -> None:
         """The filter's position (3,) at an iteration's stamp (stamps increase)."""
@@ -81,3 +81,8 @@ class RecentPath:
         then = (1.0 - fraction) * positions[before] + fraction * positions[after]
         self.carried += 1
         return np.asarray(now, dtype=np.float64) - then
+
+    def summary(self) -> dict[str, int]:
+        """run.json figures: ``fixes_carried_forward`` and ``fixes_too_old``, each when there were any."""
+        counts = {"fixes_carried_forward": self.carried, "fixes_too_old": self.too_old}
+        return {key: count for key, count in counts.items() if count}

@@ -245,8 +245,7 @@ class EkfSlam(Estimator[PointObservation]):
         # A fix stamped before the state's time (a receiver's latency) is carried forward along the
         # filter's own motion since its stamp (relpoint.estimators._recent_path).
         moved = self._recent.displacement(fix.stamp_ns, self._stamp_ns, self._position)
-        if moved is None:
-            self._stats["fixes_too_old"] += 1
+        if moved is None:  # counted by the path (fixes_too_old)
             return
         if self._frame_fit is not None:
             self._add_drift()
@@ -297,6 +296,7 @@ class EkfSlam(Estimator[PointObservation]):
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
+            **self._recent.summary(),
             **({"smoothing": self._smoothing} if self._smoothing is not None else {}),
         }
 

@@ -323,8 +323,7 @@ class FastSlam(Estimator[PointObservation]):
         # filter's own motion since its stamp.
         now = self._stamp_ns if self._stamp_ns is not None else fix.stamp_ns
         moved = self._recent.displacement(fix.stamp_ns, now, self.weights @ self.positions)
-        if moved is None:
-            self._stats["fixes_too_old"] += 1
+        if moved is None:  # counted by the path (fixes_too_old)
             return
         fix_position = np.asarray(fix.position, dtype=np.float64) + moved
         P_fix = np.asarray(fix.covariance, dtype=np.float64)
@@ -481,6 +480,7 @@ class FastSlam(Estimator[PointObservation]):
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
+            **self._recent.summary(),
             **(self._drift_rate.summary() if self._drift_rate is not None and self._frame_fit is not None else {}),
             **self._frame_refined,
             **({"smoothing": self._smoothing} if self._smoothing is not None else {}),
