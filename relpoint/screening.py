@@ -55,6 +55,8 @@ UNMEASURED_VARIANCE = 1e12
 #: Largest plausible odometry speed (m/s) and turn rate (rad/s).
 MAX_SPEED = 1e4
 MAX_TURN_RATE = 1e3
+#: Names of the twist's axes, in ``nav_msgs/Odometry.twist.covariance`` order.
+TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 
 
 @dataclass
@@ -69,6 +71,7 @@ class InputScreen:
     _filled: int = 0
     _next: int = 0
     unmeasured_axes: int = 0  # fixes with an axis of zero variance taken as unmeasured
+    unset_odometry_axes: int = 0  # odometry messages with a twist variance of zero or below
 
     def points(self, observation: PointObservation) -> PointObservation:
         """``observation`` without its implausible points (the same object when none is dropped)."""
@@ -167,4 +170,11 @@ class InputScreen:
         ):
             self._count("odometry: non-finite or implausible", 1, f"twist {linear.tolist()} {angular.tolist()}")
             return None
+        if odometry.unset_axes.any():
+            # Zero is REP 145's "unknown", -1 some drivers'; the filters give those axes their motion
+            # model's noise (OdometryMeasurement.twist_covariance) rather than take them as exact.
+            self.unset_odometry_axes += 1
+            if self.unset_odometry_axes == 1:
+                log.warning("odometry leaves the variance of %s unset (zero or negative): the motion model's noise is "
+                            "used for them", ", ".join(np.array(TWIST_AXES)[odometry.unset_axes]))  # fmt: skip
         return odometry

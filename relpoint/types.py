@@ -287,6 +287,25 @@ class OdometryMeasurement:
             array.flags.writeable = False
             object.__setattr__(self, name, array)
 
+    @property
+    def unset_axes(self) -> npt.NDArray[np.bool_]:
+        """(6,) the twist axes whose variance the message leaves unset: zero (REP 145's "unknown") or
+        negative (drivers' -1)."""
+        return ~(np.diag(self.covariance) > 0)
+
+    def twist_covariance(self, fallback_variances: FloatArray) -> FloatArray:
+        """The (6, 6) twist covariance, with each unset axis (:attr:`unset_axes`) given its variance in
+        ``fallback_variances`` (6,) ((m/s)^2, (rad/s)^2) and no correlation with the others; taken
+        as exact, an unset axis would hold the filter to the odometry's every error."""
+        unset = self.unset_axes
+        if not unset.any():
+            return self.covariance
+        covariance = np.array(self.covariance, dtype=np.float64)
+        covariance[unset, :] = 0.0
+        covariance[:, unset] = 0.0
+        covariance[unset, unset] = np.asarray(fallback_variances, dtype=np.float64)[unset]
+        return covariance
+
 
 @dataclass(frozen=True, eq=False)
 class PositionFix:

@@ -39,8 +39,10 @@ def _pose(stamp: int, position: np.ndarray, quat: np.ndarray) -> dict:
                      "orientation": dict(zip("xyzw", map(float, quat), strict=True))}}  # fmt: skip
 
 
-def _odometry(stamp: int, linear: np.ndarray, angular: np.ndarray) -> dict:
-    covariance = np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]).reshape(-1).tolist()
+def _odometry(stamp: int, linear: np.ndarray, angular: np.ndarray, covariance: np.ndarray | None = None) -> dict:
+    if covariance is None:
+        covariance = np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])
+    covariance = np.asarray(covariance, dtype=np.float64).reshape(-1).tolist()
     twist = {"linear": dict(zip("xyz", map(float, linear), strict=True)),
              "angular": dict(zip("xyz", map(float, angular), strict=True))}  # fmt: skip
     return {"header": _header(stamp, "odom"), "child_frame_id": "sensor",
@@ -68,10 +70,12 @@ def write_log(
     spoil: Spoil | None = None,
     *,
     odometry: bool = False,
+    odometry_covariance: np.ndarray | None = None,
     fixes_every: int = 0,
 ) -> Path:
     """Write ``config``'s simulation with mcap-ros2-support; ``spoil(k, stamp, points, ids)`` may change
-    each iteration's stamp, points and ids first."""
+    each iteration's stamp, points and ids first; ``odometry_covariance`` (6, 6) replaces the twist
+    covariance of every odometry message."""
     simulation = simulate(config)
     with path.open("wb") as stream:
         writer = Ros2Writer(stream)
@@ -90,7 +94,8 @@ def write_log(
 
             write("/ground_truth/pose", ros2.POSE_STAMPED, _pose(stamp, position, quat))
             if odometry and step.odometry is not None:
-                write("/odom", ros2.ODOMETRY, _odometry(stamp, step.odometry.linear, step.odometry.angular))
+                write("/odom", ros2.ODOMETRY,
+                      _odometry(stamp, step.odometry.linear, step.odometry.angular, odometry_covariance))  # fmt: skip
             if fixes_every and k % fixes_every == 0:
                 write("/fix", ros2.POSE_WITH_COVARIANCE_STAMPED, _fix(stamp, position, 1.0))
             write("/points", ros2.POINT_CLOUD2, _cloud(stamp, points, ids))

@@ -86,6 +86,22 @@ def test_a_ten_year_stamp_gap_is_bridged(name: str, tmp_path: Path) -> None:
     assert "gap in the stamps" in err
 
 
+@pytest.mark.parametrize("name", ("ekf", "fastslam"))
+@pytest.mark.parametrize("variance", (-1.0, 0.0))
+def test_odometry_without_variances_is_weighed_by_the_motion_model(name: str, variance: float, tmp_path: Path) -> None:
+    # -1 (some drivers) or 0 (REP 145's "unknown") on the twist covariance's diagonal: taken as given,
+    # -1 made FastSLAM's particles run off by tens of kilometres and the EKF fail numerically, exit 0.
+    clean = write_log(tmp_path / "clean.mcap", CONFIG, odometry=True)
+    unset = write_log(tmp_path / "unset.mcap", CONFIG, odometry=True, odometry_covariance=np.eye(6) * variance)
+    for log in (clean, unset):
+        code, err = invoke("run", str(log), "--estimator", name, "-o", str(tmp_path / log.stem))
+        assert code == 0, err
+    assert err.count("odometry leaves the variance of vx, vy, vz, wx, wy, wz unset") == 1  # warned once
+    document = json.loads((tmp_path / "unset" / "run.json").read_text())
+    assert document["summary"]["iterations"] == CONFIG.iterations and "failed" not in " ".join(document["warnings"])
+    assert position_rmse(tmp_path / "unset") <= 1.5 * position_rmse(tmp_path / "clean") + 0.1
+
+
 class _Singular(Estimator):
     """Fails numerically on every third iteration."""
 

@@ -46,7 +46,7 @@ def _jit_kernels(monkeypatch: pytest.MonkeyPatch, cache: Path) -> ModuleType:
     return _jit_copy(monkeypatch, cache, _kernels.__file__, "relpoint_kernels_jit_copy")
 
 
-@pytest.mark.parametrize(("name", "count"), [("relative_point", 52), ("fastslam", 7)])
+@pytest.mark.parametrize(("name", "count"), [("relative_point", 52), ("fastslam", 8)])
 def test_every_kernel_declares_its_argument_types(name: str, count: int) -> None:
     module = KERNEL_MODULES[name]
     source = inspect.getsource(module)
@@ -149,7 +149,7 @@ def _run_fastslam_kernels(kernels: ModuleType, case: dict[str, np.ndarray], prop
     offsets, slots = kernels.near_slots(c["points"], c["positions"], c["rotations"], c["means"], c["counts"], 2.0)
     assoc, log_likelihood, paired, discarded = kernels.associate(
         c["points"], offsets, slots, c["positions"], c["rotations"], c["twists"], c["means"], c["covs"], c["counts"],
-        c["Q"], c["Sigma"], proposal, -8.0, -14.0,
+        c["Q"], c["Sigma"], proposal, -8.0, -14.0, proposal,
     )  # fmt: skip
     seen, last = np.zeros(c["means"].shape[:2], dtype=np.int64), np.zeros(c["means"].shape[:2], dtype=np.int64)
     kernels.update_landmarks(c["points"], assoc, c["positions"], c["rotations"], c["means"], c["covs"], c["Q"], seen,

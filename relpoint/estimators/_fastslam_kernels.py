@@ -149,6 +149,17 @@ def _inverse_and_logdet3(L, out):  # pragma: no cover - compiled
     return math.log(abs(det))
 
 
+@kernel("f8[:, ::1]")
+def _logdet3(S):  # pragma: no cover - compiled
+    """``log|det S|`` of a 3x3 matrix."""
+    det = (
+        S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1])
+        - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
+        + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0])
+    )
+    return math.log(abs(det))
+
+
 @kernel("f8[:, ::1], f8[::1]")
 def _rotate_by(R, w):  # pragma: no cover - compiled
     """``R @ Exp(w)`` in place for a rotation vector ``w`` (rad), Rodrigues' formula."""
@@ -175,10 +186,11 @@ def _rotate_by(R, w):  # pragma: no cover - compiled
 
 @kernel(
     "f8[:, ::1], i8[::1], i8[::1], f8[:, ::1], f8[:, :, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, :, :, ::1], i8[::1], "
-    "f8[:, ::1], f8[:, :, ::1], b1, f8, f8"
+    "f8[:, ::1], f8[:, :, ::1], b1, f8, f8, b1"
 )
 def associate(
-    points, offsets, slots, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal, log_new, log_start
+    points, offsets, slots, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal, log_new, log_start,
+    wide_prior,
 ):  # pragma: no cover - compiled
     """Maximum-likelihood association of each point in each particle, one point at a time.
 
@@ -186,8 +198,14 @@ def associate(
     ``i`` and particle ``p`` every candidate slot ``j`` (``slots[offsets[i]:offsets[i + 1]]``) not yet
     taken in ``p`` gets ``log N(z_i; R^T (m - x), L)`` with ``L = R^T C R + Q``, plus ``H Sigma H^T``
     when ``proposal``, where ``H = [-R^T, [z_hat]x, 0]`` (3, 12). The best one is paired when its
-    log-likelihood reaches ``log_new``, the point is discarded (-2) when it reaches ``log_start`` only,
-    and otherwise starts a landmark (-1). With ``proposal`` each pairing moves the particle's pose and
+    *pairing score* reaches ``log_new``, the point is discarded (-2) when it reaches ``log_start`` only,
+    and otherwise starts a landmark (-1). The score is the log-likelihood, except under a
+    ``wide_prior`` (with ``proposal``: the first step, whose speed is unknown): there the determinant
+    of ``R^T C R + Q`` replaces ``L``'s, so that the prior's spread ``H Sigma H^T`` widens the search
+    through the distance without lowering the score; it is the same for every point, and the first
+    pairings narrow it. (Judged by the likelihood, the initial speed's prior over a 1 cm sensor put
+    every candidate below ``log_new``: nothing paired and the pose was drawn blind from the prior.)
+    With ``proposal`` each pairing moves the particle's pose and
     twist by the EKF correction ``K nu``, ``K = Sigma H^T L^-1``, and updates ``Sigma`` by the Joseph
     form ``(I - K H) Sigma (I - K H)^T + K S K^T``, evaluated left to right as numpy does (``H`` is
     zero beyond its first six columns, so only six of ``Sigma``'s rows and columns enter each product
@@ -233,6 +251,7 @@ def associate(
             R = rotations[p]
             Sg = Sigma[p]
             best = -math.inf
+            best_score = -math.inf
             best_slot = -1
             for c in range(first, last):
                 j = slots[c]
@@ -272,6 +291,7 @@ def associate(
                 logl = -0.5 * (quad + logdet + 3.0 * _LOG_2PI)
                 if logl > best:
                     best = logl
+                    best_score = -0.5 * (quad + _logdet3(S_m) + 3.0 * _LOG_2PI) if proposal and wide_prior else logl
                     best_slot = j
                     for a in range(3):
                         best_nu[a] = nu[a]
@@ -284,7 +304,7 @@ def associate(
                                 best_HS[a, b] = HS[a, b]
                             for b in range(6):
                                 best_A[a, b] = A[a, b]
-            if best_slot >= 0 and best >= log_new:
+            if best_slot >= 0 and best_score >= log_new:
                 assoc[p, i] = best_slot
                 used[p, best_slot] = True
                 log_likelihood[p] += best
@@ -328,7 +348,7 @@ def associate(
                                 + (KL[a, 0] * K[b, 0] + KL[a, 1] * K[b, 1] + KL[a, 2] * K[b, 2])
                             )
             else:
-                if best_slot >= 0 and best >= log_start:
+                if best_slot >= 0 and best_score >= log_start:
                     assoc[p, i] = -2
                 log_likelihood[p] += log_new
     paired = 0

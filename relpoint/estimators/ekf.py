@@ -450,7 +450,10 @@ class EkfSlam(Estimator[PointObservation]):
         if self._odometry is not None:
             # Eq. 7: X(k+1) = F(X(k), U(k) + noise); the held odometry twist is the input U.
             u = np.concatenate([self._odometry.linear, self._odometry.angular])
-            Q_u = np.asarray(self._odometry.covariance)
+            # axes the message leaves unset take the constant-velocity model's noise over the interval
+            Q_u = self._odometry.twist_covariance(
+                np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            )
             p, R, F_pose, G = twist_step(self._position, self._rotation, u[:3], u[3:], dt)
             F[:6, :6] = F_pose
             if nv == 12:

@@ -241,7 +241,7 @@ class FastSlam(Estimator[PointObservation]):
         # 1.0 samples the motion model, except while the initial twist is unknown: a blind draw from
         # its wide prior (initial_speed_sigma) leaves most particles metres off after one step.
         proposal = self.config.variant == "2.0" or self._twist_unknown
-        self._twist_unknown = False
+        wide_prior, self._twist_unknown = self._twist_unknown, False
         prior = Sigma
         if not proposal:
             self._apply_sample(Sigma)
@@ -249,7 +249,7 @@ class FastSlam(Estimator[PointObservation]):
         points = np.asarray(observation.points)
         if self._mover_test is not None:
             self._mover_test.widen(self.covs, self._moving)
-        assoc, log_likelihood, Sigma, near = self._associate(points, Sigma, proposal)
+        assoc, log_likelihood, Sigma, near = self._associate(points, Sigma, proposal, wide_prior)
         if proposal:
             self._apply_sample(Sigma)
         if self._frame_fit is not None:
@@ -559,7 +559,10 @@ class FastSlam(Estimator[PointObservation]):
         if self._odometry is not None:
             u = np.concatenate([self._odometry.linear, self._odometry.angular])
             twist = np.broadcast_to(u, (n, 6))
-            Q_twist = np.asarray(self._odometry.covariance)
+            # axes the message leaves unset take the constant-velocity model's noise over the interval
+            Q_twist = self._odometry.twist_covariance(
+                np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            )
         else:
             twist = self.twists
             q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
@@ -600,7 +603,7 @@ class FastSlam(Estimator[PointObservation]):
     # --------------------------------------------------------------------------------- association
 
     def _associate(
-        self, points: FloatArray, Sigma: FloatArray, proposal: bool
+        self, points: FloatArray, Sigma: FloatArray, proposal: bool, wide_prior: bool = False
     ) -> tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]:
         """Maximum-likelihood association of each point in each particle, one point at a time.
 
@@ -609,7 +612,8 @@ class FastSlam(Estimator[PointObservation]):
         slot, -1 for a new landmark, -2 for a discarded point), each particle's log-likelihood of the
         points (N,), the proposal covariance after the points (when ``proposal``, i.e. 2.0: each
         paired point refines the pose prior ``Sigma`` and moves the particle's pose) and the
-        candidates (CSR ``offsets, slots`` per point). Compiled loops:
+        candidates (CSR ``offsets, slots`` per point). ``wide_prior`` (the first step, speed unknown):
+        the prior's spread does not count against a pairing. Compiled loops:
         :func:`relpoint.estimators._fastslam_kernels.associate`.
         """
         points = np.array(points, dtype=np.float64)  # a writeable copy: one compiled variant per kernel
@@ -623,7 +627,7 @@ class FastSlam(Estimator[PointObservation]):
         Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
         assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
             points, offsets, slots, positions, rotations, twists, self.means, self.covs, counts, self._Q, Sigma,
-            proposal, float(self._log_new), float(self._log_start),
+            proposal, float(self._log_new), float(self._log_start), wide_prior,
         )  # fmt: skip
         self.positions, self.rotations, self.twists = positions, rotations, twists
         self._stats["paired"] += int(paired)
