@@ -360,6 +360,12 @@ class OversizedMessage(InputError):
     kind = "oversized messages"
 
 
+class UnsupportedEncoding(InputError):
+    """An image in a valid encoding that relpoint does not read (skipped and counted)."""
+
+    kind = "unsupported encodings"
+
+
 def _check_image_size(what: str, width: int, height: int) -> None:
     if width * height > MAX_IMAGE_PIXELS:
         raise OversizedMessage(f"{what} of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
@@ -416,11 +422,12 @@ def msg_to_fix(message: Any) -> PositionFix:
 
 
 def msg_to_intrinsics(message: Any) -> Intrinsics:
-    """Pinhole intrinsics from a CameraInfo's ``k``."""
+    """Pinhole intrinsics from a CameraInfo's ``k``, with its distortion model and coefficients ``d``."""
     k = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
     _check_image_size("camera_info", int(message.width), int(message.height))
     try:
-        return Intrinsics(int(message.width), int(message.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        return Intrinsics(int(message.width), int(message.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+                          str(message.distortion_model), tuple(np.asarray(message.d, dtype=np.float64).tolist()))  # fmt: skip
     except ValueError as error:
         raise InputError(f"unusable camera_info: {error}") from None
 
@@ -448,16 +455,27 @@ def msg_to_depth(message: Any) -> np.ndarray:
     return depth
 
 
+#: Colour encodings read (REP 104 names): channels per pixel and where R, G, B are among them.
+COLOUR_ENCODINGS = {
+    "rgb8": (3, (0, 1, 2)), "bgr8": (3, (2, 1, 0)), "rgba8": (4, (0, 1, 2)), "bgra8": (4, (2, 1, 0)),
+    "mono8": (1, (0, 0, 0)),
+}  # fmt: skip
+
+
 def msg_to_rgb(message: Any) -> np.ndarray:
-    """An (H, W, 3) uint8 RGB array from an ``rgb8`` or ``bgr8`` Image."""
+    """An (H, W, 3) uint8 RGB array from an ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8`` (alpha dropped) or
+    ``mono8`` (grey repeated) Image."""
     height, width, step = int(message.height), int(message.width), int(message.step)
     encoding = str(message.encoding).lower()
-    if encoding not in ("rgb8", "bgr8"):
-        raise InputError(f"colour image encoding {message.encoding!r} is not rgb8 or bgr8")
+    if encoding not in COLOUR_ENCODINGS:
+        raise UnsupportedEncoding(
+            f"colour image encoding {message.encoding!r} is not one of {', '.join(COLOUR_ENCODINGS)}"
+        )
+    channels, order = COLOUR_ENCODINGS[encoding]
     data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
-    if step < width * 3 or step * height > data.size:
+    if step < width * channels or step * height > data.size:
         raise InputError(f"colour image header ({width}x{height}, step {step}) does not match its {data.size} bytes")
     _check_image_size("colour image", width, height)
-    rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * 3), strides=(step, 1))
-    rgb = np.ascontiguousarray(rows).reshape(height, width, 3)
-    return rgb[..., ::-1].copy() if encoding == "bgr8" else rgb
+    rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * channels), strides=(step, 1))
+    pixels = np.ascontiguousarray(rows).reshape(height, width, channels)
+    return pixels if order == (0, 1, 2) and channels == 3 else np.ascontiguousarray(pixels[..., list(order)])

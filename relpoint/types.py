@@ -334,8 +334,23 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+    distortion_model: str = ""
+    """``sensor_msgs/CameraInfo.distortion_model`` (``plumb_bob``, ``rational_polynomial``, ``equidistant``);
+    empty for an ideal pinhole."""
+    distortion: tuple[float, ...] = ()
+    """The model's coefficients (CameraInfo's ``d``); empty for an ideal pinhole (all zero is stored empty)."""
+
+    @property
+    def distorted(self) -> bool:
+        """Whether the images carry lens distortion (a non-zero coefficient)."""
+        return any(c != 0.0 for c in self.distortion)
 
     def __post_init__(self) -> None:
+        distortion = tuple(float(c) for c in self.distortion)
+        if not any(c != 0.0 for c in distortion):  # all zero is an ideal pinhole, whatever the model's name
+            distortion = ()
+            object.__setattr__(self, "distortion_model", "")
+        object.__setattr__(self, "distortion", distortion)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         if not (np.isfinite([self.fx, self.fy, self.cx, self.cy]).all() and self.fx > 0 and self.fy > 0):

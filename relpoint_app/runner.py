@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint.estimators.base import Estimator
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
+from relpoint.undistortion import Undistortion, undistortion
 from relpoint_app.roles import NEED_ROLES
 
 log = logging.getLogger(__name__)
@@ -56,36 +57,107 @@ def build_config(
     return spec.build_config(values, params)
 
 
+@dataclasses.dataclass(frozen=True)
+class _HeldDepth:
+    """A depth image waiting for the colour image of its stamp."""
+
+    stamp_ns: int
+    depth: np.ndarray
+    intrinsics: Intrinsics
+
+
+#: Largest stamp difference (ns) between a depth image and the colour image paired with it: the
+#: contract asks for equal stamps; cameras that stamp their streams apart stay within a frame or so.
+COLOUR_PAIRING_NS = 20_000_000
+
+
 def estimator_inputs(records: Iterator[Record], skipped: Counter[str] | None = None) -> Iterator[Any]:
-    """Core-type inputs for the pipeline from decoded log records.
+    """Core-type inputs for the pipeline from decoded log records, in the records' order.
 
     Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
-    colour image of the same stamp (colour is written before depth at a stamp); depth images that
-    arrive before any camera_info, or that do not match its size, are skipped, counted in ``skipped``
-    and reported once.
+    colour image nearest in stamp within :data:`COLOUR_PAIRING_NS` (before or after the depth image in
+    the log: a depth image waits until the log has passed that window); depth images that arrive
+    before any camera_info, or that do not match its size, are skipped, counted in ``skipped`` and
+    reported once, as are colour images of another size than their depth image.
     """
     skipped = Counter() if skipped is None else skipped
     intrinsics: Intrinsics | None = None
-    color: tuple[int, np.ndarray] | None = None
+    colours: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
+    held: deque[Any] = deque()  # depth images (_HeldDepth) waiting for their colour, and the inputs after them
+
+    def colour_for(stamp_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
+        near = [(abs(stamp - stamp_ns), rgb) for stamp, rgb in colours if abs(stamp - stamp_ns) <= COLOUR_PAIRING_NS]
+        if not near:
+            return None
+        rgb = min(near, key=lambda pair: pair[0])[1]
+        if rgb.shape[:2] != shape:
+            kind = "color: images of another size than the depth image"
+            if kind not in skipped:
+                log.warning("not colouring the depth image at %d ns: its colour image is %dx%d, the depth %dx%d "
+                            "(colour must be registered to depth); further ones are counted in run.json",
+                            stamp_ns, rgb.shape[1], rgb.shape[0], shape[1], shape[0])  # fmt: skip
+            skipped[kind] += 1
+            return None
+        return rgb
+
+    maps: dict[Intrinsics, Undistortion | None] = {}
+
+    def undistorted(frame: DepthFrame) -> DepthFrame:
+        if not frame.intrinsics.distorted:
+            return frame
+        if frame.intrinsics not in maps:
+            try:
+                maps[frame.intrinsics] = undistortion(frame.intrinsics)
+                log.info("the camera_info declares %s distortion: depth and colour are undistorted",
+                         frame.intrinsics.distortion_model)  # fmt: skip
+            except ValueError as error:
+                maps[frame.intrinsics] = None
+                log.warning("the camera_info's %s is not a distortion relpoint can take out: the images are used "
+                            "as if from an ideal pinhole", error)  # fmt: skip
+        undo = maps[frame.intrinsics]
+        if undo is None:
+            return frame
+        color = None if frame.color is None else undo.color(frame.color)
+        return DepthFrame(frame.stamp_ns, undo.depth(frame.depth), undo.pinhole, color)
+
+    def release(now_ns: int | None) -> Iterator[Any]:
+        while held:
+            item = held[0]
+            if isinstance(item, _HeldDepth):
+                if now_ns is not None and now_ns <= item.stamp_ns + COLOUR_PAIRING_NS:
+                    return
+                yield undistorted(DepthFrame(item.stamp_ns, item.depth, item.intrinsics,
+                                             colour_for(item.stamp_ns, item.depth.shape)))  # fmt: skip
+            else:
+                yield item
+            held.popleft()
+
     for record in records:
+        yield from release(record.stamp_ns)
         if record.role in ("points", "odometry", "fix"):
-            yield record.value
+            if held:
+                held.append(record.value)
+            else:
+                yield record.value
         elif record.role == "camera_info":
             intrinsics = record.value
         elif record.role == "color":
-            color = (record.stamp_ns, record.value)
+            colours.append((record.stamp_ns, record.value))
         elif record.role == "depth":
             if intrinsics is None or record.value.shape != (intrinsics.height, intrinsics.width):
                 kind = "depth: images without a matching camera_info"
                 if kind not in skipped:
-                    log.warning("skipping a depth image at %d ns: no matching camera_info before it; further "
-                                "ones are counted in run.json", record.stamp_ns)  # fmt: skip
+                    if intrinsics is None:
+                        detail = "no camera_info before it"
+                    else:
+                        detail = (f"it is {record.value.shape[1]}x{record.value.shape[0]}, the camera_info "
+                                  f"{intrinsics.width}x{intrinsics.height}")  # fmt: skip
+                    log.warning("skipping a depth image at %d ns: %s; further ones are counted in run.json",
+                                record.stamp_ns, detail)  # fmt: skip
                 skipped[kind] += 1
                 continue
-            rgb = color[1] if color is not None and color[0] == record.stamp_ns else None
-            if rgb is not None and rgb.shape[:2] != record.value.shape:
-                rgb = None
-            yield DepthFrame(record.stamp_ns, record.value, intrinsics, rgb)
+            held.append(_HeldDepth(record.stamp_ns, record.value, intrinsics))
+    yield from release(None)
 
 
 def input_roles(

@@ -19,12 +19,17 @@ from relpoint_cli.errors import handle_errors
 from relpoint_cli.topics import topic_options, topics_from
 
 
-def capabilities(available: set[str]) -> dict[str, Any]:
-    """Which estimators can run and which evaluations are possible with the roles ``available``."""
+def capabilities(available: set[str], unusable: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """Which estimators can run and which evaluations are possible with the roles ``available``, of
+    which those in ``unusable`` are present without a usable item (every cloud empty or invalid)."""
     estimators = {}
     for name in sorted(ESTIMATORS):
         needs, also = ESTIMATORS.inputs(name)  # without importing the estimator
-        missing = [role for need in needs for role in NEED_ROLES.get(need, (need,)) if role not in available]
+        missing = [
+            role if role not in available else f"{role}: none usable"
+            for need in needs for role in NEED_ROLES.get(need, (need,))
+            if role not in available or role in unusable
+        ]  # fmt: skip
         uses = [need for need in sorted(also) if all(r in available for r in NEED_ROLES.get(need, (need,)))]
         estimators[name] = {"can_run": not missing, "missing": missing, "also_uses": uses}
     return {
@@ -128,7 +133,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         **storage_document(storage, reader.topic_infos),
         "topics": topics,
         "observations": observations,
-        **capabilities(available),
+        **capabilities(
+            available, frozenset({"points"}) if observations and not observations["points_max"] else frozenset()
+        ),
         "reference_topics": reference_topics,
         "tf_topics": tf_topics,
     }
@@ -171,7 +178,10 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     if not document["estimators"]:
         click.echo("  (none installed)")
     for name, cap in document["estimators"].items():
-        state = "can run" if cap["can_run"] else f"cannot run (missing {', '.join(cap['missing'])})"
+        absent = [role for role in cap["missing"] if not role.endswith(": none usable")]
+        empty = [role.split(":")[0] for role in cap["missing"] if role.endswith(": none usable")]
+        reasons = ([f"missing {', '.join(absent)}"] if absent else []) + [f"no usable {role}" for role in empty]
+        state = "can run" if cap["can_run"] else f"cannot run ({'; '.join(reasons)})"
         extra = f"; uses {', '.join(cap['also_uses'])}" if cap["also_uses"] and cap["can_run"] else ""
         click.echo(f"  {name:<10} {state}{extra}")
     trajectory = (

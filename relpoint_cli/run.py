@@ -96,8 +96,10 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()
         skipped = sum(reader.skipped.values()) + sum(result.skipped.values())
+        mapped = (f"{len(result.dense_map[0])} map points" if result.dense_map is not None
+                  else f"{len(result.landmarks)} landmarks")  # fmt: skip
         click.echo(
-            f"{spec.name}: {timing['iterations']} iterations, {len(result.landmarks)} landmarks, "
+            f"{spec.name}: {timing['iterations']} iterations, {mapped}, "
             f"{timing['seconds_median'] * 1e3:.2f} ms median per iteration"
             + (f", {timing['seconds_finish']:.2f} s final adjustment" if timing["seconds_finish"] >= 0.01 else "")
             + (f", {skipped} unusable items skipped" if skipped else "")

@@ -390,3 +390,52 @@ def test_a_frame_that_moves_beyond_max_step_counts_as_lost() -> None:
     assert result.summary["lost_frames"] == 5
     np.testing.assert_allclose(result.trajectory.positions, 0.0, atol=1e-12)  # held at the first pose
     assert DenseConfig().max_step == 0.5
+
+
+# --- frames and images as other cameras and tools write them ------------------------------------------
+
+
+def test_the_map_starts_at_the_first_frame_with_depth() -> None:
+    # A camera's first frames are often empty: the map waited for nothing before (every later frame was
+    # "lost" against an empty map, exit 0 with no map).
+    sim = simulate_rgbd(RgbdConfig(frames=8, seed=2))
+    frames = list(sim.frames())
+    empty = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in frames[:2]]
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    poses = [estimator.step(frame) for frame in empty + frames[2:]]
+    summary = estimator.summary()
+    assert summary["frames_before_map"] == 2 and summary["lost_frames"] == 0 and summary["map_points"] > 0
+    T_world_start = sim.poses[2]  # the map's world is the first usable frame's camera
+    for pose, T_world_camera in zip(poses[2:], sim.poses[2:], strict=True):
+        truth = invert_pose(T_world_start) @ T_world_camera
+        assert np.linalg.norm(pose.as_matrix()[:3, 3] - truth[:3, 3]) < 0.01
+
+
+@pytest.mark.parametrize(("scale", "cause"), [(5.0, "beyond max_depth 4 m"), (0.0, "no depth at all")])
+def test_a_log_without_usable_depth_fails_naming_its_depths(scale: float, cause: str) -> None:
+    from relpoint.errors import EstimatorError
+
+    sim = simulate_rgbd(RgbdConfig(frames=3, seed=2))
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    poses = [estimator.step(dataclasses.replace(f, depth=f.depth * np.float32(scale))) for f in sim.frames()]
+    with pytest.raises(EstimatorError, match=cause):
+        estimator.finish(Trajectory.from_poses(poses))
+
+
+def test_undistortion_moves_a_distorted_pixel_to_its_pinhole_place() -> None:
+    import cv2
+
+    from relpoint.undistortion import undistortion
+
+    k = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0, "plumb_bob", (0.15, -0.3, 0.001, -0.002, 0.0))
+    point = np.array([[0.9, -0.6, 2.0]])  # camera frame, metres
+    distorted, _ = cv2.projectPoints(point, np.zeros(3), np.zeros(3), k.matrix(), np.asarray(k.distortion))
+    u, v = np.rint(distorted.reshape(2)).astype(int)
+    depth = np.zeros((480, 640), np.float32)
+    depth[v - 1 : v + 2, u - 1 : u + 2] = 2.0  # a 3x3 patch where the lens put the point
+    undo = undistortion(k)
+    assert undo is not None and not undo.pinhole.distorted and undistortion(undo.pinhole) is None
+    rows, cols = np.nonzero(undo.depth(depth))
+    pinhole = (k.fx * point[0, 0] / point[0, 2] + k.cx, k.fy * point[0, 1] / point[0, 2] + k.cy)
+    assert abs(cols.mean() - pinhole[0]) < 1.0 and abs(rows.mean() - pinhole[1]) < 1.0
+    assert set(np.unique(undo.depth(depth))) == {0.0, 2.0}  # nearest pixel: no depth is blended

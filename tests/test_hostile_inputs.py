@@ -281,11 +281,26 @@ def test_info_on_a_log_whose_every_cloud_is_unreadable_says_so(tmp_path: Path, m
     result = CliRunner().invoke(cli, ["info", str(log)])
     assert result.exit_code == 0, result.output
     assert "no cloud could be read" in result.output and "two fields named 'x'" in result.output
+    assert "ekf        cannot run (no usable points)" in result.output  # as run then says (below)
     result = CliRunner().invoke(cli, ["info", str(log), "--json"])
-    observations = json.loads(result.stdout)["observations"]
+    document = json.loads(result.stdout)
+    observations = document["observations"]
     assert observations["points_mean"] is None and sum(observations["skipped"].values()) == 5
+    assert not any(cap["can_run"] for name, cap in document["estimators"].items())
     code, err = invoke("run", str(log), "-e", "ekf", "-o", str(tmp_path / "out"))
     assert code == 3 and err.strip().splitlines()[-1].startswith("relpoint: error: the log holds no usable"), err
+
+
+def test_info_on_a_log_of_empty_clouds_says_nothing_can_run(tmp_path: Path) -> None:
+    def empty(k: int, stamp: int, points: np.ndarray, ids: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+        return stamp, points[:0], ids[:0]
+
+    log = write_log(tmp_path / "empty.mcap", SimulationConfig(iterations=5, density=25, seed=1), empty)
+    result = CliRunner().invoke(cli, ["info", str(log)])
+    assert result.exit_code == 0, result.output
+    for name in ("ekf", "fastslam", "relpoint"):
+        assert f"{name:<10} cannot run (no usable points)" in result.output
+    assert "dense      cannot run (missing depth, camera_info)" in result.output
 
 
 def test_the_run_line_counts_what_run_json_counts(tmp_path: Path) -> None:

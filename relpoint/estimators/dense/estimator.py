@@ -172,6 +172,9 @@ class DenseFusion(Estimator[DepthFrame]):
         self.removed_points = 0
         self.last_track: Any = None
         self._radial: npt.NDArray[np.float32] | None = None
+        # Frames before the map could start (too few depths in range), and what their depths were.
+        self.frames_before_map = 0
+        self._unused_depths: list[float] = []
 
     # -- frames ------------------------------------------------------------------------------------
 
@@ -243,6 +246,8 @@ class DenseFusion(Estimator[DepthFrame]):
         self._input_points += int(level0.valid.sum())
 
         if self._T_world_camera is None:
+            if int(level0.valid.sum()) < self.config.min_correspondences:
+                return self._before_map(frame, int(level0.valid.sum()))
             T_world_camera = np.eye(4)
         else:
             sources = self._source_levels()
@@ -256,11 +261,11 @@ class DenseFusion(Estimator[DepthFrame]):
             else:
                 # Held, and not fused: a frame placed at a pose it was not tracked to would corrupt the map.
                 self.lost_frames += 1
-                logger.warning(
-                    "frame %d: tracking failed (%d pairs); pose held, frame not fused",
-                    self._frames,
-                    result.correspondences,
-                )
+                if step is not None:
+                    reason = f"ICP moved it {float(np.linalg.norm(step[:3, 3])):.2f} m, beyond max_step {self.config.max_step:g} m"
+                else:
+                    reason = f"ICP ended with {result.correspondences} pairs (min_correspondences {self.config.min_correspondences})"
+                logger.warning("frame %d: tracking failed (%s); pose held, frame not fused", self._frames, reason)
                 self._frames += 1
                 self._last_stamp = frame.stamp_ns
                 return Pose.from_matrix(frame.stamp_ns, self._T_world_camera)
@@ -287,6 +292,44 @@ class DenseFusion(Estimator[DepthFrame]):
         self._frames += 1
         self._last_stamp = frame.stamp_ns
         return Pose.from_matrix(frame.stamp_ns, T_world_camera)
+
+    def _before_map(self, frame: DepthFrame, usable: int) -> Pose:
+        """A frame with too few depths in range to start the map (a camera's first frames are often
+        empty): not fused, its pose the identity; the map starts at the first usable frame."""
+        depth = frame.depth[np.isfinite(frame.depth) & (frame.depth > 0)]
+        if depth.size:
+            self._unused_depths.append(float(np.median(depth)))
+        if self.frames_before_map == 0:
+            logger.warning(
+                "frame %d: %d pixels with depth in %g-%g m, fewer than min_correspondences %d: the map starts "
+                "at the first frame that has enough", self._frames, usable, self.config.min_depth,
+                self.config.max_depth, self.config.min_correspondences,
+            )  # fmt: skip
+        self.frames_before_map += 1
+        self._frames += 1
+        self._last_stamp = frame.stamp_ns
+        return Pose.from_matrix(frame.stamp_ns, np.eye(4))
+
+    def finish(self, trajectory: Any) -> Any:
+        """The trajectory as it is; fails (:class:`EstimatorError`, naming the depths it saw) when no frame
+        could start the map."""
+        if self._T_world_camera is None and self.frames_before_map:
+            if self._unused_depths:
+                median = float(np.median(self._unused_depths))
+                seen = f"their median depth is {median:.2f} m"
+                if median > self.config.max_depth:
+                    seen += (f", beyond max_depth {self.config.max_depth:g} m: a 16UC1 image holds millimetres "
+                             "(REP 118); convert another unit (TUM's 5000 per metre) when writing the log, or "
+                             "raise --param max_depth")  # fmt: skip
+                elif median < self.config.min_depth:
+                    seen += f", below min_depth {self.config.min_depth:g} m: check the depth unit, or lower --param min_depth"
+            else:
+                seen = "they hold no depth at all (every pixel 0 or NaN)"
+            raise EstimatorError(
+                f"no depth frame of {self.frames_before_map} had {self.config.min_correspondences} pixels with depth "
+                f"in {self.config.min_depth:g}-{self.config.max_depth:g} m to start the map; {seen}"
+            )
+        return trajectory
 
     # -- outputs -----------------------------------------------------------------------------------
 
@@ -315,6 +358,7 @@ class DenseFusion(Estimator[DepthFrame]):
             "input_points": self._input_points,
             "compression_ratio": points / self._input_points if self._input_points else 0.0,
             "lost_frames": self.lost_frames,
+            "frames_before_map": self.frames_before_map,
             "predicted_frames": self.predicted_frames,
             "icp_iterations_per_frame": self._icp_iterations / max(self._frames - 1, 1),
             "removed_unstable_points": self.removed_points,

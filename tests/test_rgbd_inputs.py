@@ -1,0 +1,82 @@
+"""Depth and colour images as other tools write them: colour after depth, other encodings, other sizes."""
+
+from __future__ import annotations
+
+from collections import Counter
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from formats.log import Record
+from formats.ros2 import UnsupportedEncoding, msg_to_rgb
+from relpoint.types import DepthFrame, Intrinsics
+from relpoint_app.runner import COLOUR_PAIRING_NS, estimator_inputs
+
+INTRINSICS = Intrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
+
+
+def _depth(stamp: int) -> Record:
+    return Record("depth", stamp, np.full((3, 4), 1.5, np.float32))
+
+
+def _colour(stamp: int, value: int, shape: tuple[int, int] = (3, 4)) -> Record:
+    return Record("color", stamp, np.full((*shape, 3), value, np.uint8))
+
+
+def _frames(records: list[Record], skipped: Counter[str] | None = None) -> list[DepthFrame]:
+    return [x for x in estimator_inputs(iter([Record("camera_info", 0, INTRINSICS), *records]), skipped)]
+
+
+def test_colour_is_paired_whether_it_comes_before_or_after_its_depth_image() -> None:
+    # The contract asks for equal stamps, not an order: colour written after depth was dropped.
+    ms = 1_000_000
+    frames = _frames([_colour(10 * ms, 1), _depth(10 * ms), _depth(43 * ms), _colour(43 * ms, 2),
+                      _depth(76 * ms), _colour(80 * ms, 3), _depth(200 * ms)])  # fmt: skip
+    assert [f.stamp_ns for f in frames] == [10 * ms, 43 * ms, 76 * ms, 200 * ms]
+    assert [None if f.color is None else int(f.color[0, 0, 0]) for f in frames] == [1, 2, 3, None]
+    assert 20 * ms == COLOUR_PAIRING_NS  # 4 ms apart is paired, 120 ms is not
+
+
+def test_inputs_keep_their_order_while_a_depth_image_waits_for_its_colour() -> None:
+    ms = 1_000_000
+    fix = Record("fix", 12 * ms, "a fix")
+    out = list(
+        estimator_inputs(iter([Record("camera_info", 0, INTRINSICS), _depth(10 * ms), fix, _colour(10 * ms, 7)]))
+    )
+    assert isinstance(out[0], DepthFrame) and out[0].color is not None and out[1] == "a fix"
+
+
+def test_colour_of_another_size_is_left_out_and_counted() -> None:
+    skipped: Counter[str] = Counter()
+    frames = _frames([_depth(0), _colour(0, 5, shape=(6, 8))], skipped)
+    assert frames[0].color is None and skipped["color: images of another size than the depth image"] == 1
+
+
+def _image(encoding: str, channels: int, padding: int = 0) -> SimpleNamespace:
+    rng = np.random.default_rng(0)
+    pixels = rng.integers(0, 256, (3, 4, channels), dtype=np.uint8)
+    rows = np.concatenate([pixels.reshape(3, -1), np.zeros((3, padding), np.uint8)], axis=1)
+    message = SimpleNamespace(height=3, width=4, step=4 * channels + padding, encoding=encoding, data=rows.reshape(-1))
+    return message, pixels
+
+
+@pytest.mark.parametrize(
+    ("encoding", "channels", "order"),
+    [
+        ("rgb8", 3, [0, 1, 2]),
+        ("bgr8", 3, [2, 1, 0]),
+        ("rgba8", 4, [0, 1, 2]),
+        ("bgra8", 4, [2, 1, 0]),
+        ("mono8", 1, [0, 0, 0]),
+    ],
+)
+def test_colour_encodings_are_read_as_rgb(encoding: str, channels: int, order: list[int]) -> None:
+    message, pixels = _image(encoding, channels, padding=3)
+    np.testing.assert_array_equal(msg_to_rgb(message), pixels[..., order])
+
+
+def test_an_unread_colour_encoding_is_named_as_unsupported() -> None:
+    message, _ = _image("yuv422", 2)
+    with pytest.raises(UnsupportedEncoding, match="yuv422"):
+        msg_to_rgb(message)
