@@ -125,13 +125,21 @@ def test_fastslam_fused_particle_variance_is_below_both_inputs() -> None:
     _drive(slam, steps)
     assert slam.frame_fit is not None
     before_positions, before = slam.positions.copy(), slam._frame_cov.copy()
+    before_rotations = slam.rotations.copy()
     fix = PositionFix(steps[-1].stamp_ns, before_positions.mean(axis=0) + np.array([2.0, 0.0, -1.0]), np.eye(3) * 0.5)
     slam.add_fix(fix)
     expected_positions, expected = fuse_estimates(
         before_positions, before, np.tile(fix.position, (10, 1)), fix.covariance
     )
-    np.testing.assert_allclose(slam.positions, expected_positions, atol=1e-9)
+    # The frame's share of the correction is a turn about the fit's centre (pose, heading and map
+    # together), the rest a shift: to first order the position is eq. 31-32's; the turn's second
+    # order is millimetres here (measured up to 7 mm, 100 m from the centre).
+    np.testing.assert_allclose(slam.positions, expected_positions, atol=0.02)
     np.testing.assert_allclose(slam._frame_cov, expected, atol=1e-12)
+    turned = np.degrees(
+        np.linalg.norm(Rotation.from_matrix(slam.rotations @ np.swapaxes(before_rotations, 1, 2)).as_rotvec(), axis=1)
+    )
+    assert (turned > 1e-3).all() and (turned < 5.0).all()
     for p in range(10):
         for other in (before[p], fix.covariance):
             assert np.linalg.eigvalsh(other - slam._frame_cov[p]).min() > 0
@@ -148,10 +156,11 @@ def test_ekf_short_run_with_fixes_ends_closer_to_truth() -> None:
     assert np.sqrt(np.mean(with_fixes[-40:] ** 2)) < 2.0
 
 
-@pytest.mark.parametrize(("variant", "bound", "ratio"), [("2.0", 2.5, 0.1), ("1.0", 16.0, 0.5)])
+@pytest.mark.parametrize(("variant", "bound", "ratio"), [("2.0", 3.0, 0.1), ("1.0", 16.0, 0.5)])
 def test_fastslam_short_run_with_fixes_ends_closer_to_truth(variant: str, bound: float, ratio: float) -> None:
-    # 10 particles with fixes, 5 without, pinned at iteration 121. 2.0 ends 1.2-4.5 m from the truth
-    # with fixes over seeds 1-12 (median 1.77 m; 2.05 m with the association in numpy), 27-28 m without;
+    # 10 particles with fixes, 5 without, pinned at iteration 121, one fix after it. 2.0 ends 1.2-3.7 m
+    # from the truth with fixes over seeds 1-20 (median 2.31 m, mean 2.25 m; 2.12 and 2.11 m before a
+    # fix turned the particles' frame, which keeps the heading with the fixes on longer runs), 27-28 m without;
     # 1.0 ends 7.0-15.1 m off (45-58 m without): its motion-model proposal turns the map in a way the
     # fixes correct only slowly. One seed alone is a coin toss for both, and so is a median of three
     # (seeds 1-3 of 2.0 end 1.7-3.7 m off), so both bounds are on the median over five seeds.

@@ -109,7 +109,8 @@ _SLOT_ARRAYS = {
 """Attributes indexed by particle and landmark slot, with the value of an empty slot: capacity grows
 and a dropped landmark's gap closes in each of them."""
 #: Attributes indexed by particle; resampling copies each of them.
-_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", "_frame_draws", *_SLOT_ARRAYS)
+_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", "_frame_draws",
+                    "_frame_param_cov", *_SLOT_ARRAYS)  # fmt: skip
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
@@ -170,6 +171,9 @@ class FastSlam(Estimator[PointObservation]):
         # Each particle's draw (dt (m), dphi (rad)) from the frame fit's uncertainty at the pinning
         # (zeros before it): resampled with the particle, so the fixes' selection among the draws shows.
         self._frame_draws = np.zeros((n, 6))
+        # Each particle's uncertainty of its frame (dt (m), dphi (rad)) about the fit's centre, from the
+        # pinning on: a fix corrects the frame (turning the particle's pose and whole map) by its share.
+        self._frame_param_cov = np.zeros((n, 6, 6))
         # The rate the particles' place in world drifts at between fixes (m/m): fix_drift, or measured
         # on the fused fixes' innovations when it is unset (relpoint.estimators._drift_rate).
         self._drift_rate = DriftRate(DRIFT_PRIOR) if cfg.fix_drift is None else None
@@ -341,6 +345,7 @@ class FastSlam(Estimator[PointObservation]):
             # particles' covariance that grows, until the fix lies on the gate's edge, and the fix
             # pulls them by the gain that follows. Inflating the fix's covariance instead left the
             # drifted particles where they were (figure8-gaps: 9-28 m against 1.6-2.2 m).
+            # (the frame's own uncertainty is not what grew: the turn below stays its share)
             C = C * self._filter_inflation(nu, C, P_fix)
             S = C + P_fix + np.eye(3) * 1e-12
             S_inv = np.linalg.inv(S)
@@ -354,11 +359,23 @@ class FastSlam(Estimator[PointObservation]):
         # moves the particle's pose and the landmarks it saw lately together, as one local frame.
         K = C @ S_inv
         shift = np.einsum("pij,pj->pi", K, nu)
+        # The share of the frame's own uncertainty (a turn about the fit's centre, which a position
+        # alone cannot correct) moves the particle rigidly, pose, heading and whole map: shifted
+        # alone, the positions followed the fixes while the heading kept the fit's error, and every
+        # landmark seen since was placed along it (2-3 deg on a 60 m pass, 1.5 m at 30 m range).
+        J = self._frame_fit.perturbation_jacobian(self.positions)  # (n, 3, 6)
+        J_t = np.swapaxes(J, 1, 2)
+        K_frame = self._frame_param_cov @ J_t @ S_inv  # (n, 6, 3)
+        correction = np.einsum("pij,pj->pi", K_frame, nu)  # (n, 6): (dt, dphi)
+        self._turn_frames(correction)
+        shift = shift - np.einsum("pij,pj->pi", J, correction)  # what the frame's turn did not move
         self.positions = self.positions + shift
         recent = self._last >= self._stats["iterations"] - self.config.fix_window
         self.means += np.where(recent[:, :, None], shift[:, None, :], 0.0)
         fused = C - K @ C
         self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
+        frame_fused = self._frame_param_cov - K_frame @ J @ self._frame_param_cov
+        self._frame_param_cov = 0.5 * (frame_fused + np.swapaxes(frame_fused, 1, 2))
         self._stats["fixes"] += 1
         # The jump of the mean position (weights and positions both moved), but for the change of the
         # particles' mean frame draw, which finish() takes out for every pose alike.
@@ -372,6 +389,28 @@ class FastSlam(Estimator[PointObservation]):
         if self.config.smooth_trajectory:
             self._fix_jumps.append((self._stats["iterations"], jump))
             self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
+
+    def _turn_frames(self, correction: FloatArray) -> None:
+        """Move each particle ``p`` rigidly by ``correction[p] = (dt, dphi)`` about the fit's centre ``c``
+        (``x -> c + Exp(dphi) (x - c) + dt``): its pose and every landmark; its frame draw composes."""
+        from scipy.spatial.transform import Rotation  # here, not at import: only fused fixes need it
+
+        assert self._frame_fit is not None
+        c = self._frame_fit.centre
+        turn = so3_exp(correction[:, 3:])  # (n, 3, 3)
+        self.positions = c + np.einsum("pij,pj->pi", turn, self.positions - c) + correction[:, :3]
+        self.rotations = turn @ self.rotations
+        self.means = c + np.einsum("pij,pmj->pmi", turn, self.means - c) + correction[:, None, :3]
+        self.covs = turn[:, None] @ self.covs @ np.swapaxes(turn, 1, 2)[:, None]
+        draws = self._frame_draws
+        composed = turn @ so3_exp(draws[:, 3:])
+        self._frame_draws = np.concatenate(
+            [
+                np.einsum("pij,pj->pi", turn, draws[:, :3]) + correction[:, :3],
+                Rotation.from_matrix(composed).as_rotvec(),
+            ],
+            axis=1,
+        )
 
     @property
     def _fix_drift(self) -> float:
@@ -434,6 +473,7 @@ class FastSlam(Estimator[PointObservation]):
         self.covs = R[:, None] @ self.covs @ np.swapaxes(R, 1, 2)[:, None]
         J = fit.perturbation_jacobian(self.positions)
         self._frame_cov = J @ fit.covariance @ np.swapaxes(J, 1, 2)
+        self._frame_param_cov = np.broadcast_to(fit.covariance, (n, 6, 6)).copy()
         if self._drift_rate is not None:
             self._drift_rate.start(float(self.weights @ np.trace(self._frame_cov, axis1=1, axis2=2)) / 3.0)
         self._Sigma[:, :3, :] = np.einsum("pij,pjk->pik", R, self._Sigma[:, :3, :])
