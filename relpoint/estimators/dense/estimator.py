@@ -32,6 +32,10 @@ from relpoint.types import DepthFrame, LandmarkMap, Pose
 
 logger = logging.getLogger(__name__)
 
+STABLE_SHARE = 0.25
+"""Finer ICP levels track against the stable map points only when they are at least this share of the
+points rendered there (fewer, and they would pin the pose to a corner of the view)."""
+
 
 @dataclass(frozen=True)
 class DenseConfig(Settings):
@@ -94,7 +98,8 @@ class DenseConfig(Settings):
     """Keller et al.'s radial confidence: a measurement at normalised distance ``r`` from the image centre
     is fused with weight ``exp(-r^2 / (2 sigma^2))`` (0 = weight 1 everywhere, the paper's rule)."""
     track_min_weight: float = setting(2.0, low=0)
-    """Only map points with at least this weight are ICP sources (0 = all), unless too few remain."""
+    """Only map points with at least this weight are ICP sources at the finer pyramid levels (0 = all),
+    unless they are under a quarter of the rendered points; the coarsest level takes every rendered point."""
     max_weight: float = setting(100.0, above=0)
     """Weights stop growing here (so that the map keeps adapting)."""
     min_depth: float = setting(0.1, low=0, high=1e3)
@@ -188,15 +193,25 @@ class DenseFusion(Estimator[DepthFrame]):
         )  # fmt: skip
 
     def _source_levels(self) -> list[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]]:
+        """Per pyramid level, the ICP source: (3, N_l) world positions and normals of the map points rendered
+        at the last pose, every ``2**level * source_stride``-th pixel.
+
+        The coarsest level takes every rendered point: it sets the basin of convergence, and under fast
+        motion the stable points (seen in earlier frames too) are a shrinking part of the last view, while
+        the coarse averaging already damps the noise of points seen once. Finer levels take the stable
+        points unless they are fewer than ``STABLE_SHARE`` of those rendered (a share, so that the choice
+        does not depend on the image size).
+        """
         assert self._model_index is not None
         out = []
+        coarsest = self.config.pyramid_levels - 1
         for level in range(self.config.pyramid_levels):
             stride = 2**level * self.config.source_stride
             ids = self._model_index[::stride, ::stride].reshape(-1)
             ids = ids[ids >= 0]
-            if self.config.track_min_weight > 0:
+            if self.config.track_min_weight > 0 and level < coarsest:
                 stable = ids[self.map.weights[ids] >= self.config.track_min_weight]
-                if len(stable) >= 10 * self.config.min_correspondences:
+                if len(stable) >= max(STABLE_SHARE * len(ids), self.config.min_correspondences):
                     ids = stable
             out.append((np.take(self.map.positions, ids, axis=1), np.take(self.map.normals, ids, axis=1)))
         return out
