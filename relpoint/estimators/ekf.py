@@ -606,12 +606,13 @@ class EkfSlam(Estimator[PointObservation]):
     def _association_collapsed(self, assignment: np.ndarray, may_start: np.ndarray, expected: int) -> None:
         """Count an iteration whose association collapsed even under the widest process noise; warn the first time."""
         if not self._stats["association_collapsed"]:
+            scale = self.config.collapse_noise_scale
             logger.warning(
                 "association collapsed at iteration %d: %d of the %d landmarks seen just before paired and %d points "
-                "start landmarks, also under %g x the process noise; the map may hold duplicates from here "
-                "(association_collapsed in run.json counts such iterations): raise the motion noise or give odometry",
-                self._stats["iterations"], np.count_nonzero(assignment >= 0), expected,
-                np.count_nonzero(may_start), self.config.collapse_noise_scale,
+                "start landmarks%s; the map may hold duplicates from here (association_collapsed in run.json counts "
+                "such iterations): raise linear_acceleration_noise / angular_acceleration_noise, or give odometry",
+                self._stats["iterations"], np.count_nonzero(assignment >= 0), expected, np.count_nonzero(may_start),
+                f", also under {scale:g} x the process noise" if scale > 1.0 else " (collapse_noise_scale 1: no retry)",
             )  # fmt: skip
         self._stats["association_collapsed"] += 1
 
