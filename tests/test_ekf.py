@@ -439,3 +439,38 @@ def test_rigid_consensus_keeps_a_slid_keypoint_out_of_the_update() -> None:
         if consensus:
             assert ekf.summary()["consensus_rejected"] == 1
     assert np.linalg.norm(poses[True]) < 0.01 < np.linalg.norm(poses[False])
+
+
+def _turn_run(config: EkfConfig) -> tuple[EkfSlam, float]:
+    """A straight leg at 4 m/s, then a turn at 1 rad/s from one observation to the next (10 Hz, 0.1 m
+    noise, 15 m range); returns the filter and its final position error (m)."""
+    rng = np.random.default_rng(0)
+    landmarks = rng.uniform([-20.0, -25.0, -3.0], [40.0, 25.0, 3.0], size=(300, 3))
+    position, rotation = np.zeros(3), np.eye(3)
+    ekf = EkfSlam(config)
+    for i in range(60):
+        turn_rate = 1.0 if i > 30 else 0.0
+        if i:
+            position, rotation, _, _ = twist_step(position, rotation, np.array([4.0, 0.0, 0.0]),
+                                                  np.array([0.0, 0.0, turn_rate]), 0.1)  # fmt: skip
+        local = (landmarks - position) @ rotation
+        seen = local[np.linalg.norm(local, axis=1) < 15.0]
+        ekf.step(PointObservation(i * DT_NS, seen + rng.normal(0.0, 0.1, seen.shape)))
+    return ekf, float(np.linalg.norm(np.array(ekf.pose().position) - position))
+
+
+def test_a_turn_that_starts_at_once_is_followed_by_widening_the_prediction(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level("WARNING", logger="relpoint.estimators.ekf"):
+        ekf, error = _turn_run(EkfConfig(observation_sigma=0.1))
+    summary = ekf.summary()
+    assert summary["association_widened"] >= 1
+    assert summary["association_collapsed"] == 0
+    assert error < 0.1
+    assert not caplog.records
+    # Without the retry the points of the turn's first iterations start duplicates, and a warning says so.
+    with caplog.at_level("WARNING", logger="relpoint.estimators.ekf"):
+        stiff, stiff_error = _turn_run(EkfConfig(observation_sigma=0.1, collapse_noise_scale=1.0))
+    assert stiff.summary()["association_collapsed"] >= 1
+    assert stiff.summary()["landmarks"] > summary["landmarks"] + 20
+    assert stiff_error > 2 * error
+    assert len([r for r in caplog.records if "association collapsed" in r.getMessage()]) == 1

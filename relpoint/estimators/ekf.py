@@ -80,6 +80,9 @@ MOVER_RECENT = 3
 #: Landmarks are only taken for movers while at least this many landmarks match, and more of the
 #: recently seen ones match than not (otherwise the filter's pose is off, and every landmark seems to move).
 MOVER_MIN_MATCHED = 8
+#: An association that pairs fewer than this fraction of the landmarks the last observation saw has
+#: collapsed (when more points would also start landmarks than pair): see ``_associate_or_widen``.
+COLLAPSE_FRACTION = 0.5
 
 
 class EkfSlam(Estimator[PointObservation]):
@@ -116,6 +119,9 @@ class EkfSlam(Estimator[PointObservation]):
             self._P[6:9, 6:9] = np.eye(3) * self.config.initial_speed_sigma**2
             self._P[9:12, 9:12] = np.eye(3) * self.config.initial_turn_rate_sigma**2
         self._stamp_ns: int | None = None
+        # The process noise (nv, nv) the predictions since the last observation added, carried to its stamp.
+        self._step_noise = np.zeros((self._nv, self._nv))
+        self._seen_last = 0  # landmarks the last observation with points paired or started
         # The positions of the latest iterations, to carry a fix stamped before the state's time to it.
         self._recent = RecentPath()
         self._odometry: OdometryMeasurement | None = None
@@ -123,6 +129,8 @@ class EkfSlam(Estimator[PointObservation]):
         self._id_votes: list[Counter[int]] = []
         self._known: dict[int, int] = {}
         self._stats = Counter[str]()
+        self._stats["association_widened"] = 0  # iterations re-associated under wider process noise (run.json)
+        self._stats["association_collapsed"] = 0  # ... and those whose association collapsed all the same
         if self.config.rigid_consensus:
             self._stats["consensus_rejected"] = 0  # pairs the rigid consensus left out (run.json)
         if self.config.association == "jcbb":
@@ -173,7 +181,7 @@ class EkfSlam(Estimator[PointObservation]):
         if len(points):
             if self._mover_test is not None:
                 self._widen(np.flatnonzero(self._moving))
-            assignment, may_start = self._associate(observation)
+            assignment, may_start = self._associate_or_widen(observation)
             to_moving = np.zeros(len(points), dtype=bool)
             to_moving[assignment >= 0] = self._moving[assignment[assignment >= 0]]
             if self._mover_test is not None:
@@ -203,6 +211,8 @@ class EkfSlam(Estimator[PointObservation]):
                 self._start_tracks(points[moved_points], moved, observation.ids, moved_points)
             if self._vanished is not None:
                 self._drop_vanished(points, len(fresh))
+            self._seen_last = len(paired) + len(fresh)
+            self._step_noise[:] = 0.0
             self._stats["paired"] += len(paired)
             self._stats["started"] += len(fresh)
             self._stats["discarded"] += len(points) - len(paired) - len(fresh)
@@ -433,6 +443,7 @@ class EkfSlam(Estimator[PointObservation]):
                 )
             return
         F, Q = self._motion(dt)
+        self._step_noise = F @ self._step_noise @ F.T + Q
         nv = self._nv
         P = self._P
         P_vv = F @ P[:nv, :nv] @ F.T + Q
@@ -558,6 +569,62 @@ class EkfSlam(Estimator[PointObservation]):
             followed, _ = nearest_neighbour(moving_d2, self._gate)
             assignment = np.where(followed >= 0, followed, assignment)
         return assignment, may_start & (assignment < 0)
+
+    def _associate_or_widen(self, observation: PointObservation) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_associate`, again under wider process noise when the association collapses.
+
+        The motion model holds the twist between observations; a turn that starts or stops at once
+        (a turn-rate step of 1 rad/s against 0.5 rad/s^2 of acceleration noise) puts the true pose
+        outside the predicted covariance, the points fall outside every gate and start duplicates
+        of the landmarks they are, and the filter never learns the new twist. Collapsed: fewer than
+        ``COLLAPSE_FRACTION`` of the landmarks the last observation saw pair, and more points would
+        start landmarks than pair. The predictions since the last association are then taken again
+        with 2, 4, ... up to ``collapse_noise_scale`` times the standard deviation of their process
+        noise (the same Jacobians, so ``P``'s vehicle block gains ``(scale^2 - 1) Q``), and the
+        first association that pairs ``COLLAPSE_FRACTION`` of them is kept, with its covariance;
+        when none does, the prediction is restored, and the iteration is counted and warned about.
+        Iterations that do not collapse are untouched: the noise is widened only when the data
+        contradict the motion model as a whole, never pair by pair.
+        """
+        assignment, may_start = self._associate(observation)
+        scale = self.config.collapse_noise_scale
+        expected = min(self._seen_last, len(observation.points))
+        if self.config.association == "known" or not self._collapsed(assignment, may_start, expected):
+            return assignment, may_start
+        nv = self._nv
+        predicted = self._P[:nv, :nv].copy()
+        for tried in np.minimum(2.0 ** np.arange(1, np.ceil(np.log2(scale)) + 1), scale):  # 2, 4, ..., scale
+            self._P[:nv, :nv] = predicted + (tried**2 - 1.0) * self._step_noise
+            widened, widened_start = self._associate(observation)
+            if np.count_nonzero(widened >= 0) >= COLLAPSE_FRACTION * expected:
+                self._stats["association_widened"] += 1
+                return widened, widened_start
+        self._P[:nv, :nv] = predicted
+        self._association_collapsed(assignment, may_start, expected)
+        return assignment, may_start
+
+    def _association_collapsed(self, assignment: np.ndarray, may_start: np.ndarray, expected: int) -> None:
+        """Count an iteration whose association collapsed even under the widest process noise; warn the first time."""
+        if not self._stats["association_collapsed"]:
+            scale = self.config.collapse_noise_scale
+            logger.warning(
+                "association collapsed at iteration %d: %d of the %d landmarks seen just before paired and %d points "
+                "start landmarks%s; the map may hold duplicates from here (association_collapsed in run.json counts "
+                "such iterations): raise linear_acceleration_noise / angular_acceleration_noise, or give odometry",
+                self._stats["iterations"], np.count_nonzero(assignment >= 0), expected, np.count_nonzero(may_start),
+                f", also under {scale:g} x the process noise" if scale > 1.0 else " (collapse_noise_scale 1: no retry)",
+            )  # fmt: skip
+        self._stats["association_collapsed"] += 1
+
+    @staticmethod
+    def _collapsed(assignment: np.ndarray, may_start: np.ndarray, expected: int) -> bool:
+        """Whether an association pairs too few of the ``expected`` landmarks and starts more than it pairs."""
+        paired = np.count_nonzero(assignment >= 0)
+        return (
+            expected >= CONSENSUS_MIN_PAIRS
+            and paired < COLLAPSE_FRACTION * expected
+            and np.count_nonzero(may_start) > paired
+        )
 
     def _widen(self, landmarks: np.ndarray) -> None:
         """Widen the covariance blocks of moving ``landmarks`` (:meth:`MotionTest.widen`): process noise

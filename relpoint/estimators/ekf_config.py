@@ -83,6 +83,14 @@ class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
     """Constant-velocity model: white linear acceleration noise (m/s^2)."""
     angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity model: white angular acceleration noise (rad/s^2)."""
+    collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
+    """When an iteration's association collapses (fewer than half the landmarks the last observation
+    saw pair, and more points would start landmarks than pair: the motion changed faster than the
+    process noise allows, as when a turn starts at once), its prediction is taken again with 2, 4,
+    ... up to this many times the standard deviation of the process noise (motion model or
+    odometry), and the first association that pairs half of them is kept, before any landmark
+    starts. ``association_widened`` in ``run.json`` counts those iterations, and
+    ``association_collapsed`` (with a warning) those that collapse all the same. 1: no retry."""
     initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
     """Constant-velocity model: prior standard deviation of the initial linear velocity (m/s)."""
     initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
