@@ -175,6 +175,9 @@ def run(
     if summary.get("lost_frames"):
         warnings.append(f"{estimator.name} lost tracking in {summary['lost_frames']} of {len(stamps)} frames "
                         "(each held at the last pose and not fused)")  # fmt: skip
+    if summary.get("association_collapsed"):
+        warnings.append(f"{estimator.name}: the association collapsed in {summary['association_collapsed']} of "
+                        f"{len(stamps)} iterations (the map may hold duplicates from there)")  # fmt: skip
     for warning in warnings:
         log.warning("%s", warning)
     return RunResult(
