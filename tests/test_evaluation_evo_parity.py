@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -416,6 +418,18 @@ def _landmark_case() -> tuple[LandmarkMap, GroundTruthLandmarks]:
         gt_id=np.array([10, 11, 11, -1, 14, 12]),
     )
     return estimated, truth
+
+
+def test_a_map_without_ids_gets_nearest_neighbour_figures_not_false_landmarks() -> None:
+    # A log whose clouds carry no `id` field: every landmark was counted false and the mapped fraction 0.
+    estimated, truth = _landmark_case()
+    estimated = dataclasses.replace(estimated, gt_id=np.full(len(estimated), -1))
+    s = landmark_metrics(estimated, truth).summary
+    assert s["lm_matched"] == 0 and all(math.isnan(s[k]) for k in ("lm_false", "lm_mapped_fraction", "lm_err_rmse"))
+    # static landmarks (the first four) to the nearest static truth: 0.1, 0.2, 0.4 and |(9, 9, 9) - (0, 0, 1)|
+    nearest = np.array([0.1, 0.2, 0.4, np.linalg.norm([9.0, 9.0, 8.0])])
+    assert s["lm_nn_rmse"] == pytest.approx(np.sqrt(np.mean(nearest**2)))
+    assert s["lm_nn_max"] == pytest.approx(nearest.max())
 
 
 def test_landmark_metrics_on_crafted_case() -> None:

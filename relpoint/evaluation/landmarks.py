@@ -162,4 +162,34 @@ def landmark_metrics(
     # Without movers in the ground truth there is nothing to detect: the figures do not apply.
     precision, recall = precision_recall(landmarks.dynamic, gt_dynamic) if ground_truth.dynamic.any() else (NAN, NAN)
     summary["dyn_precision"], summary["dyn_recall"] = precision, recall
+    if m and not np.any(landmarks.gt_id >= 0):
+        summary |= _without_ids(landmarks, ground_truth, alignment)
     return LandmarkEvaluation(summary, index, landmarks.gt_id[index], error, error_aligned)
+
+
+def has_ground_truth_ids(landmarks: LandmarkMap) -> bool:
+    """Whether any landmark names a ground-truth id (a log whose clouds carry no ``id`` field gives none)."""
+    return bool(np.any(landmarks.gt_id >= 0))
+
+
+def _without_ids(
+    landmarks: LandmarkMap, ground_truth: GroundTruthLandmarks, alignment: Alignment | None
+) -> dict[str, float]:
+    """A map without ground-truth ids: the id-based figures are undefined (NaN, not "every landmark
+    false"), and each static landmark's distance to the nearest static true landmark stands in
+    (``lm_nn_*``, raw and after the alignment; a nearest-neighbour figure, which hides a wrong
+    association that lands near another landmark)."""
+    from scipy.spatial import cKDTree  # here, not at import: only maps without ids need it
+
+    summary = {key: NAN for key in ("lm_mapped_fraction", "lm_duplicates", "lm_false", "dyn_precision", "dyn_recall")}
+    static = ~landmarks.dynamic
+    truth = ground_truth.positions[~ground_truth.dynamic]
+    if not static.any() or len(truth) == 0:
+        return summary
+    tree = cKDTree(truth)
+    positions = landmarks.positions[static]
+    summary["lm_nn_rmse"], summary["lm_nn_mean"], summary["lm_nn_max"] = _stats(tree.query(positions)[0])
+    if alignment is not None:
+        aligned = tree.query(alignment.apply_positions(positions))[0]
+        summary["lm_nn_aligned_rmse"], summary["lm_nn_aligned_mean"], summary["lm_nn_aligned_max"] = _stats(aligned)
+    return summary
