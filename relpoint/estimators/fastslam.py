@@ -92,6 +92,10 @@ from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, P
 
 logger = logging.getLogger(__name__)
 
+#: An association collapses when the particles pair, on average, under this share of the landmarks
+#: they saw in the last iteration (and start more than they pair); see ``collapse_noise_scale``.
+COLLAPSE_FRACTION = 0.5
+
 _LOG_2PI = math.log(2.0 * math.pi)
 _SLOT_ARRAYS = {
     "means": 0.0,
@@ -197,6 +201,8 @@ class FastSlam(Estimator[PointObservation]):
         self._Sigma = np.zeros((n, 12, 12))
         self._odometry: OdometryMeasurement | None = None
         self._stats = Counter[str]()
+        self._stats["association_widened"] = 0  # iterations proposed again under a wider prior (run.json)
+        self._stats["association_collapsed"] = 0  # ... and those whose association collapsed all the same
         if cfg.close_loops:
             self._stats["loop_closures"] = 0  # loops closed by registering young landmarks onto old ones (run.json)
             self._stats["loop_landmarks_merged"] = 0  # the best particle's young landmarks merged into old ones
@@ -253,7 +259,7 @@ class FastSlam(Estimator[PointObservation]):
         points = np.asarray(observation.points)
         if self._mover_test is not None:
             self._mover_test.widen(self.covs, self._moving)
-        assoc, log_likelihood, Sigma, near = self._associate(points, Sigma, proposal, wide_prior)
+        assoc, log_likelihood, Sigma, near = self._associate_or_widen(points, Sigma, proposal, wide_prior)
         if proposal:
             self._apply_sample(Sigma)
         if self._frame_fit is not None:
@@ -642,8 +648,75 @@ class FastSlam(Estimator[PointObservation]):
 
     # --------------------------------------------------------------------------------- association
 
+    def _associate_or_widen(
+        self, points: FloatArray, Sigma: FloatArray, proposal: bool, wide_prior: bool
+    ) -> tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`_associate`, proposed again under a wider prior when the association collapses.
+
+        Collapsed: on average over the particles (weighted), fewer than ``COLLAPSE_FRACTION`` of the
+        landmarks each saw in the last iteration pair, and more points would start landmarks than
+        pair. The constant-velocity prior cannot follow a motion that changes at once (a turn rate
+        stepping from 0 to 1.5 rad/s): its points miss their landmarks and every particle starts
+        duplicates, and never learns the new turn rate. The prior ``Sigma`` is scaled by 2^2, 4^2, ...
+        up to ``collapse_noise_scale``^2, with the pairing score of a wide prior, and the first
+        association that pairs enough is kept; otherwise the first one, counted and warned about.
+        """
+        scale_limit = self.config.collapse_noise_scale
+        expected = self._expected_pairs() if proposal else 0.0
+        start = (self.positions.copy(), self.rotations.copy(), self.twists.copy())
+        first = self._associate(points, Sigma, proposal, wide_prior)
+        if expected < MIN_PAIRED or not self._collapsed(first[0], expected):
+            return self._counted(first)
+        after_first = (self.positions, self.rotations, self.twists)
+        scale = 2.0
+        while scale <= scale_limit:
+            self.positions, self.rotations, self.twists = (a.copy() for a in start)
+            retry = self._associate(points, Sigma * scale**2, proposal, True, reach=scale)
+            if not self._collapsed(retry[0], expected):
+                self._stats["association_widened"] += 1
+                return self._counted(retry)
+            scale *= 2.0
+        self.positions, self.rotations, self.twists = after_first
+        if not self._stats["association_collapsed"]:
+            logger.warning(
+                "association collapsed at iteration %d: the particles paired few of the landmarks seen just before%s; "
+                "the map may hold duplicates from here (association_collapsed in run.json counts such iterations): "
+                "raise linear_acceleration_noise / angular_acceleration_noise, or give odometry",
+                self._stats["iterations"],
+                f", also under {scale_limit:g} x the proposal's prior" if scale_limit >= 2.0
+                else " (collapse_noise_scale below 2: no retry)",
+            )  # fmt: skip
+        self._stats["association_collapsed"] += 1
+        return self._counted(first)
+
+    def _expected_pairs(self) -> float:
+        """Landmarks the particles saw in the last iteration (weighted mean over the particles)."""
+        iteration = self._stats["iterations"]
+        if iteration == 0:
+            return 0.0
+        live = np.arange(self._last.shape[1])[None, :] < self.counts[:, None]
+        seen = np.count_nonzero((self._last == iteration - 1) & live, axis=1)
+        return float(self.weights @ seen)
+
+    def _collapsed(self, assoc: np.ndarray, expected: float) -> bool:
+        """Whether the particles pair, on average, under ``COLLAPSE_FRACTION`` of ``expected`` landmarks and
+        would start more landmarks than they pair."""
+        w = self.weights
+        paired = float(w @ np.count_nonzero(assoc >= 0, axis=1))
+        started = float(w @ np.count_nonzero(assoc == -1, axis=1))
+        return paired < COLLAPSE_FRACTION * expected and started > paired
+
+    def _counted(
+        self, result: tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]:
+        """``result`` of the association kept, its pairs and discarded points counted (``run.json``)."""
+        assoc = result[0]
+        self._stats["paired"] += int(np.count_nonzero(assoc >= 0))
+        self._stats["discarded"] += int(np.count_nonzero(assoc == -2))
+        return result
+
     def _associate(
-        self, points: FloatArray, Sigma: FloatArray, proposal: bool, wide_prior: bool = False
+        self, points: FloatArray, Sigma: FloatArray, proposal: bool, wide_prior: bool = False, reach: float = 1.0
     ) -> tuple[np.ndarray, FloatArray, FloatArray, tuple[np.ndarray, np.ndarray]]:
         """Maximum-likelihood association of each point in each particle, one point at a time.
 
@@ -653,7 +726,8 @@ class FastSlam(Estimator[PointObservation]):
         points (N,), the proposal covariance after the points (when ``proposal``, i.e. 2.0: each
         paired point refines the pose prior ``Sigma`` and moves the particle's pose) and the
         candidates (CSR ``offsets, slots`` per point). ``wide_prior`` (the first step, speed unknown):
-        the prior's spread does not count against a pairing. Compiled loops:
+        the prior's spread does not count against a pairing; ``reach`` multiplies the search radius
+        (a prior widened by that factor). Compiled loops:
         :func:`relpoint.estimators._fastslam_kernels.associate`.
         """
         points = np.array(points, dtype=np.float64)  # a writeable copy: one compiled variant per kernel
@@ -662,16 +736,14 @@ class FastSlam(Estimator[PointObservation]):
         rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
         twists = np.ascontiguousarray(self.twists, dtype=np.float64)
         offsets, slots = _fastslam_kernels.near_slots(
-            points, positions, rotations, self.means, counts, float(self._search_radius)
+            points, positions, rotations, self.means, counts, float(self._search_radius * reach)
         )
         Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
-        assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
+        assoc, log_likelihood, _, _ = _fastslam_kernels.associate(
             points, offsets, slots, positions, rotations, twists, self.means, self.covs, counts, self._Q, Sigma,
             proposal, float(self._log_new), float(self._log_start), wide_prior,
         )  # fmt: skip
         self.positions, self.rotations, self.twists = positions, rotations, twists
-        self._stats["paired"] += int(paired)
-        self._stats["discarded"] += int(discarded)
         return assoc, log_likelihood, Sigma, (offsets, slots)
 
     # ---------------------------------------------------------------------------------- landmarks

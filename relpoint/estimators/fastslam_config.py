@@ -62,6 +62,14 @@ class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
     """Constant-velocity proposal: white linear acceleration noise (m/s^2)."""
     angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
+    collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
+    """2.0 (and the first step of 1.0): when an iteration's association collapses in the particles
+    (on average fewer than half the landmarks the last observation saw pair, and more points would
+    start landmarks than pair: the motion changed faster than the proposal's prior allows, as when
+    a turn starts at once), it is proposed again from 2, 4, ... up to this many times the prior's
+    standard deviation, and the first association that pairs half of them is kept, before any
+    landmark starts. ``association_widened`` in ``run.json`` counts those iterations, and
+    ``association_collapsed`` (with a warning) those that collapse all the same. 1: no retry."""
     initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
     """Prior standard deviation of the initial linear velocity (m/s)."""
     initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
