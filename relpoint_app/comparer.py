@@ -24,6 +24,7 @@ from formats.evo_results import read_evo_result
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation
+from relpoint.types import TimeWindow
 from relpoint_app.evaluator import evaluate_files, run_estimator
 from relpoint_app.evo_results import compared_from_evo
 
@@ -64,6 +65,18 @@ def _saved_settings(document: dict[str, Any], path: Path) -> EvaluationSettings:
         raise InputError(f"{path}: malformed settings ({error})") from None
 
 
+def _saved_window(inputs: dict[str, Any]) -> TimeWindow | None:
+    """The ``--t-start``/``--t-end`` window an evaluation was made over (None: the whole of it)."""
+    start, end = inputs.get("t_start"), inputs.get("t_end")
+    numbers = [value for value in (start, end) if value is not None]
+    if not all(isinstance(value, (int, float)) for value in numbers):
+        return None
+    try:
+        return TimeWindow(start, end) if numbers else None
+    except ValueError:
+        return None
+
+
 def _existing(text: Any) -> Path | None:
     return Path(text) if isinstance(text, str) and text and Path(text).exists() else None
 
@@ -81,13 +94,19 @@ def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, docume
     if not summary:
         log.warning("%s holds no evaluation figures (was there a ground truth?)", path)
     elif estimate is None or reference is None:
-        log.warning("%s: its estimate or reference (%s) is not readable here; only its summary is compared",
-                    path, inputs.get("reference"))  # fmt: skip
+        missing = inputs.get("estimate") if estimate is None else inputs.get("reference")
+        log.warning("%s: its %s (%s) is not readable here; only its summary is compared",
+                    path, "estimate" if estimate is None else "reference", missing)  # fmt: skip
+    elif any(inputs.get(key) and _existing(inputs.get(key)) is None for key in ("times", "reference_times")):
+        log.warning("%s: its times files (%s, %s) are not readable here; only its summary is compared",
+                    path, inputs.get("times"), inputs.get("reference_times"))  # fmt: skip
     else:
         try:
             evaluation = evaluate_files(
                 estimate, reference, settings, reference_topic=inputs.get("reference_topic"),
                 estimate_topic=inputs.get("estimate_topic"), parent=inputs.get("parent"), child=inputs.get("child"),
+                times=_existing(inputs.get("times")), reference_times=_existing(inputs.get("reference_times")),
+                window=_saved_window(inputs),
             )  # fmt: skip
         except RelpointError as error:
             log.warning("%s: cannot re-evaluate it (%s); only its summary is compared", path, error)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -270,14 +271,19 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             summary |= dense_map_summary(points, reference_points, dense_threshold, bar.update)
 
     exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
+    # Absolute, and with everything that chose the poses: `relpoint compare` evaluates it again from these.
     inputs = {
-        "estimate": str(estimate),
-        "reference": str(reference),
+        "estimate": os.path.abspath(estimate),
+        "reference": os.path.abspath(reference),
         "reference_topic": reference_topic,
         "estimate_topic": estimate_topic,
         "landmarks_topic": landmarks_topic,
         "parent": parent,
         "child": child,
+        "times": None if times is None else os.path.abspath(times),
+        "reference_times": None if reference_times is None else os.path.abspath(reference_times),
+        "t_start": t_start,
+        "t_end": t_end,
     }
     estimator = run_estimator(estimate)
     if json_path is not None:

@@ -292,6 +292,23 @@ def test_saved_evaluations_keep_their_settings(tmp_path: Path, small_log: Path) 
     assert not (tmp_path / "p.png").exists()
 
 
+def test_a_saved_evaluation_is_evaluated_again_over_the_poses_it_chose(tmp_path: Path, small_log: Path) -> None:
+    # --t-start/--t-end and KITTI times files chose the saved evaluation's poses; compare ran it again
+    # without them (all poses, or KITTI poses paired by index) and showed those figures, no warning.
+    run = fake_run(tmp_path / "run", small_log, 0.25, estimator="relpoint")
+    code, out, err = invoke(
+        "evaluate", run, "-r", small_log, "--t-start", "2", "--t-end", "5", "--json", tmp_path / "e.json"
+    )
+    assert code == 0, err
+    saved = json.loads((tmp_path / "e.json").read_text())
+    assert saved["inputs"]["t_start"] == 2 and Path(saved["inputs"]["estimate"]).is_absolute()
+    code, out, err = invoke("compare", tmp_path / "e.json", "--format", "json")
+    assert code == 0, err
+    (compared,) = json.loads(out)["runs"]
+    assert "re-evaluated" in compared["source"]
+    assert compared["summary"]["matched_poses"] == saved["summary"]["matched_poses"] < 40
+
+
 def test_errors_are_one_line(tmp_path: Path, small_log: Path) -> None:
     run = fake_run(tmp_path / "run", small_log, 0.1)
     code, _, err = invoke("compare", run)  # no run.json, no evaluation.json, no --reference
