@@ -107,6 +107,11 @@ def _read_depth_png(path: Path, scale: float, invalid: tuple[int, ...] = ()) -> 
         raise InputError(f"{path}: cannot read the depth image ({error})") from None
     if raw.ndim != 2:
         raise InputError(f"{path}: a depth image must have one channel, got shape {raw.shape}")
+    if raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
+        # An 8-bit PNG cannot hold depth at these scales: read as such, every depth is centimetres.
+        raise InputError(f"{path}: the depth image is {raw.dtype} ({raw.dtype.itemsize * 8}-bit); depth PNGs are "
+                         "16-bit (TUM: 5000 per metre; 7-Scenes: millimetres)",
+                         "write the depth as a 16-bit PNG")  # fmt: skip
     raw = raw.astype(np.uint32)
     depth = raw.astype(np.float32) / np.float32(scale)
     bad = raw == 0
@@ -119,6 +124,9 @@ def _read_depth_png(path: Path, scale: float, invalid: tuple[int, ...] = ()) -> 
 def _read_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
     try:
         with Image.open(path) as image:
+            if image.mode.startswith("I"):  # 16-bit grey ("I;16", "I"): convert("RGB") clips it to white
+                grey = np.clip(np.rint(np.asarray(image, dtype=np.float64) / 257.0), 0, 255).astype(np.uint8)
+                image = Image.fromarray(grey)
             image = image.convert("RGB")
             if image.size != size:
                 image = image.resize(size, Image.Resampling.BILINEAR)
@@ -273,7 +281,10 @@ def seven_scenes_frames(
         pose = None
         pose_path = folder / f"{stem}.pose.txt"
         if pose_path.is_file():
-            T = np.loadtxt(pose_path).reshape(4, 4)
+            try:
+                T = np.loadtxt(pose_path).reshape(4, 4)
+            except (OSError, ValueError):  # not a 4 x 4 matrix of numbers: as invalid as a NaN pose
+                T = np.full((4, 4), np.nan)
             if np.all(np.isfinite(T)) and abs(T[3, 3]) > 0:
                 pose = Pose.from_matrix(stamp, T)
             else:

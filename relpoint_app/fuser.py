@@ -74,6 +74,10 @@ def fuse_run(
             raise InputError(f"{run_dir}: timing.csv has {len(observed)} rows for {len(trajectory)} poses")
         screen = InputScreen()  # as a run's fixes are: unusable ones dropped, unfilled axes unmeasured
         fixes = [fix for fix in (screen.fix(record.value) for record in reader.records(["fix"])) if fix is not None]
+        if not fixes and screen.skipped:
+            reasons = "; ".join(f"{count} {kind.split(': ', 1)[-1]}" for kind, count in sorted(screen.skipped.items()))
+            raise InputError(f"{log_path}: no usable position fix ({reasons})",
+                             "fixes need a finite position and a position covariance (not all zero)")  # fmt: skip
         matched = matched_counts_from_map_growth(observed, map_size)
         result = fuse(trajectory, landmarks, matched, fixes, config, map_size=map_size)
         roles = ["fix"]
@@ -210,6 +214,9 @@ def _restarted(
     )
     restarting = RestartingEstimator(lambda: spec.factory(estimator_config, np.random.default_rng(seed)), rule)
     run = restarting.segmented(drive(reader, restarting, roles))
+    if not run.fixes and reader.role_present("fix"):
+        raise InputError(f"{reader.path}: no usable position fix (every one skipped; see the warnings above)",
+                         "fixes need a finite position and a position covariance (not all zero)")  # fmt: skip
     result = fuse(
         run.trajectory, run.landmarks, None, run.fixes, config, labels=run.labels, landmark_labels=run.landmark_labels
     )

@@ -3,6 +3,7 @@ sequences (those folders or an RGB-D log) to point logs of tracked corners (``--
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import click
@@ -44,7 +45,11 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 )
 @click.option("--intrinsics", help="TUM: camera fx,fy,cx,cy in pixels (default: Freiburg 1).")
 @click.option(
-    "--tolerance", type=float, default=0.02, show_default=True, help="TUM: timestamp association tolerance, s."
+    "--tolerance",
+    type=click.FloatRange(min=0.0, max=1e6),
+    default=0.02,
+    show_default=True,
+    help="TUM: timestamp association tolerance, s.",
 )
 @click.option(
     "--rate", type=click.FloatRange(min=0.0, min_open=True, max=1e6), default=30.0, show_default=True,
@@ -81,6 +86,8 @@ def import_command(
     The log is written atomically; an existing OUTPUT is replaced only when relpoint wrote it (or with
     --overwrite), and never when it is one of SOURCE's files.
     """
+    if not math.isfinite(tolerance):
+        raise UsageError(f"--tolerance must be a number of seconds, got {tolerance}", "the default is 0.02")
     from formats.outputs import check_output_file
     from formats.rgbd_import import import_7scenes, import_tum
 

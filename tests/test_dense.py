@@ -339,6 +339,39 @@ def test_7scenes_import_marks_65535_invalid(tmp_path: Path) -> None:
     assert poses[1].value.position == pytest.approx((1.0, 0.0, 0.0))
 
 
+def _seven_scenes_folder(folder: Path, frames: int = 3) -> None:
+    for k in range(frames):
+        _write_png16(folder / f"frame-{k:06d}.depth.png", np.full((6, 8), 1500))
+        Image.fromarray(np.full((6, 8, 3), 40 * k, dtype=np.uint8)).save(folder / f"frame-{k:06d}.color.jpg")
+        T = np.eye(4)
+        T[:3, 3] = [k, 0, 0]
+        np.savetxt(folder / f"frame-{k:06d}.pose.txt", T)
+
+
+def test_7scenes_import_counts_a_pose_file_that_is_no_matrix(tmp_path: Path) -> None:
+    # 3 rows instead of 4 stopped the import with an internal error (exit 1).
+    _seven_scenes_folder(tmp_path)
+    np.savetxt(tmp_path / "frame-000001.pose.txt", np.eye(4)[:3])
+    counts = import_7scenes(tmp_path, tmp_path / "7s.mcap")
+    assert (counts.depth, counts.ground_truth_pose) == (3, 2)
+
+
+def test_an_8_bit_depth_png_is_refused_and_16_bit_colour_is_scaled(tmp_path: Path) -> None:
+    from relpoint.errors import InputError
+
+    _seven_scenes_folder(tmp_path)
+    Image.fromarray(np.full((6, 8), 200, dtype=np.uint16) * 257).save(tmp_path / "frame-000002.color.png")
+    (tmp_path / "frame-000002.color.jpg").unlink()
+    counts = import_7scenes(tmp_path, tmp_path / "7s.mcap")
+    colours = [r.value for r in LogReader(tmp_path / "7s.mcap").records(["color"])]
+    assert counts.color == 3 and int(colours[2][0, 0, 0]) == 200  # 16-bit grey read as grey, not clipped white
+    # An 8-bit depth PNG read as millimetres holds depths under 26 cm: refused, not imported.
+    Image.fromarray(np.full((6, 8), 150, dtype=np.uint8)).save(tmp_path / "frame-000001.depth.png")
+    with pytest.raises(InputError, match="8-bit"):
+        import_7scenes(tmp_path, tmp_path / "bad.mcap")
+    assert not (tmp_path / "bad.mcap").exists()
+
+
 def test_short_real_7scenes_run_stays_accurate() -> None:
     folder = shared_data("7scenes-redkitchen-0000-0399")
     K = np.loadtxt(folder / "camera-intrinsics.txt")

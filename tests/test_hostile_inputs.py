@@ -102,6 +102,27 @@ def test_odometry_without_variances_is_weighed_by_the_motion_model(name: str, va
     assert position_rmse(tmp_path / "unset") <= 1.5 * position_rmse(tmp_path / "clean") + 0.1
 
 
+def test_fuse_says_when_every_fix_of_the_log_is_unusable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # All-zero covariances (ROS's "unknown"): every fix skipped, and fuse said the log had none (exit 4).
+    import tests.hostile_logs as hostile
+
+    plain = hostile._fix
+    monkeypatch.setattr(hostile, "_fix", lambda stamp, position, sigma: plain(stamp, position, 0.0))
+    log = write_log(tmp_path / "zero.mcap", CONFIG, fixes_every=10)
+    code, err = invoke("run", str(log), "-e", "relpoint", "-o", str(tmp_path / "run"))
+    assert code == 0, err
+    code, err = invoke("fuse", str(tmp_path / "run"), "--log", str(log), "-o", str(tmp_path / "fused"))
+    assert code == 3 and "no usable position fix (15 no covariance)" in err.strip().splitlines()[-1], err
+    assert not (tmp_path / "fused").exists()
+
+
+@pytest.mark.parametrize("tolerance", ("nan", "-1"))
+def test_an_import_tolerance_that_is_no_duration_is_a_usage_error(tolerance: str, tmp_path: Path) -> None:
+    # It paired nothing (or everything) and exited 0.
+    code, err = invoke("import", "tum", str(tmp_path), "-o", str(tmp_path / "x.mcap"), "--tolerance", tolerance)
+    assert code == 2 and "--tolerance" in err and not (tmp_path / "x.mcap").exists()
+
+
 class _Singular(Estimator):
     """Fails numerically on every third iteration."""
 
