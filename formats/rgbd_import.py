@@ -58,8 +58,9 @@ class ImportCounts:
     skipped_depth: int = 0
 
 
-def _read_list(path: Path) -> list[tuple[float, list[str]]]:
-    """A TUM list file: ``(timestamp, [fields...])`` per non-comment line."""
+def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[float, list[str]]]:
+    """A TUM list file: ``(timestamp, [fields...])`` per non-comment line; with ``file_names`` the one
+    field is the rest of the line (a file name may hold spaces)."""
     if not path.is_file():
         raise InputError(f"{path}: no such file", "a TUM RGB-D folder holds rgb.txt, depth.txt and groundtruth.txt")
     rows = []
@@ -67,9 +68,9 @@ def _read_list(path: Path) -> list[tuple[float, list[str]]]:
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        parts = line.replace(",", " ").split()
+        parts = re.split(r"[\s,]+", line, maxsplit=1) if file_names else line.replace(",", " ").split()
         try:
-            rows.append((float(parts[0]), parts[1:]))
+            rows.append((float(parts[0]), [parts[1].strip()] if file_names else parts[1:]))
         except (ValueError, IndexError):
             raise InputError(f"{path}:{number}: cannot read {line!r}") from None
     return rows
@@ -186,10 +187,10 @@ def tum_frames(
     skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one.
     """
     folder = Path(folder)
-    depth_rows = _read_list(folder / "depth.txt")
+    depth_rows = _read_list(folder / "depth.txt", file_names=True)
     if not depth_rows:
         raise InputError(f"{folder / 'depth.txt'} lists no depth image")
-    rgb_rows = _read_list(folder / "rgb.txt") if (folder / "rgb.txt").is_file() else []
+    rgb_rows = _read_list(folder / "rgb.txt", file_names=True) if (folder / "rgb.txt").is_file() else []
     colour_match = associate_stamps([t for t, _ in depth_rows], [t for t, _ in rgb_rows], tolerance)
     truth = None
     if (folder / "groundtruth.txt").is_file():

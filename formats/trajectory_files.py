@@ -125,13 +125,21 @@ def separate_repeated_stamps(stamps_ns: npt.ArrayLike) -> IntArray:
     return np.minimum.accumulate((stamps - offsets)[::-1])[::-1] + offsets
 
 
+#: A median step between poses above this (a day, in ns) says the stamps are nanoseconds read as seconds.
+NANOSECOND_LIKE_STEP_NS = 86_400 * 10**9
+
+
 def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntArray:
     """``stamps`` as strictly increasing int64 ns: repeats separated (one warning), going back refused."""
     out_of_range = [k for k, stamp in enumerate(stamps) if not _INT64_MIN <= stamp <= _INT64_MAX]
     if out_of_range:
-        raise InputError(f"{path}:{lines[out_of_range[0]]}: timestamp out of range (beyond year 2262)")
+        raise InputError(f"{path}:{lines[out_of_range[0]]}: timestamp out of range (beyond year 2262)",
+                         "stamps that large are nanoseconds: this format holds seconds (divide them by 1e9)")  # fmt: skip
     stamps_arr = np.array(stamps, dtype=np.int64)
     steps = np.diff(stamps_arr)
+    if steps.size and np.median(steps) > NANOSECOND_LIKE_STEP_NS:
+        logger.warning("%s: its poses are %.3g s apart (median): are the stamps nanoseconds? This format holds seconds",
+                    path, float(np.median(steps)) * 1e-9)  # fmt: skip
     back = np.nonzero(steps < 0)[0]
     if back.size:
         k = int(back[0]) + 1

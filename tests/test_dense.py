@@ -280,8 +280,10 @@ def test_tum_import_round_trip(tmp_path: Path) -> None:
         rgb = rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8)
         Image.fromarray(rgb).save(tmp_path / f"c{k}.png")
         colours.append(rgb)
+    for k in range(len(depth_stamps)):  # a file name with a space, listed after a comma (a tool's CSV-like list)
+        (tmp_path / f"d{k}.png").rename(tmp_path / f"d {k}.png")
     (tmp_path / "depth.txt").write_text(
-        "# depth\n" + "".join(f"{t:.6f} d{k}.png\n" for k, t in enumerate(depth_stamps))
+        "# depth\n" + "".join(f"{t:.6f}, d {k}.png\r\n" for k, t in enumerate(depth_stamps))
     )
     (tmp_path / "rgb.txt").write_text("# rgb\n" + "".join(f"{t:.6f} c{k}.png\n" for k, t in enumerate(rgb_stamps)))
     gt = [

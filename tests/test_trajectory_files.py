@@ -610,3 +610,16 @@ def test_bag_pose_topic_with_repeated_stamps_warns_once(tmp_path: Path) -> None:
     assert code == 0 and len(lines) == 1, err
     assert lines[0] == f"relpoint: warning: {bag} /pose: 2 messages repeat the stamp of an earlier one; kept the first of each stamp"
     assert read_tum(out).positions[:, 0].tolist() == [0, 1, 3, 5]
+
+
+def test_nanosecond_stamps_in_a_seconds_format_are_named(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # A TUM file written with ns stamps: from zero they read as poses 3e7 s apart, without a word; from
+    # a 2011 epoch they overflow, and the error only said "beyond year 2262".
+    rows = "".join(f"{k * 33_333_333} {k * 0.1} 0 0 0 0 0 1\n" for k in range(20))
+    (tmp_path / "zero.txt").write_text(rows)
+    with caplog.at_level("WARNING"):
+        read_tum(tmp_path / "zero.txt")
+    assert "are the stamps nanoseconds?" in caplog.text
+    (tmp_path / "epoch.txt").write_text("".join(f"{1305031102175304000 + k * 33_333_333} {k} 0 0 0 0 0 1\n" for k in range(3)))
+    with pytest.raises(InputError, match="nanoseconds"):
+        read_tum(tmp_path / "epoch.txt")
