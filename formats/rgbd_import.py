@@ -263,9 +263,12 @@ def seven_scenes_frames(
     frames = sorted(
         (int(m.group(1)), p) for p in folder.iterdir() if (m := _SEVEN_SCENES_FRAME.search(p.name)) is not None
     )
-    frames = frames[first : None if count is None else first + count]
     if not frames:
         raise InputError(f"{folder}: no frame-NNNNNN.depth.png files", "give a 7-Scenes sequence folder (seq-NN)")
+    if first >= len(frames):
+        raise UsageError(f"--first {first} is beyond the folder's {len(frames)} frames",
+                         f"give a position from 0 to {len(frames) - 1} in the sorted frame list")  # fmt: skip
+    frames = frames[first : None if count is None else first + count]
     intrinsics = SEVEN_SCENES_INTRINSICS
     if (folder / "camera-intrinsics.txt").is_file():
         K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)

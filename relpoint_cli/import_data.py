@@ -105,6 +105,14 @@ def import_command(
         raise UsageError("an RGB-D log is already a relpoint log", "add --points to track its corners into /points")
     if params and not points:
         raise UsageError("--param sets keypoint settings and needs --points")
+    source_of = ctx.get_parameter_source
+    applies = {"intrinsics": "tum", "tolerance": "tum", "rate": "7scenes", "first": "7scenes", "count": "7scenes"}
+    ignored = [name for name, only in applies.items()
+               if layout != only and source_of(name) is click.core.ParameterSource.COMMANDLINE]  # fmt: skip
+    if ignored:
+        names = ", ".join(f"--{name}" for name in ignored)
+        raise UsageError(f"{names} {'does' if len(ignored) == 1 else 'do'} not apply to the {layout} layout",
+                         "see relpoint import --help: each option names the layouts it applies to")  # fmt: skip
     if layout == "tum" and intrinsics is None and not ctx.find_root().obj.get("quiet"):
         click.echo(
             "relpoint: warning: no --intrinsics: the TUM Freiburg 1 camera's are used (fr2 and fr3 differ; "

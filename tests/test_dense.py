@@ -374,6 +374,22 @@ def test_an_8_bit_depth_png_is_refused_and_16_bit_colour_is_scaled(tmp_path: Pat
     assert not (tmp_path / "bad.mcap").exists()
 
 
+def test_import_options_of_another_layout_and_a_first_frame_past_the_end_are_usage_errors(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from relpoint_cli.main import cli
+
+    _seven_scenes_folder(tmp_path, frames=3)
+    out = str(tmp_path / "x.mcap")
+    for args, message in (
+        (["--intrinsics", "500,500,300,200"], "--intrinsics does not apply to the 7scenes layout"),  # was ignored
+        (["--first", "3"], "--first 3 is beyond the folder's 3 frames"),  # was "no frame-NNNNNN.depth.png files"
+    ):
+        result = CliRunner().invoke(cli, ["import", "7scenes", str(tmp_path), "-o", out, *args])
+        assert result.exit_code == 2 and message in result.stderr, result.stderr
+    assert not (tmp_path / "x.mcap").exists()
+
+
 def test_short_real_7scenes_run_stays_accurate() -> None:
     folder = shared_data("7scenes-redkitchen-0000-0399")
     K = np.loadtxt(folder / "camera-intrinsics.txt")
