@@ -128,8 +128,15 @@ def _run_log(directory: Path) -> str | None:
     return path if isinstance(path, str) and path else None
 
 
-def load_compared(label: str, path: Path, reference: Path | None, settings: EvaluationSettings) -> ComparedRun:
-    """One RESULT of ``relpoint compare`` (see the module docstring); InputError when it is none of them."""
+def load_compared(
+    label: str, path: Path, reference: Path | None, settings: EvaluationSettings,
+    reference_options: dict[str, Any] | None = None,
+) -> ComparedRun:  # fmt: skip
+    """One RESULT of ``relpoint compare`` (see the module docstring); InputError when it is none of them.
+
+    ``reference_options`` (``reference_topic``, ``parent``, ``child``, ``reference_times``) choose the
+    poses of ``reference`` as ``relpoint evaluate``'s options do.
+    """
     if path.is_dir():
         if not (path / "trajectory.tum").is_file():
             raise InputError(f"{path}: not a relpoint run directory (no trajectory.tum)",
@@ -144,7 +151,7 @@ def load_compared(label: str, path: Path, reference: Path | None, settings: Eval
                     f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"
                 )
                 raise InputError(f"{path}: no evaluation.json, and {where}", "pass --reference LOG")
-        evaluation = evaluate_files(path, reference, settings)
+        evaluation = evaluate_files(path, reference, settings, **(reference_options or {}))
         return compared_from_evaluation(label, evaluation.result, evaluation.summary,
                                         estimator=run_estimator(path), source=f"{path} against {reference}")  # fmt: skip
     if not path.exists():

@@ -32,6 +32,7 @@ Examples:
   relpoint compare ape_orb.zip ape_vins.zip eval.json --plot compare.png --plot-kind violin
 """
 
+
 def _parse_keys(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -68,6 +69,12 @@ def _plot_format(plot_format: str | None, plot: Path) -> str:
     "-r", "--reference", type=click.Path(path_type=Path),
     help="Evaluate every run directory against this reference (as `relpoint evaluate --reference`).",
 )  # fmt: skip
+@click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
+@click.option("--parent", help="Reference from a TF chain of the MCAP reference: parent frame (e.g. map).")
+@click.option("--child", help="... and child frame (e.g. base_link).")
+@click.option(
+    "--reference-times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI reference poses."
+)
 @click.option(
     "--align", type=click.Choice([m.value for m in AlignMode]), default="none", show_default=True,
     help="Alignment of the run directories compare evaluates itself (saved evaluations keep theirs).",
@@ -88,7 +95,8 @@ def _plot_format(plot_format: str | None, plot: Path) -> str:
 )
 @overwrite_option
 @handle_errors
-def compare(results: tuple[Path, ...], reference: Path | None, align: str, labels: tuple[str, ...],
+def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: str | None, parent: str | None,
+            child: str | None, reference_times: Path | None, align: str, labels: tuple[str, ...],
             keys: str | None, table_format: str | None, output: Path | None, plot: Path | None, plot_kind: str,
             plot_format: str | None, overwrite: bool) -> None:  # fmt: skip
     """Compare the evaluations of RESULTS: run directories, `evaluate --json` summaries, evo result zips.
@@ -101,7 +109,11 @@ def compare(results: tuple[Path, ...], reference: Path | None, align: str, label
         raise UsageError(f"{len(labels)} --label for {len(results)} results", "give one --label per RESULT, or none")
     wanted = _parse_keys(keys)
     file_format = _table_format(table_format, output)
-    read = read_paths(*results, reference)
+    read = read_paths(*results, reference, reference_times)
+    chosen = {"reference_topic": reference_topic, "parent": parent, "child": child, "reference_times": reference_times}
+    if reference is None and any(value is not None for value in chosen.values()):
+        given = ", ".join(f"--{key.replace('_', '-')}" for key, value in chosen.items() if value is not None)
+        raise UsageError(f"{given} choose poses of --reference, which is not given", "add --reference REF")
     for path in (output, plot):
         if path is not None:
             check_output_file(path, inputs=read, overwrite=overwrite)
@@ -111,7 +123,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, align: str, label
     settings = EvaluationSettings(align=align)
     names = list(labels) or [str(path).rstrip("/") or str(path) for path in results]
     runs = [
-        load_compared(label, path, reference, settings)
+        load_compared(label, path, reference, settings, reference_options=chosen)
         for label, path in zip(unique_labels(names), results, strict=True)
     ]
     if wanted is not None:

@@ -309,6 +309,20 @@ def test_a_saved_evaluation_is_evaluated_again_over_the_poses_it_chose(tmp_path:
     assert compared["summary"]["matched_poses"] == saved["summary"]["matched_poses"] < 40
 
 
+def test_the_reference_poses_are_chosen_as_evaluate_chooses_them(tmp_path: Path, small_log: Path) -> None:
+    # compare's errors told to name a topic or a TF chain, with options only evaluate had.
+    run = fake_run(tmp_path / "run", small_log, 0.25, estimator="relpoint")
+    code, out, err = invoke(
+        "compare", run, "-r", small_log, "--reference-topic", "/ground_truth/pose", "--format", "json"
+    )
+    assert code == 0, err
+    assert json.loads(out)["runs"][0]["summary"]["ate_rmse"] == pytest.approx(0.25, abs=1e-6)
+    code, out, err = invoke("compare", run, "-r", small_log, "--reference-topic", "/no/such", "--format", "json")
+    assert code == 3 and "/no/such" in err
+    code, _, err = invoke("compare", run, "--parent", "map", "--child", "base_link")
+    assert code == 2 and "--parent, --child choose poses of --reference" in err
+
+
 def test_errors_are_one_line(tmp_path: Path, small_log: Path) -> None:
     run = fake_run(tmp_path / "run", small_log, 0.1)
     code, _, err = invoke("compare", run)  # no run.json, no evaluation.json, no --reference
