@@ -274,7 +274,7 @@ def seven_scenes_frames(
         K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
         intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     camera = None
-    invalid_poses = 0
+    invalid_poses = missing_poses = 0
     for number, depth_path in frames:
         stamp = _stamp_ns(number / rate)
         depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
@@ -284,7 +284,11 @@ def seven_scenes_frames(
         stem = depth_path.name[: -len(".depth.png")]
         pose = None
         pose_path = folder / f"{stem}.pose.txt"
-        if pose_path.is_file():
+        if not pose_path.is_file():
+            missing_poses += 1
+            if missing_poses == 1:
+                log.warning("%s is missing; no ground truth for that frame (further ones are counted)", pose_path.name)
+        else:
             try:
                 T = np.loadtxt(pose_path).reshape(4, 4)
             except (OSError, ValueError):  # not a 4 x 4 matrix of numbers: as invalid as a NaN pose
@@ -303,6 +307,8 @@ def seven_scenes_frames(
         yield RgbdFrame(stamp, depth, camera, colour, pose)
     if invalid_poses > 1:
         log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
+    if missing_poses > 1:
+        log.warning("%d frames have no pose file and no ground truth", missing_poses)
 
 
 def write_rgbd_log(

@@ -358,6 +358,14 @@ def test_7scenes_import_counts_a_pose_file_that_is_no_matrix(tmp_path: Path) -> 
     assert (counts.depth, counts.ground_truth_pose) == (3, 2)
 
 
+def test_7scenes_import_warns_of_a_missing_pose_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    _seven_scenes_folder(tmp_path)
+    (tmp_path / "frame-000001.pose.txt").unlink()
+    with caplog.at_level("WARNING"):
+        counts = import_7scenes(tmp_path, tmp_path / "7s.mcap")
+    assert counts.ground_truth_pose == 2 and "frame-000001.pose.txt is missing" in caplog.text
+
+
 def test_an_8_bit_depth_png_is_refused_and_16_bit_colour_is_scaled(tmp_path: Path) -> None:
     from relpoint.errors import InputError
 
