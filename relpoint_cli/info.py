@@ -25,13 +25,12 @@ def capabilities(available: set[str], unusable: frozenset[str] = frozenset()) ->
     estimators = {}
     for name in sorted(ESTIMATORS):
         needs, also = ESTIMATORS.inputs(name)  # without importing the estimator
-        missing = [
-            role if role not in available else f"{role}: none usable"
-            for need in needs for role in NEED_ROLES.get(need, (need,))
-            if role not in available or role in unusable
-        ]  # fmt: skip
+        roles = [role for need in needs for role in NEED_ROLES.get(need, (need,))]
+        missing = [role for role in roles if role not in available]
+        empty = [role for role in roles if role in available and role in unusable]
         uses = [need for need in sorted(also) if all(r in available for r in NEED_ROLES.get(need, (need,)))]
-        estimators[name] = {"can_run": not missing, "missing": missing, "also_uses": uses}
+        estimators[name] = {"can_run": not missing and not empty, "missing": missing, "unusable": empty,
+                            "also_uses": uses}  # fmt: skip
     return {
         "estimators": estimators,
         "evaluate_trajectory": "ground_truth_pose" in available,
@@ -178,9 +177,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     if not document["estimators"]:
         click.echo("  (none installed)")
     for name, cap in document["estimators"].items():
-        absent = [role for role in cap["missing"] if not role.endswith(": none usable")]
-        empty = [role.split(":")[0] for role in cap["missing"] if role.endswith(": none usable")]
-        reasons = ([f"missing {', '.join(absent)}"] if absent else []) + [f"no usable {role}" for role in empty]
+        reasons = ([f"missing {', '.join(cap['missing'])}"] if cap["missing"] else []) + [
+            f"no usable {role}" for role in cap["unusable"]
+        ]
         state = "can run" if cap["can_run"] else f"cannot run ({'; '.join(reasons)})"
         extra = f"; uses {', '.join(cap['also_uses'])}" if cap["also_uses"] and cap["can_run"] else ""
         click.echo(f"  {name:<10} {state}{extra}")

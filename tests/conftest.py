@@ -68,3 +68,25 @@ def default_interrupts() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def sharp_turn(estimator: object, *, speed: float, turn_rate: float, steps: int, far_x: float, landmarks: int) -> float:
+    """Drive ``estimator`` along a straight leg at ``speed`` (m/s), then a turn at ``turn_rate`` (rad/s)
+    from one observation to the next (after step 30; 10 Hz, 0.1 m noise, 15 m range, ``landmarks``
+    uniform in x -20..``far_x``, y -25..25, z -3..3 m); returns its final position error (m)."""
+    import numpy as np
+
+    from relpoint.geometry import twist_step
+    from relpoint.types import PointObservation
+
+    rng = np.random.default_rng(0)
+    scene = rng.uniform([-20.0, -25.0, -3.0], [far_x, 25.0, 3.0], size=(landmarks, 3))
+    position, rotation = np.zeros(3), np.eye(3)
+    for i in range(steps):
+        if i:
+            turn = np.array([0.0, 0.0, turn_rate if i > 30 else 0.0])
+            position, rotation, _, _ = twist_step(position, rotation, np.array([speed, 0.0, 0.0]), turn, 0.1)
+        local = (scene - position) @ rotation
+        seen = local[np.linalg.norm(local, axis=1) < 15.0]
+        estimator.step(PointObservation(i * 100_000_000, seen + rng.normal(0.0, 0.1, seen.shape)))  # type: ignore[attr-defined]
+    return float(np.linalg.norm(np.array(estimator.pose().position) - position))  # type: ignore[attr-defined]

@@ -19,7 +19,7 @@ from relpoint.estimators.ekf import INITIAL_CAPACITY, SPEC, EkfConfig, EkfSlam
 from relpoint.geometry import invert_pose, so3_exp, transform_points, twist_step
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation, PositionFix
-from tests.conftest import run_accuracy
+from tests.conftest import run_accuracy, sharp_turn
 
 DT_NS = 100_000_000
 
@@ -442,21 +442,10 @@ def test_rigid_consensus_keeps_a_slid_keypoint_out_of_the_update() -> None:
 
 
 def _turn_run(config: EkfConfig) -> tuple[EkfSlam, float]:
-    """A straight leg at 4 m/s, then a turn at 1 rad/s from one observation to the next (10 Hz, 0.1 m
-    noise, 15 m range); returns the filter and its final position error (m)."""
-    rng = np.random.default_rng(0)
-    landmarks = rng.uniform([-20.0, -25.0, -3.0], [40.0, 25.0, 3.0], size=(300, 3))
-    position, rotation = np.zeros(3), np.eye(3)
+    """A straight leg at 4 m/s, then a turn at 1 rad/s from one observation to the next; returns the
+    filter and its final position error (m)."""
     ekf = EkfSlam(config)
-    for i in range(60):
-        turn_rate = 1.0 if i > 30 else 0.0
-        if i:
-            position, rotation, _, _ = twist_step(position, rotation, np.array([4.0, 0.0, 0.0]),
-                                                  np.array([0.0, 0.0, turn_rate]), 0.1)  # fmt: skip
-        local = (landmarks - position) @ rotation
-        seen = local[np.linalg.norm(local, axis=1) < 15.0]
-        ekf.step(PointObservation(i * DT_NS, seen + rng.normal(0.0, 0.1, seen.shape)))
-    return ekf, float(np.linalg.norm(np.array(ekf.pose().position) - position))
+    return ekf, sharp_turn(ekf, speed=4.0, turn_rate=1.0, steps=60, far_x=40.0, landmarks=300)
 
 
 def test_a_turn_that_starts_at_once_is_followed_by_widening_the_prediction(caplog: pytest.LogCaptureFixture) -> None:

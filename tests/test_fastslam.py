@@ -11,7 +11,7 @@ from relpoint.estimators.fastslam import SPEC, FastSlam, FastSlamConfig, low_var
 from relpoint.geometry import invert_pose, transform_points
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation
-from tests.conftest import run_accuracy
+from tests.conftest import run_accuracy, sharp_turn
 
 DT_NS = 100_000_000
 
@@ -186,22 +186,10 @@ def test_first_step_pairs_under_a_wide_speed_prior(variant: str) -> None:
 
 
 def _turn_run(config: FastSlamConfig) -> tuple[FastSlam, float]:
-    """A straight leg at 6 m/s, then a turn at 1.5 rad/s from one observation to the next (10 Hz, 0.1 m
-    noise, 15 m range, a lawnmower's end); returns the filter and its final position error (m)."""
-    from relpoint.geometry import twist_step
-
-    rng = np.random.default_rng(0)
-    landmarks = rng.uniform([-20.0, -25.0, -3.0], [60.0, 25.0, 3.0], size=(400, 3))
-    position, rotation = np.zeros(3), np.eye(3)
+    """A straight leg at 6 m/s, then a turn at 1.5 rad/s from one observation to the next (a lawnmower's
+    end); returns the filter and its final position error (m)."""
     slam = FastSlam(config, np.random.default_rng(1))
-    for i in range(50):
-        if i:
-            turn = np.array([0.0, 0.0, 1.5 if i > 30 else 0.0])
-            position, rotation, _, _ = twist_step(position, rotation, np.array([6.0, 0.0, 0.0]), turn, 0.1)
-        local = (landmarks - position) @ rotation
-        seen = local[np.linalg.norm(local, axis=1) < 15.0]
-        slam.step(PointObservation(i * DT_NS, seen + rng.normal(0.0, 0.1, seen.shape)))
-    return slam, float(np.linalg.norm(np.array(slam.pose().position) - position))
+    return slam, sharp_turn(slam, speed=6.0, turn_rate=1.5, steps=50, far_x=60.0, landmarks=400)
 
 
 def test_a_turn_that_starts_at_once_is_proposed_again_under_a_wider_prior(caplog: pytest.LogCaptureFixture) -> None:

@@ -25,6 +25,17 @@ logger = logging.getLogger(__name__)
 
 IntArray = npt.NDArray[np.int64]
 
+#: An association that pairs fewer than this share of the landmarks the last observation saw has
+#: collapsed (when more points would also start landmarks than pair): the filters then associate
+#: again under a wider prior (``collapse_noise_scale``).
+COLLAPSE_FRACTION = 0.5
+
+
+def widening_scales(limit: float) -> FloatArray:
+    """The factors 2, 4, 8, ... up to ``limit`` >= 1 (the last one ``limit`` itself) that a collapsed
+    association's prior standard deviation is widened by, in turn; none for ``limit`` 1."""
+    return np.minimum(2.0 ** np.arange(1, np.ceil(np.log2(limit)) + 1), limit)
+
 
 # ------------------------------------------------------------------------------------------- gating
 

@@ -149,17 +149,6 @@ def _inverse_and_logdet3(L, out):  # pragma: no cover - compiled
     return math.log(abs(det))
 
 
-@kernel("f8[:, ::1]")
-def _logdet3(S):  # pragma: no cover - compiled
-    """``log|det S|`` of a 3x3 matrix."""
-    det = (
-        S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1])
-        - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
-        + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0])
-    )
-    return math.log(abs(det))
-
-
 @kernel("f8[:, ::1], f8[::1]")
 def _rotate_by(R, w):  # pragma: no cover - compiled
     """``R @ Exp(w)`` in place for a rotation vector ``w`` (rad), Rodrigues' formula."""
@@ -228,6 +217,7 @@ def associate(
     S_m = np.empty((3, 3))
     L = np.empty((3, 3))
     L_inv = np.empty((3, 3))
+    S_m_inv = np.empty((3, 3))  # scratch of the wide prior's score
     best_S = np.empty((3, 3))
     best_L_inv = np.empty((3, 3))
     best_HS = np.empty((3, 12))
@@ -291,7 +281,10 @@ def associate(
                 logl = -0.5 * (quad + logdet + 3.0 * _LOG_2PI)
                 if logl > best:
                     best = logl
-                    best_score = -0.5 * (quad + _logdet3(S_m) + 3.0 * _LOG_2PI) if proposal and wide_prior else logl
+                    if proposal and wide_prior:  # the determinant without the prior's spread
+                        best_score = -0.5 * (quad + _inverse_and_logdet3(S_m, S_m_inv) + 3.0 * _LOG_2PI)
+                    else:
+                        best_score = logl
                     best_slot = j
                     for a in range(3):
                         best_nu[a] = nu[a]

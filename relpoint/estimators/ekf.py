@@ -42,9 +42,11 @@ from scipy.linalg import blas
 
 from relpoint.errors import EstimatorError
 from relpoint.estimators._association import (
+    COLLAPSE_FRACTION,
     jcbb_search,
     mahalanobis_squared,
     nearest_neighbour,
+    widening_scales,
 )
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary, placed_in_one_frame
 from relpoint.estimators._fix_gate import FixGate
@@ -80,9 +82,6 @@ MOVER_RECENT = 3
 #: Landmarks are only taken for movers while at least this many landmarks match, and more of the
 #: recently seen ones match than not (otherwise the filter's pose is off, and every landmark seems to move).
 MOVER_MIN_MATCHED = 8
-#: An association that pairs fewer than this fraction of the landmarks the last observation saw has
-#: collapsed (when more points would also start landmarks than pair): see ``_associate_or_widen``.
-COLLAPSE_FRACTION = 0.5
 
 
 class EkfSlam(Estimator[PointObservation]):
@@ -593,7 +592,7 @@ class EkfSlam(Estimator[PointObservation]):
             return assignment, may_start
         nv = self._nv
         predicted = self._P[:nv, :nv].copy()
-        for tried in np.minimum(2.0 ** np.arange(1, np.ceil(np.log2(scale)) + 1), scale):  # 2, 4, ..., scale
+        for tried in widening_scales(scale):
             self._P[:nv, :nv] = predicted + (tried**2 - 1.0) * self._step_noise
             widened, widened_start = self._associate(observation)
             if np.count_nonzero(widened >= 0) >= COLLAPSE_FRACTION * expected:

@@ -48,6 +48,7 @@ from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
 from relpoint.estimators import _fastslam_kernels
+from relpoint.estimators._association import COLLAPSE_FRACTION, widening_scales
 from relpoint.estimators._drift_rate import DRIFT_PRIOR, DriftRate
 from relpoint.estimators._fix_frame import (
     FixFrame,
@@ -91,10 +92,6 @@ from relpoint.statistics import chi2_gate
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 logger = logging.getLogger(__name__)
-
-#: An association collapses when the particles pair, on average, under this share of the landmarks
-#: they saw in the last iteration (and start more than they pair); see ``collapse_noise_scale``.
-COLLAPSE_FRACTION = 0.5
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _SLOT_ARRAYS = {
@@ -662,20 +659,20 @@ class FastSlam(Estimator[PointObservation]):
         association that pairs enough is kept; otherwise the first one, counted and warned about.
         """
         scale_limit = self.config.collapse_noise_scale
-        expected = self._expected_pairs() if proposal else 0.0
-        start = (self.positions.copy(), self.rotations.copy(), self.twists.copy())
+        start = (self.positions.copy(), self.rotations.copy(), self.twists.copy())  # the association moves them
         first = self._associate(points, Sigma, proposal, wide_prior)
+        if not proposal or not self._collapsed(first[0], math.inf):  # most iterations: no landmark count needed
+            return self._counted(first)
+        expected = self._expected_pairs()
         if expected < MIN_PAIRED or not self._collapsed(first[0], expected):
             return self._counted(first)
         after_first = (self.positions, self.rotations, self.twists)
-        scale = 2.0
-        while scale <= scale_limit:
+        for scale in widening_scales(scale_limit):
             self.positions, self.rotations, self.twists = (a.copy() for a in start)
             retry = self._associate(points, Sigma * scale**2, proposal, True, reach=scale)
             if not self._collapsed(retry[0], expected):
                 self._stats["association_widened"] += 1
                 return self._counted(retry)
-            scale *= 2.0
         self.positions, self.rotations, self.twists = after_first
         if not self._stats["association_collapsed"]:
             logger.warning(
@@ -683,8 +680,8 @@ class FastSlam(Estimator[PointObservation]):
                 "the map may hold duplicates from here (association_collapsed in run.json counts such iterations): "
                 "raise linear_acceleration_noise / angular_acceleration_noise, or give odometry",
                 self._stats["iterations"],
-                f", also under {scale_limit:g} x the proposal's prior" if scale_limit >= 2.0
-                else " (collapse_noise_scale below 2: no retry)",
+                f", also under {scale_limit:g} x the proposal's prior" if scale_limit > 1.0
+                else " (collapse_noise_scale 1: no retry)",
             )  # fmt: skip
         self._stats["association_collapsed"] += 1
         return self._counted(first)
