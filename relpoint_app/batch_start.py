@@ -44,6 +44,11 @@ def pool_context() -> multiprocessing.context.BaseContext:
     return context
 
 
+#: Set in the fork server's environment, so in every worker it forks: a worker prepares itself by
+#: running the command's main script again (multiprocessing does, to find the job function's module),
+#: with the command's own ``sys.argv``, and must not start a fork server of its own from there.
+IN_FORK_SERVER = "RELPOINT_IN_FORK_SERVER"
+
 #: The native thread pools' sizes, as the fork server (and so every local pool worker) starts with
 #: them: one thread each, since the jobs are the parallelism.
 SINGLE_THREADED = {
@@ -78,7 +83,7 @@ def start_fork_server() -> None:
     first job, by about 0.1 s on 2 cores.
     """
     if pool_context().get_start_method() == "forkserver":
-        with _environment(SINGLE_THREADED):
+        with _environment({**SINGLE_THREADED, IN_FORK_SERVER: "1"}):
             multiprocessing.forkserver.ensure_running()
 
 
@@ -99,8 +104,10 @@ def start_fork_server_early(args: Sequence[str]) -> None:
 
     The console entry point calls this before importing click and the command modules (70 ms), which
     the fork server's warm-up then overlaps. ``relpoint batch`` starts it again in any case (a no-op).
+    Nothing happens in a pool worker, which runs the console script again as it starts (with the
+    command's own arguments).
     """
-    if runs_local_pool(args):
+    if runs_local_pool(args) and IN_FORK_SERVER not in os.environ:
         # This process only reads the plan and gathers rows: its own native thread pools, made when
         # the plan's checks import numpy, would only compete with the server's warm-up for the cores.
         os.environ.update(SINGLE_THREADED)

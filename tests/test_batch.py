@@ -5,6 +5,8 @@ from __future__ import annotations
 import gc
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -349,6 +351,25 @@ def test_the_fork_server_starts_early_only_for_the_local_pool(args: list[str], l
     from relpoint_app.batch_start import runs_local_pool
 
     assert runs_local_pool(args) is local
+
+
+def test_the_installed_command_runs_a_plan_on_the_local_pool(tmp_path: Path) -> None:
+    """``relpoint batch`` as a user types it: the console script, whose workers run that script again
+    as they start (with its arguments) and must not start fork servers of their own."""
+    command = Path(sys.executable).with_name("relpoint")
+    assert command.exists(), "relpoint is not installed in this environment (pip install -e .)"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        'results = "results"\n[[simulate]]\nname = "fig8"\niterations = 20\ndensity = 5\nseed = 1\n'
+        "[estimators.ekf.grid]\nobservation_sigma = [0.3, 0.5]\n"
+    )
+    completed = subprocess.run(
+        [str(command), "-q", "batch", str(plan), "--jobs", "2"], capture_output=True, text=True, timeout=300
+    )
+    assert completed.returncode == 0, completed.stderr
+    assert "Traceback" not in completed.stderr
+    rows = read_results(tmp_path / "results" / "results.json")
+    assert [row["status"] for row in rows] == ["ok", "ok"]
 
 
 def lambda_free_call(function: Any) -> Any:
