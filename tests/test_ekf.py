@@ -14,6 +14,7 @@ from relpoint.estimators._association import (
     mahalanobis_squared,
     nearest_neighbour,
 )
+from relpoint.estimators._noise import NoiseAdaptive
 from relpoint.estimators.base import Estimator
 from relpoint.estimators.ekf import INITIAL_CAPACITY, SPEC, EkfConfig, EkfSlam
 from relpoint.geometry import invert_pose, so3_exp, transform_points, twist_step
@@ -75,8 +76,11 @@ def test_config_from_mapping_rejects_unknown_keys_and_round_trips() -> None:
 
 
 def test_spec_builds_an_ekf() -> None:
-    ekf = SPEC.factory(EkfConfig(observation_sigma=0.3), np.random.default_rng(0))
+    ekf = SPEC.factory(EkfConfig(observation_sigma=0.3, linear_acceleration_noise=2.0), np.random.default_rng(0))
     assert isinstance(ekf, EkfSlam)
+    # an unset acceleration noise is taken from the first observations, the noise given is kept
+    measured = SPEC.factory(EkfConfig(observation_sigma=0.3), np.random.default_rng(0))
+    assert isinstance(measured, NoiseAdaptive) and measured.name == "ekf"
     estimated = SPEC.factory(EkfConfig(), np.random.default_rng(0))  # builds its EKF once it knows the noise
     assert isinstance(estimated, Estimator) and estimated.name == "ekf"
     assert SPEC.name == "ekf" and SPEC.needs == frozenset({"points"}) and SPEC.uses == frozenset({"odometry", "fix"})

@@ -39,7 +39,10 @@ def test_every_estimator_is_built_as_config_and_rng_and_declares_its_input_kind(
     # an estimator whose noise is unset waits for it; one given the noise is built at once
     assert isinstance(built, NoiseAdaptive) == (spec.noise_adaptive and config.observation_sigma is None)
     if spec.noise_adaptive:
-        fitted = spec.factory(config.at_noise(0.05), np.random.default_rng(0))
+        given = config.at_noise(0.05)
+        if getattr(given, "linear_acceleration_noise", 0.0) is None:  # a motion model's, measured alike
+            given = given.at_acceleration(1.0)
+        fitted = spec.factory(given, np.random.default_rng(0))
         assert isinstance(fitted, spec.estimator_class) and fitted.config.observation_sigma == 0.05
 
 

@@ -54,7 +54,9 @@ def test_config_rejects_bad_values(options: dict[str, object]) -> None:
 
 
 def test_config_round_trips_and_spec_builds() -> None:
-    config = FastSlamConfig.from_mapping({"variant": "1.0", "particles": 7, "observation_sigma": 0.3})
+    config = FastSlamConfig.from_mapping(
+        {"variant": "1.0", "particles": 7, "observation_sigma": 0.3, "linear_acceleration_noise": 2.0}
+    )
     assert FastSlamConfig.from_mapping(config.to_dict()) == config
     with pytest.raises(UsageError):
         FastSlamConfig.from_mapping({"particle_count": 7})
@@ -304,7 +306,12 @@ def test_compiled_association_equals_the_numpy_loop(
     expected = _associate_numpy(points, 2.0, positions, rotations, twists, means, covs, counts, Q, Sigma, proposal,
                                 log_new, log_start, wide_prior)  # fmt: skip
     offsets, slots = _fastslam_kernels.near_slots(points, positions, rotations, means, counts, 2.0)
-    got_positions, got_rotations, got_twists, got_Sigma = positions.copy(), rotations.copy(), twists.copy(), Sigma.copy()
+    got_positions, got_rotations, got_twists, got_Sigma = (
+        positions.copy(),
+        rotations.copy(),
+        twists.copy(),
+        Sigma.copy(),
+    )
     assoc, log_likelihood, paired, discarded = _fastslam_kernels.associate(
         points, offsets, slots, got_positions, got_rotations, got_twists, means, covs, counts, Q, got_Sigma, proposal,
         log_new, log_start, wide_prior,

@@ -18,10 +18,19 @@ taken from the first iterations of the log itself, in two parts:
   of the median range of the observed points (0.5 %: 1 cm at 2 m; 0.22-0.28 m at the simulator's
   45-55 m, under what its residuals give for its 0.3 m).
 
+The same held-back observations also tell how hard the sensor accelerates
+(:func:`estimate_acceleration`): the consecutive registrations chained into a path, velocities over
+``ACCELERATION_SPAN_S`` and their changes. A motion model's acceleration noise written in m/s^2 for a
+vehicle (2 m/s^2) lets a tabletop sensor's prediction wander over several of its landmarks' spacings,
+and the association with it; unset, the EKF's and FastSLAM's ``linear_acceleration_noise`` is
+``ACCELERATION_MARGIN`` times what the path shows, never more than the vehicle default and never
+less than that default scaled by the noise (:func:`derived_acceleration_noise`).
+
 :class:`NoiseAdaptive` wraps an estimator whose settings need the noise: it holds back the first
 observations, estimates the noise from them, builds the estimator with it and replays them; the poses
 it returned for the held-back iterations are replaced in :meth:`finish`.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -47,6 +56,19 @@ RANGE_FRACTION = 0.005
 #: The simulator's default noise (m), which the distance settings' defaults were chosen for; the
 #: fallback when the first observations cannot be registered.
 SIMULATOR_SIGMA = 0.3
+#: The motion models' linear acceleration noise (m/s^2) where the held-back path cannot tell: a
+#: vehicle's, which the EKF's and FastSLAM's defaults were chosen for.
+VEHICLE_ACCELERATION = 2.0
+#: Velocities are taken over about this span (s) of the held-back path: over one iteration the
+#: registrations' own error, divided by dt^2, would swamp a slow sensor's acceleration.
+ACCELERATION_SPAN_S = 0.5
+#: The derived acceleration noise is this many times the median acceleration the path shows: the
+#: first observations may be the calmest of the log, and the filters lose little to a noise too
+#: large, where one too small breaks the association (on the 7-Scenes kitchen keypoints, whose first
+#: second shows 0.11 m/s^2, the EKF's ATE is 3.6 cm at 1-2 m/s^2, 4.0 cm at 0.5 and 5.1 cm at 0.1;
+#: on a tabletop scene at 0.3 m range, 0.4 mm at 0.01-0.3 m/s^2 and 14 mm at 2). A turn sharper
+#: than that is what the association's collapse retry (up to 16 x the noise) is for.
+ACCELERATION_MARGIN = 16.0
 
 
 def register(
@@ -128,6 +150,59 @@ def registration_noise(
     return float(np.median(estimates)) if estimates else None
 
 
+def _chained_positions(observations: Sequence[PointObservation]) -> tuple[FloatArray, FloatArray] | None:
+    """Stamps (s) and positions (m, in the first observation's frame) of the observations of at least
+    ``MIN_POINTS`` points, chained from their consecutive registrations; None if any pair fails."""
+    usable = [o for o in observations if len(o) >= MIN_POINTS]
+    if len(usable) < 3:
+        return None
+    R, t = np.eye(3), np.zeros(3)
+    positions = [t]
+    for a, b in itertools.pairwise(usable):
+        step = register(a.points, b.points)
+        if step is None:
+            return None
+        R, t = R @ step[0], R @ step[1] + t  # T_0<-k+1 = T_0<-k  T_k<-k+1
+        positions.append(t)
+    stamps = np.array([o.stamp_ns for o in usable], dtype=np.float64) * 1e-9
+    return stamps, np.array(positions)
+
+
+def estimate_acceleration(observations: Sequence[PointObservation]) -> float | None:
+    """Median linear acceleration (m/s^2) of the path the observations' registrations chain into.
+
+    Velocities are differences of positions ``m`` observations apart, ``m`` spanning about
+    ``ACCELERATION_SPAN_S`` (at most a third of the path); the acceleration is the change of velocity
+    between consecutive spans over their time. None when the path cannot be chained or is too short.
+    """
+    path = _chained_positions(observations)
+    if path is None:
+        return None
+    stamps, positions = path
+    dt = float(np.median(np.diff(stamps)))
+    if not dt > 0:
+        return None
+    m = max(1, min(len(stamps) // 3, round(ACCELERATION_SPAN_S / dt)))
+    if len(stamps) < 2 * m + 1:
+        return None
+    span = stamps[m:] - stamps[:-m]
+    velocity = (positions[m:] - positions[:-m]) / span[:, None]
+    change = np.linalg.norm(velocity[m:] - velocity[:-m], axis=1)
+    between = 0.5 * (span[m:] + span[:-m])
+    return float(np.median(change / between))
+
+
+def derived_acceleration_noise(acceleration: float | None, sigma: float) -> float:
+    """The motion models' linear acceleration noise (m/s^2) for a log whose held-back path shows
+    ``acceleration`` (m/s^2; None: unknown) and whose observation noise is ``sigma`` (m):
+    ``ACCELERATION_MARGIN`` times the acceleration, within ``VEHICLE_ACCELERATION`` scaled by the noise
+    against the simulator's and ``VEHICLE_ACCELERATION`` itself."""
+    if acceleration is None:
+        return VEHICLE_ACCELERATION
+    floor = VEHICLE_ACCELERATION * min(1.0, sigma / SIMULATOR_SIGMA)
+    return float(min(VEHICLE_ACCELERATION, max(ACCELERATION_MARGIN * acceleration, floor)))
+
+
 def estimate_observation_noise(observations: Sequence[PointObservation]) -> float | None:
     """Per-axis observation noise (m): the registration noise, at least ``RANGE_FRACTION`` of the median range.
 
@@ -145,8 +220,11 @@ class NoiseAdaptive(Estimator[PointObservation]):
     """An estimator built once the observation noise is known from the first ``frames`` observations
     of at least ``MIN_POINTS`` points (or the first ``MAX_HELD`` iterations).
 
-    ``build(sigma)`` makes the real estimator ``name`` for noise ``sigma`` (m). ``fallback`` is used when no
-    pair of the first observations can be registered (too few points). Odometry and fixes that
+    ``build(sigma, acceleration)`` makes the real estimator ``name`` for noise ``sigma`` (m) and, with
+    ``measure_acceleration``, the median acceleration of the held-back path (m/s^2, or None when it
+    cannot be chained; :func:`estimate_acceleration`). ``fallback`` is the noise when no pair of the
+    first observations can be registered (too few points); ``sigma``, when given, is the noise the
+    settings already hold, and is not estimated. Odometry and fixes that
     arrive while observations are held back are replayed in their order. ``prepare`` is the real
     estimator's :meth:`~Estimator.prepare` work that needs no noise (compiling its code), run before
     the first iteration as the pipeline asks.
@@ -154,13 +232,17 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def __init__(
         self,
-        build: Callable[[float], Estimator],
+        build: Callable[[float, float | None], Estimator],
         fallback: float,
         name: str,
         frames: int = NOISE_FRAMES,
         prepare: Callable[[], None] | None = None,
+        sigma: float | None = None,
+        measure_acceleration: bool = False,
     ) -> None:
         self._build = build
+        self._known_sigma = sigma
+        self._measure_acceleration = measure_acceleration
         self._prepare = prepare
         self._fallback = fallback
         self._frames = max(2, frames)
@@ -171,14 +253,20 @@ class NoiseAdaptive(Estimator[PointObservation]):
         self._replayed: list[Pose] = []
         self.sigma: float | None = None
         self.estimated = False
+        self.acceleration: float | None = None
         self.name = name  # type: ignore[misc]  # the wrapped estimator's name
 
     def _start(self) -> None:
         observations = [item for kind, item in self._held if kind == "step"]
-        sigma = estimate_observation_noise(observations)
-        self.estimated = sigma is not None
-        self.sigma = sigma if sigma is not None else self._fallback
-        self._inner = self._build(self.sigma)
+        if self._known_sigma is not None:
+            self.sigma = self._known_sigma
+        else:
+            sigma = estimate_observation_noise(observations)
+            self.estimated = sigma is not None
+            self.sigma = sigma if sigma is not None else self._fallback
+        if self._measure_acceleration:
+            self.acceleration = estimate_acceleration(observations)
+        self._inner = self._build(self.sigma, self.acceleration)
         for kind, item in self._held:
             if kind == "step":
                 self._replayed.append(self._inner.step(item))
@@ -239,7 +327,8 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def summary(self) -> dict[str, Any]:
         inner = self._inner.summary() if self._inner is not None else {}
-        return {**inner, "observation_sigma": self.sigma, "observation_sigma_estimated": self.estimated}
+        measured = {"acceleration_measured": self.acceleration} if self._measure_acceleration else {}
+        return {**inner, "observation_sigma": self.sigma, "observation_sigma_estimated": self.estimated, **measured}
 
     def __getattr__(self, name: str) -> Any:
         # Anything else (diagnostics the benchmarks and tests read) comes from the built estimator.
@@ -247,4 +336,3 @@ class NoiseAdaptive(Estimator[PointObservation]):
         if inner is None:
             raise AttributeError(name)
         return getattr(inner, name)
-

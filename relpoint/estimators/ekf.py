@@ -300,6 +300,7 @@ class EkfSlam(Estimator[PointObservation]):
             "moving_landmarks": int(self._moving.sum()),
             "association": self.config.association,
             "motion": self.config.motion,
+            "linear_acceleration_noise": self.config.acceleration_noise,
             "state_size": int(self._P.shape[0]),
             "time_gaps_bridged": self._gaps.bridged,
             **{k: int(v) for k, v in sorted(self._stats.items())},
@@ -462,7 +463,7 @@ class EkfSlam(Estimator[PointObservation]):
             u = np.concatenate([self._odometry.linear, self._odometry.angular])
             # axes the message leaves unset take the constant-velocity model's noise over the interval
             Q_u = self._odometry.twist_covariance(
-                np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+                np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
             )
             p, R, F_pose, G = twist_step(self._position, self._rotation, u[:3], u[3:], dt)
             F[:6, :6] = F_pose
@@ -476,7 +477,7 @@ class EkfSlam(Estimator[PointObservation]):
             p, R, F_pose, G = twist_step(self._position, self._rotation, self._twist[:3], self._twist[3:], dt)
             F[:6, :6] = F_pose
             F[:6, 6:] = G
-            q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            q = np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
             # Acceleration acts over the interval: it moves the twist and, through it, the pose.
             G_full = np.vstack([G, np.eye(6)])
             Q = G_full @ np.diag(q) @ G_full.T

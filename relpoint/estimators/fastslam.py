@@ -516,6 +516,7 @@ class FastSlam(Estimator[PointObservation]):
         return {
             "variant": self.config.variant,
             "particles": self.config.particles,
+            "linear_acceleration_noise": self.config.acceleration_noise,
             "landmarks": self.map_size,
             "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
@@ -604,11 +605,11 @@ class FastSlam(Estimator[PointObservation]):
             twist = np.broadcast_to(u, (n, 6))
             # axes the message leaves unset take the constant-velocity model's noise over the interval
             Q_twist = self._odometry.twist_covariance(
-                np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+                np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
             )
         else:
             twist = self.twists
-            q = np.repeat([(cfg.linear_acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            q = np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
             if not self._moved:
                 q += np.repeat([cfg.initial_speed_sigma**2, cfg.initial_turn_rate_sigma**2], 3)
                 self._twist_unknown = True

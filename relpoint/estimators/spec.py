@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive
+from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive, derived_acceleration_noise
 from relpoint.estimators.base import DEPTH, POINTS, Estimator
 from relpoint.settings import Settings
 
@@ -22,7 +22,8 @@ class EstimatorSpec:
     :data:`DEPTH`), ``uses`` the optional input roles it also takes (odometry, fixes, colour).
     ``noise_adaptive``: the settings hold ``observation_sigma`` and an ``at_noise(sigma)`` that fits
     them to a noise; when the noise is unset, :meth:`factory` builds the estimator once the noise is
-    estimated from the first observations (:class:`~relpoint.estimators._noise.NoiseAdaptive`).
+    estimated from the first observations (:class:`~relpoint.estimators._noise.NoiseAdaptive`), and so
+    is a motion model's unset ``linear_acceleration_noise`` (settings with ``at_acceleration(a)``).
     """
 
     name: str
@@ -46,11 +47,20 @@ class EstimatorSpec:
         """A fresh estimator for ``config``; noise-adaptive ones wait for the noise when it is unset."""
         if not self.noise_adaptive:
             return self.estimator_class(config, rng)
-        if config.observation_sigma is not None:
+        # A motion model whose acceleration noise is unset takes it from the held-back path.
+        measure_acceleration = getattr(config, "linear_acceleration_noise", 0.0) is None
+        if config.observation_sigma is not None and not measure_acceleration:
             return self.estimator_class(config.at_noise(config.observation_sigma), rng)
+
+        def build(sigma: float, acceleration: float | None) -> Estimator:
+            fitted = config.at_noise(sigma)
+            if measure_acceleration:
+                fitted = fitted.at_acceleration(derived_acceleration_noise(acceleration, sigma))
+            return self.estimator_class(fitted, rng)
+
         compile_code = getattr(self.estimator_class, "compile", None)
-        return NoiseAdaptive(lambda sigma: self.estimator_class(config.at_noise(sigma), rng), SIMULATOR_SIGMA,
-                             self.name, prepare=compile_code)  # fmt: skip
+        return NoiseAdaptive(build, SIMULATOR_SIGMA, self.name, prepare=compile_code, sigma=config.observation_sigma,
+                             measure_acceleration=measure_acceleration)  # fmt: skip
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
         """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``) over them:
