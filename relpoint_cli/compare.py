@@ -11,7 +11,7 @@ from pathlib import Path
 
 import click
 
-from formats.atomic import write_text
+from formats.atomic import output_set, write_text
 from formats.outputs import check_output_file
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
@@ -135,8 +135,9 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
     aligns = {run.align for run in runs if run.align}
     if len(aligns) > 1:
         log.warning("the runs were evaluated with different alignments (%s)", ", ".join(sorted(aligns)))
-    if output is not None:
-        write_text(output, render_table(runs, columns, file_format))
-    if plot is not None and figure_format is not None:
-        comparison_plot(plot, runs, kind=plot_kind, plot_format=figure_format)
+    with output_set():  # the table and the figure appear together, or neither does
+        if output is not None:
+            write_text(output, render_table(runs, columns, file_format))
+        if plot is not None and figure_format is not None:
+            comparison_plot(plot, runs, kind=plot_kind, plot_format=figure_format)
     click.echo(render_table(runs, columns, table_format or "text"), nl=False)

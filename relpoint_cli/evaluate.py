@@ -16,7 +16,7 @@ from typing import Any
 
 import click
 
-from formats.atomic import write_text
+from formats.atomic import output_set, write_text
 from formats.evo_results import write_evo_result
 from formats.outputs import check_output_file
 from relpoint.errors import GateExceeded, InputError, UsageError
@@ -116,13 +116,8 @@ def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelatio
     return "\n".join(lines)
 
 
-def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
-    """:func:`relpoint_app.evaluator.evaluation_json`, atomically to ``path`` (``-``: stdout)."""
-    text = evaluation_json(summary, settings, inputs)
-    if str(path) == "-":
-        click.echo(text, nl=False)
-    else:
-        write_text(path, text)
+def _is_stdout(path: Path | None) -> bool:
+    return path is not None and str(path) == "-"
 
 
 @click.command(epilog=EXAMPLES)
@@ -248,7 +243,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         if path is not None and path.suffix.lower() != ".zip":
             raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
     for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
-        if path is not None and str(path) != "-":
+        if path is not None and not _is_stdout(path):
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
         estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
@@ -286,23 +281,26 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         "t_end": t_end,
     }
     estimator = run_estimator(estimate)
-    if json_path is not None:
-        write_json(json_path, summary, settings, inputs)
-    if csv_path is not None:
-        write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
     names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
     if names["reference_name"] == names["estimate_name"]:
         names["estimate_name"] += " (estimate)"
-    for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
-        if path is not None:
-            write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
-                                          **names))  # fmt: skip
-    if plot_dir is not None:
-        evaluation_plots(
-            plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
-            estimator=estimator,
-            landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
-        )  # fmt: skip
-    click.echo(format_table(summary, settings.pose_relation), err=json_path is not None and str(json_path) == "-")
+    with output_set():  # every output file appears, or none does (an interrupt while they are written)
+        if json_path is not None and not _is_stdout(json_path):
+            write_text(json_path, evaluation_json(summary, settings, inputs))
+        if csv_path is not None:
+            write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
+        for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
+            if path is not None:
+                write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
+                                              **names))  # fmt: skip
+        if plot_dir is not None:
+            evaluation_plots(
+                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+                estimator=estimator,
+                landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
+            )  # fmt: skip
+    if _is_stdout(json_path):
+        click.echo(evaluation_json(summary, settings, inputs), nl=False)
+    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path))
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

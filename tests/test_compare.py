@@ -253,6 +253,22 @@ def test_tables_figures_and_their_replacement(tmp_path: Path, small_log: Path) -
     assert b"<svg" in (tmp_path / "compare.svg").read_bytes()[:2000]
 
 
+def test_an_interrupt_while_the_figure_is_drawn_leaves_no_table(
+    tmp_path: Path, small_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C after the table was written
+
+    monkeypatch.setattr("relpoint_cli.compare.comparison_plot", interrupted)
+    runs = [fake_run(tmp_path / name, small_log, shift) for name, shift in (("a", 0.1), ("b", 0.2))]
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = invoke("compare", *runs, "-r", small_log, "-o", out / "table.md", "--plot", out / "compare.png")
+    assert code == 130
+    assert_one_error_line(err, "interrupted; no output was written")
+    assert list(out.iterdir()) == []
+
+
 def test_saved_evaluations_keep_their_settings(tmp_path: Path, small_log: Path) -> None:
     run = fake_run(tmp_path / "run", small_log, 0.25, estimator="relpoint")
     code, _, err = invoke("evaluate", run, "-r", small_log, "--align", "se3", "--json", run / "evaluation.json")

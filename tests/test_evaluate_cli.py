@@ -188,6 +188,22 @@ def test_run_directory_with_landmarks_csv_and_plots(tmp_path: Path, small_log: P
     assert all((plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("errors.png",))
 
 
+def test_an_interrupt_while_the_outputs_are_written_leaves_none_of_them(
+    tmp_path: Path, small_log: Path, run_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C after the JSON, CSV and zip were written, before the plots
+
+    monkeypatch.setattr("relpoint_cli.evaluate.evaluation_plots", interrupted)
+    out = tmp_path / "s"
+    out.mkdir()
+    code, _, err = invoke("evaluate", run_dir, "-r", small_log, "--json", out / "e.json", "--csv", out / "e.csv",
+                          "--save-results", out / "e.zip", "--plot", out / "plots")  # fmt: skip
+    assert code == 130
+    assert_one_error_line(err, "interrupted; no output was written")
+    assert list(out.iterdir()) == []  # no output, no temporary, no plot directory
+
+
 def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     named = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/ground_truth/landmarks")
     assert named["lm_matched"] > 20

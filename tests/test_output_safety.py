@@ -227,3 +227,31 @@ def test_temporaries_are_found_for_a_name_with_glob_characters(tmp_path: Path) -
     (tmp_path / ".sigma=0.k3x.partial").mkdir()  # what an unescaped "[0.1]" would match
     assert remove_temporaries(tmp_path / "sigma=[0.1]") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == [".sigma=0.k3x.partial"]
+
+
+def test_an_output_set_appears_whole_when_an_interrupt_comes_while_it_is_renamed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import signal
+
+    from formats import atomic
+    from relpoint.errors import Interrupted
+
+    renamed: list[str] = []
+
+    def replace_and_interrupt(source: object, target: object) -> None:
+        if not renamed:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C as the first output is renamed
+        real_replace(source, target)
+        renamed.append(Path(str(target)).name)
+
+    real_replace = os.replace
+    targets = [tmp_path / "a.json", tmp_path / "plots" / "b.png"]
+    with pytest.raises(Interrupted, match="interrupted after every output was written"), atomic.output_set():
+        for target in targets:
+            atomic.write_text(target, "x")
+        monkeypatch.setattr(atomic.os, "replace", replace_and_interrupt)
+    assert renamed == ["a.json", "b.png"]  # the interrupt waited for the last rename
+    assert all(target.read_text() == "x" for target in targets)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.json", "b.png", "plots"]  # no temporary
