@@ -41,7 +41,7 @@ from relpoint_app.evaluator import (
 from relpoint_app.evo_results import ape_result, rpe_result
 from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
+from relpoint_cli.options import FiniteFloatRange, overwrite_option, read_paths, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -207,7 +207,11 @@ def _is_stdout(path: Path | None) -> bool:
     help="Dense maps: reference point cloud (PLY, reference frame), e.g. the LOG.scene.ply of a simulated room.",
 )
 @click.option(
-    "--dense-threshold", type=float, default=0.05, show_default=True, help="Dense maps: distance counted as a hit, m."
+    "--dense-threshold",
+    type=FiniteFloatRange(min=0, min_open=True),
+    default=0.05,
+    show_default=True,
+    help="Dense maps: distance counted as a hit, m.",
 )
 @click.option(
     "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from collections.abc import Callable
 from typing import Any
@@ -11,6 +12,18 @@ import click
 from click.core import ParameterSource
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+
+
+class FiniteFloatRange(click.FloatRange):
+    """A float range that also refuses NaN and infinity (NaN passes every comparison of ``FloatRange``)."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return number
 
 
 def _click_type(annotation: str) -> Any:
@@ -83,12 +96,12 @@ def read_paths(*paths: Any) -> list[Any]:
 
 def time_window_options(command: Any) -> Any:
     """``--t-start`` and ``--t-end``: seconds after the first stamp (of the log, or of the reference)."""
-    command = click.option(
-        "--t-end", type=float, help="Use nothing after this many seconds from the first stamp."
-    )(command)
-    return click.option(
-        "--t-start", type=float, help="Use nothing before this many seconds from the first stamp."
-    )(command)
+    command = click.option("--t-end", type=float, help="Use nothing after this many seconds from the first stamp.")(
+        command
+    )
+    return click.option("--t-start", type=float, help="Use nothing before this many seconds from the first stamp.")(
+        command
+    )
 
 
 def time_window(t_start: float | None, t_end: float | None) -> Any:

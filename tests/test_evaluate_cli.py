@@ -267,6 +267,15 @@ def test_bad_inputs_exit_3_with_one_line(tmp_path: Path) -> None:
     assert_one_error_line(err, "no messages on /nothing")
 
 
+@pytest.mark.parametrize("threshold", ["0", "-0.1", "nan", "inf"])
+def test_a_dense_threshold_out_of_range_is_refused_before_any_work(tmp_path: Path, threshold: str) -> None:
+    missing = tmp_path / "missing"  # not even read: the option is checked first
+    code, _, err = invoke("evaluate", missing, "-r", missing, "--reference-cloud", missing,
+                          "--dense-threshold", threshold)  # fmt: skip
+    assert code == 2
+    assert_one_error_line(err, "Invalid value for '--dense-threshold'")
+
+
 def test_info_names_the_pose_topics_a_bag_can_be_evaluated_against() -> None:
     bag = shared_data(*BAG)
     code, out, _ = invoke("info", bag, "--json")
