@@ -60,7 +60,9 @@ Examples:
     type=click.Path(dir_okay=False, path_type=Path),
     help="TOML/YAML file of estimator parameters.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the estimator's random draws.")
+@click.option(
+    "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the estimator's random draws."
+)
 @click.option(
     "--map-every",
     type=click.IntRange(min=0),
