@@ -343,6 +343,14 @@ def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> st
     return _sha256_of(identity, files, layout is Layout.ROSBAG2)
 
 
+def log_stamp(path: str | os.PathLike[str], layout: Layout | None = None) -> tuple[int, int]:
+    """Total size (bytes) and latest modification time (ns) of a log's files: a cheap check of whether
+    it is still the log a :func:`log_sha256` was taken of, before hashing it again."""
+    path = Path(path)
+    stats = [file.stat() for file in storage_paths(path, layout or detect_layout(path))]
+    return sum(s.st_size for s in stats), max((s.st_mtime_ns for s in stats), default=0)
+
+
 def _file_stamp(file: Path) -> tuple[int, int, int, int]:
     status = file.stat()
     return status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns

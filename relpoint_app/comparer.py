@@ -27,6 +27,7 @@ from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation
 from relpoint.types import TimeWindow
 from relpoint_app.evaluator import evaluate_files, run_estimator
 from relpoint_app.evo_results import compared_from_evo
+from relpoint_app.run_inputs import recorded_input, recorded_log
 
 log = logging.getLogger(__name__)
 
@@ -117,17 +118,6 @@ def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, docume
                        source=f"{path} (summary)")  # fmt: skip
 
 
-def _run_log(directory: Path) -> str | None:
-    """The input log a run directory's run.json names (as it was given to `relpoint run`), if any."""
-    try:
-        document = json.loads((directory / "run.json").read_text(encoding="utf-8")[:10_000_000])
-    except (OSError, ValueError):
-        return None
-    recorded = document.get("input", {}) if isinstance(document, dict) else {}
-    path = recorded.get("path") if isinstance(recorded, dict) else None
-    return path if isinstance(path, str) and path else None
-
-
 def load_compared(
     label: str, path: Path, reference: Path | None, settings: EvaluationSettings,
     reference_options: dict[str, Any] | None = None,
@@ -144,8 +134,9 @@ def load_compared(
         if reference is None and (path / "evaluation.json").is_file():
             return _from_saved_evaluation(label, path / "evaluation.json", path, _read_json(path / "evaluation.json"))
         if reference is None:
-            recorded = _run_log(path)
-            reference = _existing(recorded)
+            run_input = recorded_input(path)
+            recorded = run_input.get("path")
+            reference = recorded_log(path, run_input)
             if reference is None:
                 where = (
                     f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"

@@ -20,7 +20,6 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
-from formats.layouts import log_sha256
 from formats.log import LogReader, Record, Topics
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
@@ -31,8 +30,10 @@ from relpoint.estimators.base import Estimator
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
 from relpoint.undistortion import Undistortion, undistortion
 from relpoint_app.roles import NEED_ROLES
+from relpoint_app.run_inputs import log_record
 
 log = logging.getLogger(__name__)
+
 
 def estimator_spec(name: str) -> EstimatorSpec:
     """The registered estimator ``name``; an unknown name is a :class:`UsageError` listing the known ones."""
@@ -221,7 +222,7 @@ def execute_run(
         "parameters": dataclasses.asdict(config),
         "seed": seed,
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path, reader.layout), "roles": sorted(roles),
+        "input": {**log_record(reader.path, reader.layout), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
         "warnings": list(result.warnings),
@@ -351,5 +352,7 @@ def run(
         return execute_run(
             reader, spec, config, directory, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
         )
-    result, _ = run_estimator(reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window)
+    result, _ = run_estimator(
+        reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
+    )
     return result
