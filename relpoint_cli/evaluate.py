@@ -33,6 +33,7 @@ from relpoint_app.evaluator import (
     check_gates,
     dense_map_clouds,
     dense_map_summary,
+    errors_csv_text,
     evaluate_files,
     evaluation_json,
     run_estimator,
@@ -184,7 +185,10 @@ def _is_stdout(path: Path | None) -> bool:
     help="Write the summary as JSON ('-': to stdout, and the table to stderr).",
 )
 @click.option(
-    "--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), help="Write per-pose errors as CSV."
+    "--csv",
+    "csv_path",
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    help="Write per-pose errors as CSV ('-': to stdout, and the table to stderr).",
 )
 @click.option(
     "--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -246,6 +250,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):
         if path is not None and path.suffix.lower() != ".zip":
             raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
+    if _is_stdout(json_path) and _is_stdout(csv_path):
+        raise UsageError("--json - and --csv - both name stdout", "write one of them to a file")
     for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
         if path is not None and not _is_stdout(path):
             check_output_file(path, inputs=read, overwrite=overwrite)
@@ -291,7 +297,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     with output_set():  # every output file appears, or none does (an interrupt while they are written)
         if json_path is not None and not _is_stdout(json_path):
             write_text(json_path, evaluation_json(summary, settings, inputs))
-        if csv_path is not None:
+        if csv_path is not None and not _is_stdout(csv_path):
             write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
         for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
             if path is not None:
@@ -305,6 +311,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             )  # fmt: skip
     if _is_stdout(json_path):
         click.echo(evaluation_json(summary, settings, inputs), nl=False)
-    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path))
+    if _is_stdout(csv_path):
+        click.echo(errors_csv_text(result, evaluation.landmark_error_over_time), nl=False)
+    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path) or _is_stdout(csv_path))
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

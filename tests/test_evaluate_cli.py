@@ -86,6 +86,21 @@ def test_json_dash_writes_the_summary_to_stdout_and_the_table_to_stderr(tmp_path
     assert list(tmp_path.iterdir()) == []  # no file named "-"
 
 
+def test_csv_dash_writes_the_errors_to_stdout_and_the_table_to_stderr(tmp_path: Path, monkeypatch) -> None:
+    data = shared_data(*FR1)
+    monkeypatch.chdir(tmp_path)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    code, out, err = invoke(*args, "--csv", "-")
+    assert code == 0, err
+    rows = list(csv.DictReader(out.splitlines()))
+    assert len(rows) > 700 and float(rows[0]["ape_translation_m"]) >= 0
+    assert "APE translation (m)" in err
+    assert list(tmp_path.iterdir()) == []  # no file named "-"
+    code, out, err = invoke(*args, "--csv", "-", "--json", "-")
+    assert code == 2 and out == ""
+    assert_one_error_line(err, "--json - and --csv - both name stdout")
+
+
 def test_a_small_overlap_is_an_error_naming_both_time_ranges(tmp_path: Path) -> None:
     data = shared_data(*FR1)
     args = ["evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
