@@ -138,7 +138,8 @@ def import_command(
     if not ctx.find_root().obj.get("quiet"):
         click.echo(
             f"wrote {output}: {counts.depth} depth frames, {counts.color} colour images, "
-            f"{counts.ground_truth_pose} ground-truth poses, {counts.skipped_depth} depth images skipped",
+            f"{counts.ground_truth_pose} ground-truth poses, {counts.skipped_depth} depth images skipped"
+            + (f", {counts.skipped_color} unreadable colour images left out" if counts.skipped_color else ""),
             err=True,
         )
 
