@@ -37,6 +37,7 @@ from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1.reader import decompressors as ros1_decompressors
 
 from formats import ros2
+from formats.outputs import unreadable_input
 from formats.signatures import MCAP_MAGIC, ROS1_MAGIC, ROSBAG2_METADATA
 from relpoint.errors import InputError
 
@@ -96,7 +97,7 @@ def detect_layout(path: str | os.PathLike[str]) -> Layout:
         with path.open("rb") as stream:
             head = stream.read(16)
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     if head.startswith(MCAP_MAGIC):
         _check_suffix(path, ".mcap")
         return Layout.MCAP

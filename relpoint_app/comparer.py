@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from formats.evo_results import read_evo_result
+from formats.outputs import unreadable_input
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation
@@ -40,7 +41,7 @@ def _read_json(path: Path) -> dict[str, Any]:
             raise InputError(f"{path}: larger than {_MAX_JSON_BYTES >> 20} MB, not an evaluation summary")
         document = json.loads(path.read_text(encoding="utf-8"))
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     except (ValueError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(document, dict) or not isinstance(document.get("summary"), dict):

@@ -23,7 +23,7 @@ import numpy as np
 import relpoint
 from formats.atomic import atomic_directory
 from formats.log import LogReader
-from formats.outputs import check_output_directory
+from formats.outputs import check_output_directory, unreadable_input
 from formats.ply import read_ply
 from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
@@ -45,7 +45,7 @@ def read_timing(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with path.open(newline="", encoding="utf-8") as stream:
             rows = list(csv.DictReader(stream))
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     try:
         observed = np.array([int(r["observed"]) for r in rows], dtype=np.int64)
         map_size = np.array([int(r["map_size"]) for r in rows], dtype=np.int64)

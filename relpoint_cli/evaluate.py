@@ -42,7 +42,14 @@ from relpoint_app.evaluator import (
 from relpoint_app.evo_results import ape_result, rpe_result
 from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import FiniteFloatRange, overwrite_option, read_paths, time_window, time_window_options
+from relpoint_cli.options import (
+    FiniteFloatRange,
+    input_path,
+    overwrite_option,
+    read_paths,
+    time_window,
+    time_window_options,
+)
 from relpoint_cli.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -122,11 +129,11 @@ def _is_stdout(path: Path | None) -> bool:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("estimate", type=click.Path(path_type=Path))
+@click.argument("estimate", type=input_path())
 @click.option(
     "-r",
     "--reference",
-    type=click.Path(path_type=Path),
+    type=input_path(),
     required=True,
     help="Reference: relpoint log (/ground_truth/pose), TUM/EuRoC/KITTI file, run directory or any MCAP bag.",
 )
@@ -138,10 +145,8 @@ def _is_stdout(path: Path | None) -> bool:
 )  # fmt: skip
 @click.option("--parent", help="Reference from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Reference from a TF chain: child frame (e.g. base_footprint).")
-@click.option(
-    "--reference-times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI reference poses."
-)
-@click.option("--times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI estimate poses.")
+@click.option("--reference-times", type=input_path(dir_okay=False), help="Times file of KITTI reference poses.")
+@click.option("--times", type=input_path(dir_okay=False), help="Times file of KITTI estimate poses.")
 @click.option(
     "--align", type=click.Choice([m.value for m in AlignMode]), default="none", show_default=True,
     help="Alignment of the estimate: Umeyama SE(3) (evo -a), Sim(3) (-as), scale only (-s), origin.",
@@ -207,7 +212,7 @@ def _is_stdout(path: Path | None) -> bool:
 )  # fmt: skip
 @click.option(
     "--reference-cloud",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=input_path(dir_okay=False),
     help="Dense maps: reference point cloud (PLY, reference frame), e.g. the LOG.scene.ply of a simulated room.",
 )
 @click.option(

@@ -13,7 +13,7 @@ import click
 from relpoint.fusion import FusionConfig
 from relpoint_app.fuser import fuse_run
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option
+from relpoint_cli.options import input_path, overwrite_option
 from relpoint_cli.topics import topic_options, topics_from
 
 EXAMPLES = """\b
@@ -33,8 +33,8 @@ def fusion_config(params: tuple[str, ...]) -> FusionConfig:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--log", "log_path", type=click.Path(path_type=Path), required=True,
+@click.argument("run_dir", type=input_path(file_okay=False))
+@click.option("--log", "log_path", type=input_path(), required=True,
               help="The log the run was made from (its position fixes are read).")  # fmt: skip
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory (replaced atomically).")  # fmt: skip

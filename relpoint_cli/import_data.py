@@ -12,7 +12,7 @@ from formats.log import COMPRESSIONS, Topics
 from relpoint.errors import InputError, UsageError
 from relpoint.types import Intrinsics
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.options import input_path, overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -39,7 +39,7 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 
 @click.command("import", epilog=EXAMPLES)
 @click.argument("layout", type=click.Choice(["tum", "7scenes", "log"]))
-@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("source", type=input_path())
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap log to write."
 )

@@ -69,6 +69,14 @@ def explicit_options(ctx: click.Context, names: list[str]) -> dict[str, Any]:
     }
 
 
+def input_path(*, file_okay: bool = True, dir_okay: bool = True) -> click.Path:
+    """The click type of an input file or directory: its permissions are left to the reader, which names the
+    file and the way out with exit 3 (click would call an unreadable input a usage error)."""
+    from pathlib import Path
+
+    return click.Path(file_okay=file_okay, dir_okay=dir_okay, readable=False, path_type=Path)
+
+
 def overwrite_option(command: Any) -> Any:
     """``--overwrite``: replace an output that relpoint did not recognisably write (never an input)."""
     return click.option(

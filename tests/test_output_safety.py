@@ -255,3 +255,40 @@ def test_an_output_set_appears_whole_when_an_interrupt_comes_while_it_is_renamed
     assert renamed == ["a.json", "b.png"]  # the interrupt waited for the last rename
     assert all(target.read_text() == "x" for target in targets)
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.json", "b.png", "plots"]  # no temporary
+
+
+UNREADABLE_INPUTS = """
+import json, sys
+from click.testing import CliRunner
+from relpoint_cli.main import cli
+log, good, run = sys.argv[1:4]
+commands = [["info", log], ["run", log, "-e", "ekf", "-o", run + "-x"], ["export", log, "-o", run + ".tum"],
+            ["evaluate", log, "-r", good], ["evaluate", run, "-r", log], ["compare", run, "-r", log],
+            ["fuse", run, "--log", log, "-o", run + "-fused"]]
+print(json.dumps([(c[0], *(lambda r: (r.exit_code, r.stderr))(CliRunner().invoke(cli, c))) for c in commands]))
+"""
+
+
+def test_an_unreadable_log_is_an_input_error_naming_the_way_out(tmp_path: Path, log: Path) -> None:
+    import os
+    import shutil
+
+    run = tmp_path / "run"
+    code, err = invoke("run", str(log), "-e", "ekf", "-o", str(run))
+    assert code == 0, err
+    locked = tmp_path / "locked.mcap"
+    shutil.copy(log, locked)
+    locked.chmod(0)
+    # root reads any file: drop the capabilities that let it (setpriv, from util-linux)
+    prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"] if os.geteuid() == 0 else []
+    if prefix and shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: every file is readable")
+    probe = subprocess.run([*prefix, "cat", str(locked)], capture_output=True)
+    if probe.returncode == 0:
+        pytest.skip("this user can read a file of mode 000")
+    done = subprocess.run([*prefix, sys.executable, "-c", UNREADABLE_INPUTS, str(locked), str(log), str(run)],
+                          capture_output=True, text=True, cwd=REPO, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    for command, code, err in json.loads(done.stdout):
+        assert code == 3, (command, err)
+        assert err == f"relpoint: error: {locked}: cannot read (permission denied); check its permissions\n", command
