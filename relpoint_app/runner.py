@@ -24,7 +24,7 @@ from formats.log import LogReader, Record, Topics
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
-from relpoint.errors import UsageError
+from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint.estimators.base import Estimator
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
@@ -273,11 +273,39 @@ def drive(
     BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
     spinning worker threads made the EKF about 20 times slower.
     """
-    with threadpool_limits(limits=1, user_api="blas"):
-        return pipeline.run(
-            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
-        )  # fmt: skip
+    observations = 0
+
+    def counted(records: Iterator[Record]) -> Iterator[Record]:
+        nonlocal observations
+        for record in records:
+            observations += record.role in ("points", "depth")
+            yield record
+
+    records = counted(cropped_records(reader.records(roles), window or TimeWindow()))
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            return pipeline.run(
+                estimator_inputs(records, reader.skipped), estimator, on_iteration=on_iteration,
+                map_every=map_every, skipped_before=reader.skipped,
+            )  # fmt: skip
+    except (EstimatorError, InputError):
+        if window is None or window.is_open or observations:
+            raise
+        raise _empty_window(reader, roles, window) from None
+
+
+def _empty_window(reader: LogReader, roles: list[str], window: TimeWindow) -> InputError:
+    """The error of a ``--t-start``/``--t-end`` window that leaves no observation, naming the log's span."""
+    topics = reader.topics.roles()
+    infos = [reader.topic_infos[topics[role]] for role in roles
+             if role in CROPPED_ROLES and topics.get(role) in reader.topic_infos]  # fmt: skip
+    firsts = [info.first_ns for info in infos if info.first_ns is not None]
+    lasts = [info.last_ns for info in infos if info.last_ns is not None]
+    span = (max(lasts) - min(firsts)) * 1e-9 if firsts and lasts else 0.0
+    given = " ".join(f"{option} {value:g}" for option, value in (("--t-start", window.start_s),
+                                                                  ("--t-end", window.end_s)) if value is not None)  # fmt: skip
+    return InputError(f"{reader.path}: {given} leaves no observation; the log spans {span:.3f} s",
+                      "the window counts seconds from the log's first message")  # fmt: skip
 
 
 def reference_path(reader: LogReader) -> Trajectory | None:
