@@ -7,16 +7,106 @@ file, never a half-written one; a failure or an interrupt removes the temporary.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import glob
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from formats.outputs import MARKER, OutputError, directory_owner, resolve_output
+
+
+class _OutputSet:
+    """Finished temporaries waiting to be renamed together (see :func:`output_set`)."""
+
+    def __init__(self) -> None:
+        self.pending: list[tuple[Path, Path]] = []  # (temporary, target)
+        self.created: list[Path] = []  # directories made for the outputs, parents first
+
+
+_OUTPUT_SET: contextvars.ContextVar[_OutputSet | None] = contextvars.ContextVar("relpoint_output_set", default=None)
+
+
+@contextlib.contextmanager
+def output_set() -> Iterator[None]:
+    """Make the files written by :func:`atomic_path` in the body appear together, or not at all.
+
+    Each finished file waits under its temporary name; when the body completes, all are renamed to their
+    targets with SIGINT and SIGTERM held back, so an interrupt lands before the first rename (nothing
+    is left: the temporaries and the directories made for them are removed) or after the last one (an
+    :class:`~relpoint.errors.Interrupted` naming what was written). A command that writes several
+    outputs (``evaluate --json --csv --plot``) thus never leaves a part of them.
+    """
+    from relpoint.errors import Interrupted
+
+    outputs = _OutputSet()
+    token = _OUTPUT_SET.set(outputs)
+    try:
+        yield
+    except BaseException:
+        _discard(outputs)
+        raise
+    finally:
+        _OUTPUT_SET.reset(token)
+    caught: list[int] = []
+    previous = _defer_interrupts(caught)
+    try:
+        for tmp, target in outputs.pending:
+            os.replace(tmp, target)
+    except BaseException:
+        _discard(outputs)  # a rename refused: the temporaries not yet renamed
+        raise
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if caught:
+        written = ", ".join(str(target) for _, target in outputs.pending)
+        raise Interrupted(f"interrupted after every output was written ({written})")
+
+
+def _discard(outputs: _OutputSet) -> None:
+    for tmp, _ in outputs.pending:
+        tmp.unlink(missing_ok=True)
+    for directory in reversed(outputs.created):
+        with contextlib.suppress(OSError):
+            directory.rmdir()  # only if still empty
+
+
+def _defer_interrupts(caught: list[int]) -> dict[int, Any]:
+    """Note SIGINT/SIGTERM in ``caught`` instead of acting on them; returns the handlers to put back.
+
+    A Python-level handler rather than a signal mask: the signal may land on any thread (BLAS threads
+    among them), while Python handlers always run in the main thread. Ignored signals stay ignored.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(signum)
+        if handler in (signal.SIG_IGN, None):
+            continue
+        previous[signum] = handler
+        signal.signal(signum, lambda number, frame: caught.append(number))
+    return previous
+
+
+def _make_parent(directory: Path, outputs: _OutputSet | None) -> None:
+    """``mkdir -p directory``, noting for an output set the directories it made (removed on an interrupt)."""
+    missing = []
+    parent = directory
+    while not parent.exists() and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
+    directory.mkdir(parents=True, exist_ok=True)
+    if outputs is not None:
+        outputs.created.extend(reversed(missing))
 
 
 @contextlib.contextmanager
@@ -25,11 +115,13 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
     The temporary is removed if the body raises (including ``KeyboardInterrupt``). A symlink ``path``
     is written through. A file-system refusal (full disk, read-only) is an
-    :class:`~formats.outputs.OutputError` naming ``path``.
+    :class:`~formats.outputs.OutputError` naming ``path``. Inside :func:`output_set` the rename waits
+    for the end of the set.
     """
     target = resolve_output(path)
+    outputs = _OUTPUT_SET.get()
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
+        _make_parent(target.parent, outputs)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
         os.close(fd)
     except OSError as error:
@@ -38,12 +130,17 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, 0o644)
-        os.replace(tmp, target)
+        if outputs is not None:
+            outputs.pending.append((tmp, target))
+        else:
+            os.replace(tmp, target)
     except OSError as error:
         tmp.unlink(missing_ok=True)
         if not _is_write_error(error, tmp):
             raise
-        raise OutputError(f"cannot write {path}: {error.strerror or error}", "free some space or write elsewhere") from None
+        raise OutputError(
+            f"cannot write {path}: {error.strerror or error}", "free some space or write elsewhere"
+        ) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -69,8 +166,12 @@ def atomic_directory(path: str | os.PathLike[str], command: str = "run") -> Iter
     except OSError as error:
         raise OutputError(f"cannot write {path}: {error.strerror or error}", "choose a writable place") from None
     old: Path | None = None
+    token = _OUTPUT_SET.set(None)  # the files inside are written at once; the directory is renamed as a whole
     try:
-        yield tmp
+        try:
+            yield tmp
+        finally:
+            _OUTPUT_SET.reset(token)
         files = sorted(entry.name for entry in tmp.iterdir())
         (tmp / MARKER).write_text(json.dumps({"command": command, "files": files}, indent=1) + "\n", encoding="utf-8")
         os.chmod(tmp, 0o755)
@@ -96,7 +197,9 @@ def atomic_directory(path: str | os.PathLike[str], command: str = "run") -> Iter
         shutil.rmtree(tmp, ignore_errors=True)
         if not _is_write_error(error, tmp):
             raise
-        raise OutputError(f"cannot write {path}: {error.strerror or error}", "free some space or write elsewhere") from None
+        raise OutputError(
+            f"cannot write {path}: {error.strerror or error}", "free some space or write elsewhere"
+        ) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

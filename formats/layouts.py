@@ -37,6 +37,7 @@ from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1.reader import decompressors as ros1_decompressors
 
 from formats import ros2
+from formats.outputs import unreadable_input
 from formats.signatures import MCAP_MAGIC, ROS1_MAGIC, ROSBAG2_METADATA
 from relpoint.errors import InputError
 
@@ -96,7 +97,7 @@ def detect_layout(path: str | os.PathLike[str]) -> Layout:
         with path.open("rb") as stream:
             head = stream.read(16)
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     if head.startswith(MCAP_MAGIC):
         _check_suffix(path, ".mcap")
         return Layout.MCAP
@@ -341,6 +342,14 @@ def log_sha256(path: str | os.PathLike[str], layout: Layout | None = None) -> st
     files = tuple(storage_paths(path, layout))
     identity = tuple((str(file.resolve()), *_file_stamp(file)) for file in files)
     return _sha256_of(identity, files, layout is Layout.ROSBAG2)
+
+
+def log_stamp(path: str | os.PathLike[str], layout: Layout | None = None) -> tuple[int, int]:
+    """Total size (bytes) and latest modification time (ns) of a log's files: a cheap check of whether
+    it is still the log a :func:`log_sha256` was taken of, before hashing it again."""
+    path = Path(path)
+    stats = [file.stat() for file in storage_paths(path, layout or detect_layout(path))]
+    return sum(s.st_size for s in stats), max((s.st_mtime_ns for s in stats), default=0)
 
 
 def _file_stamp(file: Path) -> tuple[int, int, int, int]:

@@ -54,6 +54,7 @@ from formats.layouts import (
     detect_layout,
     open_reader,
 )
+from formats.outputs import unreadable_input
 from formats.topics import Topics
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
@@ -128,7 +129,7 @@ class TopicInfo:
 
 def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
     if isinstance(error, PermissionError):
-        return InputError(f"{path}: cannot read ({error.strerror or error})", "check its permissions")
+        return unreadable_input(path, error)
     detail = str(error) or type(error).__name__
     return InputError(f"{path}: the {layout.noun} is truncated or corrupt ({detail})", layout.repair_hint)
 

@@ -27,7 +27,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from formats.signatures import is_log, is_relpoint_result_zip
-from relpoint.errors import UsageError
+from relpoint.errors import InputError, UsageError
 
 #: Name of the file that marks a directory as a relpoint output; JSON ``{"command", "files"}``.
 MARKER = ".relpoint-output"
@@ -84,7 +84,9 @@ def _is_bag(path: Path) -> bool:
 def _refuse_inputs(shown: str | os.PathLike[str], target: Path, inputs: list[tuple[str, Path]], *, directory: bool):
     for name, resolved in inputs:
         if resolved == target:
-            raise OutputError(f"output {shown} is the input {name}", "write to another path; relpoint never overwrites its input")
+            raise OutputError(
+                f"output {shown} is the input {name}", "write to another path; relpoint never overwrites its input"
+            )
         if directory and target in resolved.parents:
             raise OutputError(
                 f"output directory {shown} contains the input {name}", "choose an output directory outside the input's"
@@ -154,7 +156,9 @@ def check_output_directory(
         try:
             entries = sorted(entry.name for entry in target.iterdir())
         except OSError as error:
-            raise OutputError(f"cannot read {path}: {error.strerror or error}", "choose another output directory") from None
+            raise OutputError(
+                f"cannot read {path}: {error.strerror or error}", "choose another output directory"
+            ) from None
         if entries:
             owner = directory_owner(target)
             if owner is None:
@@ -258,6 +262,13 @@ def check_output_file(
 #: Operating-system errors that mean an output could not be written (exit 2); any other is an input's (exit 3).
 OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EBUSY, errno.EEXIST, errno.ENOTEMPTY,
                            errno.EXDEV, errno.EISDIR, errno.EFBIG})  # fmt: skip
+
+
+def unreadable_input(path: str | os.PathLike[str], error: OSError) -> InputError:
+    """The error (exit 3) of an input the system refused to read, with the way out."""
+    if error.errno in (errno.EACCES, errno.EPERM):
+        return InputError(f"{path}: cannot read (permission denied)", "check its permissions")
+    return InputError(f"{path}: cannot read ({error.strerror or error})", "check the path")
 
 
 def os_error_message(error: OSError) -> str:

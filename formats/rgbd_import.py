@@ -56,6 +56,35 @@ class ImportCounts:
     color: int
     ground_truth_pose: int
     skipped_depth: int = 0
+    skipped_color: int = 0
+
+
+class UnreadableImage(InputError):
+    """An image file that cannot be decoded (truncated, corrupt, missing): its frame is skipped."""
+
+
+class _Skips:
+    """Unreadable images of an import: the first of each kind warned of by name, all counted in ``counter``."""
+
+    def __init__(self, counter: Counter[str] | None) -> None:
+        self.counter: Counter[str] = counter if counter is not None else Counter()
+        self.seen: Counter[str] = Counter()
+
+    def skip(self, kind: str, error: UnreadableImage, what: str) -> None:
+        self.counter[kind] += 1
+        self.seen[kind] += 1
+        if self.seen[kind] == 1:
+            log.warning("%s; %s (further ones are counted)", error, what)
+
+    def summary(self, folder: Path, frames: int) -> None:
+        """Warn of the counts; raise :class:`InputError` when no frame was left (``frames``: those yielded)."""
+        if frames == 0 and self.seen["depth"]:
+            raise InputError(f"{folder}: none of its {self.seen['depth']} depth images can be read",
+                             "check that the dataset was copied whole")  # fmt: skip
+        for kind, what in (("depth", "unreadable depth images: their frames were skipped"),
+                           ("color", "unreadable colour images: their frames have no colour")):  # fmt: skip
+            if self.seen[kind] > 1:
+                log.warning("%d %s", self.seen[kind], what)
 
 
 def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[float, list[str]]]:
@@ -105,7 +134,7 @@ def _read_depth_png(path: Path, scale: float, invalid: tuple[int, ...] = ()) -> 
         with Image.open(path) as image:
             raw = np.asarray(image)
     except (OSError, ValueError) as error:
-        raise InputError(f"{path}: cannot read the depth image ({error})") from None
+        raise UnreadableImage(f"{path}: cannot read the depth image ({error})") from None
     if raw.ndim != 2:
         raise InputError(f"{path}: a depth image must have one channel, got shape {raw.shape}")
     if raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
@@ -133,7 +162,7 @@ def _read_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
                 image = image.resize(size, Image.Resampling.BILINEAR)
             return np.asarray(image, dtype=np.uint8)
     except (OSError, ValueError) as error:
-        raise InputError(f"{path}: cannot read the colour image ({error})") from None
+        raise UnreadableImage(f"{path}: cannot read the colour image ({error})") from None
 
 
 def _stamp_ns(seconds: float) -> int:
@@ -184,7 +213,9 @@ def tum_frames(
     folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional).
     intrinsics: the depth camera's intrinsics (default: Freiburg 1); the size is taken from the images.
     tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
-    skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one.
+    skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one
+        or they cannot be read, and colour images that cannot be read (``color`` key; the frame is kept
+        without colour).
     """
     folder = Path(folder)
     depth_rows = _read_list(folder / "depth.txt", file_names=True)
@@ -201,7 +232,8 @@ def tum_frames(
     base = intrinsics or TUM_DEFAULT_INTRINSICS
     camera = None
     previous = None
-    out_of_order = 0
+    out_of_order = yielded = 0
+    skips = _Skips(skipped)
     for (stamp_s, fields), colour_index in zip(depth_rows, colour_match, strict=True):
         stamp = _stamp_ns(stamp_s)
         if previous is not None and stamp <= previous:
@@ -212,7 +244,11 @@ def tum_frames(
                 log.warning("depth frame %s at %.6f s is not after the previous one; skipped (further ones are "
                             "counted)", fields[0], stamp_s)  # fmt: skip
             continue
-        depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
+        try:
+            depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
+        except UnreadableImage as error:
+            skips.skip("depth", error, "frame skipped")
+            continue
         h, w = depth.shape
         if camera is None:
             # given intrinsics are the user's images'; the defaults are a 640x480 camera's
@@ -224,9 +260,19 @@ def tum_frames(
                 pose = Pose(stamp, nearest.position, nearest.quat_xyzw)
         colour = None
         if colour_index is not None:
-            colour = _read_rgb(folder / rgb_rows[colour_index][1][0], (w, h))
+            colour = _colour_or_none(folder / rgb_rows[colour_index][1][0], (w, h), skips)
         previous = stamp
+        yielded += 1
         yield RgbdFrame(stamp, depth, camera, colour, pose)
+    skips.summary(folder, yielded)
+
+
+def _colour_or_none(path: Path, size: tuple[int, int], skips: _Skips) -> np.ndarray | None:
+    try:
+        return _read_rgb(path, size)
+    except UnreadableImage as error:
+        skips.skip("color", error, "its frame is written without colour")
+        return None
 
 
 def resized(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
@@ -246,11 +292,18 @@ _SEVEN_SCENES_FRAME = re.compile(r"frame-(\d+)\.depth\.png$")
 
 
 def seven_scenes_frames(
-    folder: str | os.PathLike[str], *, rate: float = SEVEN_SCENES_RATE, first: int = 0, count: int | None = None
+    folder: str | os.PathLike[str],
+    *,
+    rate: float = SEVEN_SCENES_RATE,
+    first: int = 0,
+    count: int | None = None,
+    skipped: Counter[str] | None = None,
 ) -> Iterator[RgbdFrame]:
     """The frames of a 7-Scenes sequence folder (frame ``i`` stamped ``i / rate`` s).
 
-    ``first`` and ``count`` select a range of frames (by position in the sorted frame list).
+    ``first`` and ``count`` select a range of frames (by position in the sorted frame list). ``skipped``
+    counts unreadable depth images (``depth``: the frame is skipped) and colour images (``color``: the
+    frame is kept without colour).
     """
     if not 0.0 < rate <= 1e6 or first < 0 or (count is not None and count < 1):
         raise UsageError(
@@ -274,10 +327,15 @@ def seven_scenes_frames(
         K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
         intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     camera = None
-    invalid_poses = missing_poses = 0
+    invalid_poses = missing_poses = yielded = 0
+    skips = _Skips(skipped)
     for number, depth_path in frames:
         stamp = _stamp_ns(number / rate)
-        depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
+        try:
+            depth = _read_depth_png(depth_path, 1000.0, invalid=(65535,))
+        except UnreadableImage as error:
+            skips.skip("depth", error, "frame skipped")
+            continue
         h, w = depth.shape
         if camera is None:  # the dataset's calibration is for its 640x480 images
             camera = resized(intrinsics, w, h)
@@ -303,8 +361,10 @@ def seven_scenes_frames(
         color_path = folder / f"{stem}.color.jpg"
         if not color_path.is_file():
             color_path = folder / f"{stem}.color.png"
-        colour = _read_rgb(color_path, (w, h)) if color_path.is_file() else None
+        colour = _colour_or_none(color_path, (w, h), skips) if color_path.is_file() else None
+        yielded += 1
         yield RgbdFrame(stamp, depth, camera, colour, pose)
+    skips.summary(folder, yielded)
     if invalid_poses > 1:
         log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
     if missing_poses > 1:
@@ -359,7 +419,7 @@ def import_tum(
     counts = write_rgbd_log(
         frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame
     )
-    return dataclasses.replace(counts, skipped_depth=skipped["depth"])
+    return dataclasses.replace(counts, skipped_depth=skipped["depth"], skipped_color=skipped["color"])
 
 
 def import_7scenes(
@@ -374,6 +434,10 @@ def import_7scenes(
     on_frame: Callable[[int], None] | None = None,
 ) -> ImportCounts:
     """Convert a 7-Scenes sequence folder to a relpoint log (see :func:`seven_scenes_frames`)."""
-    frames = seven_scenes_frames(folder, rate=rate, first=first, count=count)
+    skipped: Counter[str] = Counter()
+    frames = seven_scenes_frames(folder, rate=rate, first=first, count=count, skipped=skipped)
     metadata = {"relpoint.import": metadata_json({"layout": "7scenes", "source": Path(folder).name, "rate": rate})}
-    return write_rgbd_log(frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame)
+    counts = write_rgbd_log(
+        frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame
+    )
+    return dataclasses.replace(counts, skipped_depth=skipped["depth"], skipped_color=skipped["color"])

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from formats.atomic import write_text
-from formats.outputs import register_csv_header
+from formats.outputs import register_csv_header, unreadable_input
 from relpoint.errors import InputError
 from relpoint.types import LandmarkMap, Trajectory
 
@@ -70,7 +70,7 @@ def read_map_csv(path: str | os.PathLike[str]) -> LandmarkMap:
             has_first = FIRST_ITERATION in (reader.fieldnames or [])
             rows = list(reader)
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     try:
         positions = np.array([[float(r["x"]), float(r["y"]), float(r["z"])] for r in rows]).reshape(-1, 3)
         return LandmarkMap(

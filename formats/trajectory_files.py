@@ -43,6 +43,7 @@ import numpy.typing as npt
 
 import relpoint
 from formats.atomic import write_text
+from formats.outputs import unreadable_input
 from relpoint.errors import InputError
 from relpoint.geometry import matrix_to_position_quat
 from relpoint.types import IntArray, Trajectory
@@ -73,7 +74,7 @@ def _text_lines(path: Path) -> list[tuple[int, str]]:
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file") from None
     except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+        raise unreadable_input(path, exc) from None
     return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1)]
 
 
@@ -375,7 +376,7 @@ def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
         with path.open("rb") as stream:
             head = stream.read(1 << 16)
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     try:
         text = head.decode("utf-8-sig")
     except UnicodeDecodeError:

@@ -413,7 +413,13 @@ class Settings:
 
 
 def _parse_number(kind: str, text: str) -> int | float | None:
-    """``text`` as a number of ``kind`` (an int where the text is one, else a float), None when it is none."""
+    """``text`` as a number of ``kind`` (an int where the text is one, else a float), None when it is none.
+
+    Python's ``int``/``float`` read ``1_0`` as 10: a digit separator there is more likely a typo than
+    meant, so it is no number.
+    """
+    if "_" in text:
+        return None
     if kind != "float" and text.lstrip("+-").isdigit():
         return int(text)
     try:

@@ -21,12 +21,14 @@ from pathlib import Path
 from typing import Any
 
 from formats.evo_results import read_evo_result
+from formats.outputs import unreadable_input
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.evaluation import EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, compared_from_evaluation
 from relpoint.types import TimeWindow
 from relpoint_app.evaluator import evaluate_files, run_estimator
 from relpoint_app.evo_results import compared_from_evo
+from relpoint_app.run_inputs import recorded_input, recorded_log
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +41,7 @@ def _read_json(path: Path) -> dict[str, Any]:
             raise InputError(f"{path}: larger than {_MAX_JSON_BYTES >> 20} MB, not an evaluation summary")
         document = json.loads(path.read_text(encoding="utf-8"))
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     except (ValueError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(document, dict) or not isinstance(document.get("summary"), dict):
@@ -117,17 +119,6 @@ def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, docume
                        source=f"{path} (summary)")  # fmt: skip
 
 
-def _run_log(directory: Path) -> str | None:
-    """The input log a run directory's run.json names (as it was given to `relpoint run`), if any."""
-    try:
-        document = json.loads((directory / "run.json").read_text(encoding="utf-8")[:10_000_000])
-    except (OSError, ValueError):
-        return None
-    recorded = document.get("input", {}) if isinstance(document, dict) else {}
-    path = recorded.get("path") if isinstance(recorded, dict) else None
-    return path if isinstance(path, str) and path else None
-
-
 def load_compared(
     label: str, path: Path, reference: Path | None, settings: EvaluationSettings,
     reference_options: dict[str, Any] | None = None,
@@ -144,8 +135,9 @@ def load_compared(
         if reference is None and (path / "evaluation.json").is_file():
             return _from_saved_evaluation(label, path / "evaluation.json", path, _read_json(path / "evaluation.json"))
         if reference is None:
-            recorded = _run_log(path)
-            reference = _existing(recorded)
+            run_input = recorded_input(path)
+            recorded = run_input.get("path")
+            reference = recorded_log(path, run_input)
             if reference is None:
                 where = (
                     f"the log its run.json names ({recorded}) is not here" if recorded else "no run.json names its log"

@@ -255,6 +255,11 @@ register_csv_header(ERRORS_CSV_HEADER)
 
 
 def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> None:
+    """:func:`errors_csv_text`, atomically to ``path``."""
+    write_text(path, errors_csv_text(result, landmark_rmse))
+
+
+def errors_csv_text(result: EvaluationResult, landmark_rmse: dict[int, float] | None = None) -> str:
     """Per matched pose: stamp, APE translation/rotation/relation, the RPE of the pair ending there, and
     the landmark RMSE at poses where the run recorded its map (``--map-every``).
 
@@ -275,4 +280,4 @@ def write_errors_csv(path: Path, result: EvaluationResult, landmark_rmse: dict[i
         values = (result.ape_translation[i], result.ape_rotation_deg[i], result.ape[i], rpe_t[i], rpe_r[i],
                   landmark_rmse.get(int(stamp), math.nan))  # fmt: skip
         body.append(f"{seconds}.{nanos:09d}," + ",".join("" if math.isnan(v) else repr(float(v)) for v in values))
-    write_text(path, header + "\n".join(body) + ("\n" if body else ""))
+    return header + "\n".join(body) + ("\n" if body else "")

@@ -13,6 +13,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -21,9 +22,8 @@ import numpy as np
 
 import relpoint
 from formats.atomic import atomic_directory
-from formats.layouts import log_sha256
 from formats.log import LogReader
-from formats.outputs import check_output_directory
+from formats.outputs import check_output_directory, unreadable_input
 from formats.ply import read_ply
 from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
@@ -35,6 +35,7 @@ from relpoint.fusion.segmented import RestartingEstimator, RestartRule
 from relpoint.screening import InputScreen
 from relpoint.types import LandmarkMap, RunResult
 from relpoint_app.roles import NEED_ROLES
+from relpoint_app.run_inputs import check_same_log, log_record
 from relpoint_app.runner import drive
 
 
@@ -44,7 +45,7 @@ def read_timing(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with path.open(newline="", encoding="utf-8") as stream:
             rows = list(csv.DictReader(stream))
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror or error})") from None
+        raise unreadable_input(path, error) from None
     try:
         observed = np.array([int(r["observed"]) for r in rows], dtype=np.int64)
         map_size = np.array([int(r["map_size"]) for r in rows], dtype=np.int64)
@@ -55,14 +56,28 @@ def read_timing(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def fuse_run(
-    run_dir: Path, log_path: Path, output: Path, config: FusionConfig, *, restart: bool, topics: Any, overwrite: bool
+    run_dir: Path,
+    log_path: Path,
+    output: Path,
+    config: FusionConfig,
+    *,
+    restart: bool,
+    topics: Any,
+    overwrite: bool,
+    other_log: bool = False,
 ) -> FusionResult:
     """What ``relpoint fuse`` does after parsing its options: fuse ``run_dir`` (or, with ``restart``,
-    a re-run of its estimator) with the fixes of ``log_path`` and write ``output``; the fusion result."""
+    a re-run of its estimator) with the fixes of ``log_path`` and write ``output``; the fusion result.
+
+    Without ``restart``, ``log_path`` must be the log the run was made from (its run.json's hash), unless
+    ``other_log`` (the same recording in another bag layout hashes differently)."""
     output = check_output_directory(output, command="fuse", inputs=[run_dir, log_path], overwrite=overwrite)
     previous = _read_run(run_dir, need_outputs=not restart)
     reader = LogReader(log_path, topics)
-    reader.require("fix")
+    if not restart and not other_log:  # the run's outputs are fused with this log's fixes: one log
+        recorded = previous.get("input") if isinstance(previous.get("input"), dict) else {}
+        check_same_log(log_path, recorded, run_dir, "give --log the log the run was made from "
+                       "(--other-log if LOG is that recording in another layout), or --restart to run over LOG")  # fmt: skip
     start = time.perf_counter()
     if restart:
         result, observed, map_size, seconds, roles = _restarted(previous, reader, config)
@@ -114,10 +129,10 @@ def fuse_run(
         "estimator": f"fuse({previous.get('estimator', 'unknown')})",
         "fusion": fusion_settings,
         "segments": segments,
-        "source_run": {"path": str(run_dir), "estimator": previous.get("estimator"),
+        "source_run": {"path": os.path.abspath(run_dir), "estimator": previous.get("estimator"),
                        "parameters": previous.get("parameters"), "seed": previous.get("seed")},
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(log_path), "sha256": log_sha256(log_path), "roles": sorted(roles),
+        "input": {**log_record(log_path), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
     }  # fmt: skip
     with atomic_directory(output, command="fuse") as tmp:

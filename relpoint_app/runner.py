@@ -20,19 +20,20 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
-from formats.layouts import log_sha256
 from formats.log import LogReader, Record, Topics
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
-from relpoint.errors import UsageError
+from relpoint.errors import EstimatorError, InputError, UsageError
 from relpoint.estimators import ESTIMATORS, EstimatorSpec
 from relpoint.estimators.base import Estimator
 from relpoint.types import DepthFrame, Intrinsics, TimeWindow, Trajectory
 from relpoint.undistortion import Undistortion, undistortion
 from relpoint_app.roles import NEED_ROLES
+from relpoint_app.run_inputs import log_record
 
 log = logging.getLogger(__name__)
+
 
 def estimator_spec(name: str) -> EstimatorSpec:
     """The registered estimator ``name``; an unknown name is a :class:`UsageError` listing the known ones."""
@@ -221,7 +222,7 @@ def execute_run(
         "parameters": dataclasses.asdict(config),
         "seed": seed,
         "relpoint_version": relpoint.__version__,
-        "input": {"path": str(reader.path), "sha256": log_sha256(reader.path, reader.layout), "roles": sorted(roles),
+        "input": {**log_record(reader.path, reader.layout), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
         "warnings": list(result.warnings),
@@ -272,11 +273,39 @@ def drive(
     BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
     spinning worker threads made the EKF about 20 times slower.
     """
-    with threadpool_limits(limits=1, user_api="blas"):
-        return pipeline.run(
-            estimator_inputs(cropped_records(reader.records(roles), window or TimeWindow()), reader.skipped),
-            estimator, on_iteration=on_iteration, map_every=map_every, skipped_before=reader.skipped,
-        )  # fmt: skip
+    observations = 0
+
+    def counted(records: Iterator[Record]) -> Iterator[Record]:
+        nonlocal observations
+        for record in records:
+            observations += record.role in ("points", "depth")
+            yield record
+
+    records = counted(cropped_records(reader.records(roles), window or TimeWindow()))
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            return pipeline.run(
+                estimator_inputs(records, reader.skipped), estimator, on_iteration=on_iteration,
+                map_every=map_every, skipped_before=reader.skipped,
+            )  # fmt: skip
+    except (EstimatorError, InputError):
+        if window is None or window.is_open or observations:
+            raise
+        raise _empty_window(reader, roles, window) from None
+
+
+def _empty_window(reader: LogReader, roles: list[str], window: TimeWindow) -> InputError:
+    """The error of a ``--t-start``/``--t-end`` window that leaves no observation, naming the log's span."""
+    topics = reader.topics.roles()
+    infos = [reader.topic_infos[topics[role]] for role in roles
+             if role in CROPPED_ROLES and topics.get(role) in reader.topic_infos]  # fmt: skip
+    firsts = [info.first_ns for info in infos if info.first_ns is not None]
+    lasts = [info.last_ns for info in infos if info.last_ns is not None]
+    span = (max(lasts) - min(firsts)) * 1e-9 if firsts and lasts else 0.0
+    given = " ".join(f"{option} {value:g}" for option, value in (("--t-start", window.start_s),
+                                                                  ("--t-end", window.end_s)) if value is not None)  # fmt: skip
+    return InputError(f"{reader.path}: {given} leaves no observation; the log spans {span:.3f} s",
+                      "the window counts seconds from the log's first message")  # fmt: skip
 
 
 def reference_path(reader: LogReader) -> Trajectory | None:
@@ -351,5 +380,7 @@ def run(
         return execute_run(
             reader, spec, config, directory, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
         )
-    result, _ = run_estimator(reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window)
+    result, _ = run_estimator(
+        reader, spec, config, seed=seed, use_odometry=use_odometry, use_fixes=use_fixes, window=window
+    )
     return result

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import click
 
-from formats.atomic import write_text
+from formats.atomic import output_set, write_text
 from formats.outputs import check_output_file
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
@@ -20,7 +20,7 @@ from relpoint_app.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_tab
 from relpoint_app.comparer import load_compared
 from relpoint_app.plots import PLOT_FORMATS, comparison_plot
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.options import input_path, overwrite_option, read_paths
 
 log = logging.getLogger(__name__)
 
@@ -64,17 +64,15 @@ def _plot_format(plot_format: str | None, plot: Path) -> str:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("results", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("results", nargs=-1, required=True, type=input_path())
 @click.option(
-    "-r", "--reference", type=click.Path(path_type=Path),
+    "-r", "--reference", type=input_path(),
     help="Evaluate every run directory against this reference (as `relpoint evaluate --reference`).",
 )  # fmt: skip
 @click.option("--reference-topic", help="Pose topic of an MCAP reference (or its TF topic with --parent/--child).")
 @click.option("--parent", help="Reference from a TF chain of the MCAP reference: parent frame (e.g. map).")
 @click.option("--child", help="... and child frame (e.g. base_link).")
-@click.option(
-    "--reference-times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI reference poses."
-)
+@click.option("--reference-times", type=input_path(dir_okay=False), help="Times file of KITTI reference poses.")
 @click.option(
     "--align", type=click.Choice([m.value for m in AlignMode]), default="none", show_default=True,
     help="Alignment of the run directories compare evaluates itself (saved evaluations keep theirs).",
@@ -135,8 +133,9 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
     aligns = {run.align for run in runs if run.align}
     if len(aligns) > 1:
         log.warning("the runs were evaluated with different alignments (%s)", ", ".join(sorted(aligns)))
-    if output is not None:
-        write_text(output, render_table(runs, columns, file_format))
-    if plot is not None and figure_format is not None:
-        comparison_plot(plot, runs, kind=plot_kind, plot_format=figure_format)
+    with output_set():  # the table and the figure appear together, or neither does
+        if output is not None:
+            write_text(output, render_table(runs, columns, file_format))
+        if plot is not None and figure_format is not None:
+            comparison_plot(plot, runs, kind=plot_kind, plot_format=figure_format)
     click.echo(render_table(runs, columns, table_format or "text"), nl=False)

@@ -16,7 +16,7 @@ from typing import Any
 
 import click
 
-from formats.atomic import write_text
+from formats.atomic import output_set, write_text
 from formats.evo_results import write_evo_result
 from formats.outputs import check_output_file
 from relpoint.errors import GateExceeded, InputError, UsageError
@@ -33,6 +33,7 @@ from relpoint_app.evaluator import (
     check_gates,
     dense_map_clouds,
     dense_map_summary,
+    errors_csv_text,
     evaluate_files,
     evaluation_json,
     run_estimator,
@@ -41,7 +42,14 @@ from relpoint_app.evaluator import (
 from relpoint_app.evo_results import ape_result, rpe_result
 from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
+from relpoint_cli.options import (
+    FiniteFloatRange,
+    input_path,
+    overwrite_option,
+    read_paths,
+    time_window,
+    time_window_options,
+)
 from relpoint_cli.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -116,21 +124,16 @@ def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelatio
     return "\n".join(lines)
 
 
-def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> None:
-    """:func:`relpoint_app.evaluator.evaluation_json`, atomically to ``path`` (``-``: stdout)."""
-    text = evaluation_json(summary, settings, inputs)
-    if str(path) == "-":
-        click.echo(text, nl=False)
-    else:
-        write_text(path, text)
+def _is_stdout(path: Path | None) -> bool:
+    return path is not None and str(path) == "-"
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("estimate", type=click.Path(path_type=Path))
+@click.argument("estimate", type=input_path())
 @click.option(
     "-r",
     "--reference",
-    type=click.Path(path_type=Path),
+    type=input_path(),
     required=True,
     help="Reference: relpoint log (/ground_truth/pose), TUM/EuRoC/KITTI file, run directory or any MCAP bag.",
 )
@@ -142,10 +145,8 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
 )  # fmt: skip
 @click.option("--parent", help="Reference from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Reference from a TF chain: child frame (e.g. base_footprint).")
-@click.option(
-    "--reference-times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI reference poses."
-)
-@click.option("--times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI estimate poses.")
+@click.option("--reference-times", type=input_path(dir_okay=False), help="Times file of KITTI reference poses.")
+@click.option("--times", type=input_path(dir_okay=False), help="Times file of KITTI estimate poses.")
 @click.option(
     "--align", type=click.Choice([m.value for m in AlignMode]), default="none", show_default=True,
     help="Alignment of the estimate: Umeyama SE(3) (evo -a), Sim(3) (-as), scale only (-s), origin.",
@@ -189,7 +190,10 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
     help="Write the summary as JSON ('-': to stdout, and the table to stderr).",
 )
 @click.option(
-    "--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), help="Write per-pose errors as CSV."
+    "--csv",
+    "csv_path",
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    help="Write per-pose errors as CSV ('-': to stdout, and the table to stderr).",
 )
 @click.option(
     "--plot", "plot_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -208,11 +212,15 @@ def write_json(path: Path, summary: dict[str, float], settings: EvaluationSettin
 )  # fmt: skip
 @click.option(
     "--reference-cloud",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=input_path(dir_okay=False),
     help="Dense maps: reference point cloud (PLY, reference frame), e.g. the LOG.scene.ply of a simulated room.",
 )
 @click.option(
-    "--dense-threshold", type=float, default=0.05, show_default=True, help="Dense maps: distance counted as a hit, m."
+    "--dense-threshold",
+    type=FiniteFloatRange(min=0, min_open=True),
+    default=0.05,
+    show_default=True,
+    help="Dense maps: distance counted as a hit, m.",
 )
 @click.option(
     "--fail-above", "fail_above", multiple=True, metavar="KEY=VALUE",
@@ -247,8 +255,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     for option, path in (("--save-results", save_results), ("--save-rpe-results", save_rpe_results)):
         if path is not None and path.suffix.lower() != ".zip":
             raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
+    if _is_stdout(json_path) and _is_stdout(csv_path):
+        raise UsageError("--json - and --csv - both name stdout", "write one of them to a file")
     for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
-        if path is not None and str(path) != "-":
+        if path is not None and not _is_stdout(path):
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
         estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
@@ -286,23 +296,28 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         "t_end": t_end,
     }
     estimator = run_estimator(estimate)
-    if json_path is not None:
-        write_json(json_path, summary, settings, inputs)
-    if csv_path is not None:
-        write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
     names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
     if names["reference_name"] == names["estimate_name"]:
         names["estimate_name"] += " (estimate)"
-    for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
-        if path is not None:
-            write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
-                                          **names))  # fmt: skip
-    if plot_dir is not None:
-        evaluation_plots(
-            plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
-            estimator=estimator,
-            landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
-        )  # fmt: skip
-    click.echo(format_table(summary, settings.pose_relation), err=json_path is not None and str(json_path) == "-")
+    with output_set():  # every output file appears, or none does (an interrupt while they are written)
+        if json_path is not None and not _is_stdout(json_path):
+            write_text(json_path, evaluation_json(summary, settings, inputs))
+        if csv_path is not None and not _is_stdout(csv_path):
+            write_errors_csv(csv_path, result, evaluation.landmark_error_over_time)
+        for path, to_evo in ((save_results, ape_result), (save_rpe_results, rpe_result)):
+            if path is not None:
+                write_evo_result(path, to_evo(result, summary=summary, extra={"estimator": estimator, "inputs": inputs},
+                                              **names))  # fmt: skip
+        if plot_dir is not None:
+            evaluation_plots(
+                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+                estimator=estimator,
+                landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
+            )  # fmt: skip
+    if _is_stdout(json_path):
+        click.echo(evaluation_json(summary, settings, inputs), nl=False)
+    if _is_stdout(csv_path):
+        click.echo(errors_csv_text(result, evaluation.landmark_error_over_time), nl=False)
+    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path) or _is_stdout(csv_path))
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

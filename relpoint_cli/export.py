@@ -15,7 +15,7 @@ from formats.outputs import check_output_file, resolve_output
 from relpoint.errors import InputError, UsageError
 from relpoint_app.exporter import Format, What, default_what, export_file, output_format
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths, time_window, time_window_options
+from relpoint_cli.options import input_path, overwrite_option, read_paths, time_window, time_window_options
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ Examples:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("source", type=input_path())
 @click.option("-o", "--output", "out", type=click.Path(path_type=Path), required=True, help="Output file.")
 @click.option(
     "--what", type=click.Choice([w.value for w in What]),
@@ -47,7 +47,7 @@ Examples:
 @click.option("--topic", help="MCAP pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry), or the TF topic.")
 @click.option("--parent", help="Trajectory from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Trajectory from a TF chain: child frame (e.g. base_footprint).")
-@click.option("--times", type=click.Path(dir_okay=False, path_type=Path), help="Times file of KITTI SOURCE poses.")
+@click.option("--times", type=input_path(dir_okay=False), help="Times file of KITTI SOURCE poses.")
 @click.option(
     "--out-times", type=click.Path(dir_okay=False, path_type=Path), help="KITTI output: also write its times file."
 )
@@ -79,7 +79,15 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     out_format = output_format(out, fmt)
     kind = What(what) if what is not None else default_what(source, out_format)
     description = export_file(
-        source, out, kind, out_format, topic=topic, parent=parent, child=child, times=times, out_times=out_times,
+        source,
+        out,
+        kind,
+        out_format,
+        topic=topic,
+        parent=parent,
+        child=child,
+        times=times,
+        out_times=out_times,
         window=window,
     )
     if not (ctx.find_root().obj or {}).get("quiet"):

@@ -13,7 +13,7 @@ import click
 from relpoint.fusion import FusionConfig
 from relpoint_app.fuser import fuse_run
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option
+from relpoint_cli.options import input_path, overwrite_option
 from relpoint_cli.topics import topic_options, topics_from
 
 EXAMPLES = """\b
@@ -33,8 +33,8 @@ def fusion_config(params: tuple[str, ...]) -> FusionConfig:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--log", "log_path", type=click.Path(path_type=Path), required=True,
+@click.argument("run_dir", type=input_path(file_okay=False))
+@click.option("--log", "log_path", type=input_path(), required=True,
               help="The log the run was made from (its position fixes are read).")  # fmt: skip
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory (replaced atomically).")  # fmt: skip
@@ -43,12 +43,15 @@ def fusion_config(params: tuple[str, ...]) -> FusionConfig:
 @click.option("--restart", is_flag=True,
               help="Re-run the run's estimator (name, parameters and seed from run.json) over LOG, starting a "
               "fresh local map at every break (Algorithm 3), instead of splitting the finished run.")  # fmt: skip
+@click.option("--other-log", is_flag=True,
+              help="Accept a LOG that is not byte for byte the run's (run.json's hash), e.g. the same recording "
+              "in another bag layout.")  # fmt: skip
 @topic_options
 @overwrite_option
 @click.pass_context
 @handle_errors
 def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path, params: tuple[str, ...],
-                 restart: bool, overwrite: bool, **topic_names: str) -> None:  # fmt: skip
+                 restart: bool, other_log: bool, overwrite: bool, **topic_names: str) -> None:  # fmt: skip
     """Fuse RUN_DIR (a `relpoint run` output) with the fixes of LOG into a global path and map.
 
     By default the finished run is split into local maps where matched features fail (matched =
@@ -58,7 +61,7 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
     """
     config = fusion_config(params)
     result = fuse_run(run_dir, log_path, output, config, restart=restart, topics=topics_from(topic_names),
-                      overwrite=overwrite)  # fmt: skip
+                      overwrite=overwrite, other_log=other_log)  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         summary = result.summary
         click.echo(
@@ -67,5 +70,3 @@ def fuse_command(ctx: click.Context, run_dir: Path, log_path: Path, output: Path
             f"{summary['landmarks_placed']} landmarks -> {output}",
             err=True,
         )
-
-

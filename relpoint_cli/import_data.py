@@ -12,7 +12,7 @@ from formats.log import COMPRESSIONS, Topics
 from relpoint.errors import InputError, UsageError
 from relpoint.types import Intrinsics
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, read_paths
+from relpoint_cli.options import input_path, overwrite_option, read_paths
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -39,7 +39,7 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 
 @click.command("import", epilog=EXAMPLES)
 @click.argument("layout", type=click.Choice(["tum", "7scenes", "log"]))
-@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("source", type=input_path())
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap log to write."
 )
@@ -138,7 +138,8 @@ def import_command(
     if not ctx.find_root().obj.get("quiet"):
         click.echo(
             f"wrote {output}: {counts.depth} depth frames, {counts.color} colour images, "
-            f"{counts.ground_truth_pose} ground-truth poses, {counts.skipped_depth} depth images skipped",
+            f"{counts.ground_truth_pose} ground-truth poses, {counts.skipped_depth} depth images skipped"
+            + (f", {counts.skipped_color} unreadable colour images left out" if counts.skipped_color else ""),
             err=True,
         )
 

@@ -16,6 +16,7 @@ from formats.log import ROLE_TYPES, LogReader, TopicInfo
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
+from relpoint_cli.options import input_path
 from relpoint_cli.topics import topic_options, topics_from
 
 
@@ -80,7 +81,7 @@ def _size(size_bytes: int) -> str:
 
 
 @click.command()
-@click.argument("log", type=click.Path(path_type=Path))
+@click.argument("log", type=input_path())
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON document instead of a table.")
 @topic_options
 @handle_errors

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from collections.abc import Callable
 from typing import Any
@@ -11,6 +12,18 @@ import click
 from click.core import ParameterSource
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+
+
+class FiniteFloatRange(click.FloatRange):
+    """A float range that also refuses NaN and infinity (NaN passes every comparison of ``FloatRange``)."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return number
 
 
 def _click_type(annotation: str) -> Any:
@@ -56,6 +69,14 @@ def explicit_options(ctx: click.Context, names: list[str]) -> dict[str, Any]:
     }
 
 
+def input_path(*, file_okay: bool = True, dir_okay: bool = True) -> click.Path:
+    """The click type of an input file or directory: its permissions are left to the reader, which names the
+    file and the way out with exit 3 (click would call an unreadable input a usage error)."""
+    from pathlib import Path
+
+    return click.Path(file_okay=file_okay, dir_okay=dir_okay, readable=False, path_type=Path)
+
+
 def overwrite_option(command: Any) -> Any:
     """``--overwrite``: replace an output that relpoint did not recognisably write (never an input)."""
     return click.option(
@@ -83,12 +104,12 @@ def read_paths(*paths: Any) -> list[Any]:
 
 def time_window_options(command: Any) -> Any:
     """``--t-start`` and ``--t-end``: seconds after the first stamp (of the log, or of the reference)."""
-    command = click.option(
-        "--t-end", type=float, help="Use nothing after this many seconds from the first stamp."
-    )(command)
-    return click.option(
-        "--t-start", type=float, help="Use nothing before this many seconds from the first stamp."
-    )(command)
+    command = click.option("--t-end", type=float, help="Use nothing after this many seconds from the first stamp.")(
+        command
+    )
+    return click.option("--t-start", type=float, help="Use nothing before this many seconds from the first stamp.")(
+        command
+    )
 
 
 def time_window(t_start: float | None, t_end: float | None) -> Any:

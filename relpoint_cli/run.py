@@ -15,7 +15,7 @@ from formats.outputs import check_output_directory
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.runner import build_config, estimator_spec, execute_run
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import overwrite_option, time_window, time_window_options
+from relpoint_cli.options import input_path, overwrite_option, time_window, time_window_options
 from relpoint_cli.progress import progress_bar
 from relpoint_cli.topics import topic_options, topics_from
 
@@ -43,7 +43,7 @@ Examples:
 
 
 @click.command(epilog=EXAMPLES)
-@click.argument("log", type=click.Path(path_type=Path))
+@click.argument("log", type=input_path())
 @click.option("-e", "--estimator", "estimator_name", required=True, metavar=ESTIMATOR_METAVAR,
               shell_complete=complete_estimator, help="Estimator to run (see `relpoint info LOG`).")  # fmt: skip
 @click.option(
@@ -60,7 +60,9 @@ Examples:
     type=click.Path(dir_okay=False, path_type=Path),
     help="TOML/YAML file of estimator parameters.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the estimator's random draws.")
+@click.option(
+    "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the estimator's random draws."
+)
 @click.option(
     "--map-every",
     type=click.IntRange(min=0),

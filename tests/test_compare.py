@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -233,6 +234,57 @@ def test_a_real_run_is_evaluated_against_the_log_its_run_json_names(tmp_path: Pa
         assert row["summary"][key] == expected[key], key
 
 
+def test_a_run_finds_its_log_from_any_directory_and_never_another_log_of_that_name(
+    tmp_path: Path, small_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    here, elsewhere = tmp_path / "here", tmp_path / "elsewhere"
+    here.mkdir()
+    elsewhere.mkdir()
+    shutil.copy(small_log, here / "l.mcap")
+    code, _, err = invoke("simulate", "-o", elsewhere / "l.mcap", "--iterations", "40", "--scenario", "spiral")
+    assert code == 0, err
+    monkeypatch.chdir(here)
+    code, _, err = invoke("-q", "run", "l.mcap", "--estimator", "ekf", "-o", tmp_path / "run")  # a relative LOG
+    assert code == 0, err
+    code, expected, err = invoke("compare", tmp_path / "run", "--keys", "ate_rmse")
+    assert code == 0, err
+    monkeypatch.chdir(elsewhere)  # another l.mcap here: the run's log is still found where it was
+    code, out, err = invoke("compare", tmp_path / "run", "--keys", "ate_rmse")
+    assert code == 0, err
+    assert out == expected
+    # A run.json of an older relpoint, which kept the path as given: the l.mcap here is another log.
+    document = json.loads((tmp_path / "run" / "run.json").read_text())
+    document["input"] = {key: document["input"][key] for key in ("path", "sha256")} | {"path": "l.mcap"}
+    (tmp_path / "run" / "run.json").write_text(json.dumps(document))
+    code, out, err = invoke("compare", tmp_path / "run", "--keys", "ate_rmse")
+    assert code == 3
+    assert_one_error_line(err, f"l.mcap is not the log {tmp_path / 'run'} was run on (sha256 ")
+    assert "pass --reference LOG" in err
+    monkeypatch.chdir(here)  # there, the relative path names the log it ran on (its hash says so)
+    code, out, err = invoke("compare", tmp_path / "run", "--keys", "ate_rmse")
+    assert code == 0, err
+    assert out == expected
+
+
+def test_a_log_is_known_by_its_size_and_time_or_else_by_its_hash(tmp_path: Path, small_log: Path) -> None:
+    from relpoint.errors import InputError
+    from relpoint_app.run_inputs import check_same_log, log_record
+
+    recorded = log_record(small_log)
+    assert recorded["path"] == str(small_log.resolve()) and recorded["size"] == small_log.stat().st_size
+    copy = tmp_path / "copy.mcap"
+    shutil.copy(small_log, copy)  # a new modification time: hashed, and found the same
+    os.utime(copy, ns=(0, recorded["mtime_ns"] + 1))
+    check_same_log(copy, recorded, tmp_path, "hint")
+    data = bytearray(copy.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # the same size, another log
+    copy.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"copy.mcap is not the log .* \(sha256 .*; hint"):
+        check_same_log(copy, recorded, tmp_path, "hint")
+    with pytest.raises(InputError, match=r"\(\d+ bytes, run.json records \d+ for"):
+        check_same_log(copy, recorded | {"size": 1}, tmp_path, "hint")
+
+
 def test_tables_figures_and_their_replacement(tmp_path: Path, small_log: Path) -> None:
     runs = [fake_run(tmp_path / name, small_log, shift) for name, shift in (("a", 0.1), ("b", 0.2))]
     for suffix, first in ((".md", "<!-- relpoint compare -->"), (".txt", "# relpoint compare: 2 runs")):
@@ -251,6 +303,22 @@ def test_tables_figures_and_their_replacement(tmp_path: Path, small_log: Path) -
             assert code == 0, err
     assert (tmp_path / "compare.pdf").read_bytes()[:5] == b"%PDF-"
     assert b"<svg" in (tmp_path / "compare.svg").read_bytes()[:2000]
+
+
+def test_an_interrupt_while_the_figure_is_drawn_leaves_no_table(
+    tmp_path: Path, small_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C after the table was written
+
+    monkeypatch.setattr("relpoint_cli.compare.comparison_plot", interrupted)
+    runs = [fake_run(tmp_path / name, small_log, shift) for name, shift in (("a", 0.1), ("b", 0.2))]
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = invoke("compare", *runs, "-r", small_log, "-o", out / "table.md", "--plot", out / "compare.png")
+    assert code == 130
+    assert_one_error_line(err, "interrupted; no output was written")
+    assert list(out.iterdir()) == []
 
 
 def test_saved_evaluations_keep_their_settings(tmp_path: Path, small_log: Path) -> None:

@@ -366,6 +366,57 @@ def test_7scenes_import_warns_of_a_missing_pose_file(tmp_path: Path, caplog: pyt
     assert counts.ground_truth_pose == 2 and "frame-000001.pose.txt is missing" in caplog.text
 
 
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+
+
+def test_7scenes_import_skips_a_frame_of_a_truncated_depth_image_and_counts_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from click.testing import CliRunner
+
+    from relpoint_cli.main import cli
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    _seven_scenes_folder(folder, frames=4)
+    _truncate(folder / "frame-000001.depth.png")
+    _truncate(folder / "frame-000002.color.jpg")  # the frame is kept, without colour
+    with caplog.at_level("WARNING"):
+        counts = import_7scenes(folder, tmp_path / "7s.mcap")
+    assert (counts.depth, counts.color, counts.ground_truth_pose) == (3, 2, 3)
+    assert (counts.skipped_depth, counts.skipped_color) == (1, 1)
+    assert "frame-000001.depth.png: cannot read the depth image" in caplog.text
+    assert "frame-000002.color.jpg: cannot read the colour image" in caplog.text
+    stamps = [r.stamp_ns for r in LogReader(tmp_path / "7s.mcap").records(["depth"])]
+    assert stamps == [0, round(2e9 / 30), round(3e9 / 30)]
+    result = CliRunner().invoke(cli, ["import", "7scenes", str(folder), "-o", str(tmp_path / "cli.mcap")])
+    assert result.exit_code == 0, result.stderr
+    assert "1 depth images skipped, 1 unreadable colour images left out" in result.stderr
+    for k in (0, 2, 3):  # nothing readable left: an input error, and no log
+        _truncate(folder / f"frame-{k:06d}.depth.png")
+    result = CliRunner().invoke(cli, ["import", "7scenes", str(folder), "-o", str(tmp_path / "none.mcap")])
+    assert result.exit_code == 3
+    assert result.stderr.splitlines()[-1].startswith(
+        f"relpoint: error: {folder}: none of its 4 depth images can be read"
+    )
+    assert not (tmp_path / "none.mcap").exists()
+
+
+def test_tum_import_skips_a_frame_of_a_truncated_depth_image_and_counts_it(tmp_path: Path) -> None:
+    for k in range(3):
+        _write_png16(tmp_path / f"d{k}.png", np.full((6, 8), 5000))
+        Image.fromarray(np.full((6, 8, 3), 40 * k, dtype=np.uint8)).save(tmp_path / f"c{k}.png")
+    (tmp_path / "depth.txt").write_text("".join(f"{10 + k / 10:.6f} d{k}.png\n" for k in range(3)))
+    (tmp_path / "rgb.txt").write_text("".join(f"{10 + k / 10:.6f} c{k}.png\n" for k in range(3)))
+    _truncate(tmp_path / "d0.png")
+    _truncate(tmp_path / "c2.png")
+    counts = import_tum(tmp_path, tmp_path / "tum.mcap")
+    assert (counts.depth, counts.color, counts.skipped_depth, counts.skipped_color) == (2, 1, 1, 1)
+    stamps = [r.stamp_ns for r in LogReader(tmp_path / "tum.mcap").records(["depth"])]
+    assert stamps == [10_100_000_000, 10_200_000_000]
+
+
 def test_an_8_bit_depth_png_is_refused_and_16_bit_colour_is_scaled(tmp_path: Path) -> None:
     from relpoint.errors import InputError
 

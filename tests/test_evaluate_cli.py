@@ -86,6 +86,21 @@ def test_json_dash_writes_the_summary_to_stdout_and_the_table_to_stderr(tmp_path
     assert list(tmp_path.iterdir()) == []  # no file named "-"
 
 
+def test_csv_dash_writes_the_errors_to_stdout_and_the_table_to_stderr(tmp_path: Path, monkeypatch) -> None:
+    data = shared_data(*FR1)
+    monkeypatch.chdir(tmp_path)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    code, out, err = invoke(*args, "--csv", "-")
+    assert code == 0, err
+    rows = list(csv.DictReader(out.splitlines()))
+    assert len(rows) > 700 and float(rows[0]["ape_translation_m"]) >= 0
+    assert "APE translation (m)" in err
+    assert list(tmp_path.iterdir()) == []  # no file named "-"
+    code, out, err = invoke(*args, "--csv", "-", "--json", "-")
+    assert code == 2 and out == ""
+    assert_one_error_line(err, "--json - and --csv - both name stdout")
+
+
 def test_a_small_overlap_is_an_error_naming_both_time_ranges(tmp_path: Path) -> None:
     data = shared_data(*FR1)
     args = ["evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
@@ -188,6 +203,22 @@ def test_run_directory_with_landmarks_csv_and_plots(tmp_path: Path, small_log: P
     assert all((plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("errors.png",))
 
 
+def test_an_interrupt_while_the_outputs_are_written_leaves_none_of_them(
+    tmp_path: Path, small_log: Path, run_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C after the JSON, CSV and zip were written, before the plots
+
+    monkeypatch.setattr("relpoint_cli.evaluate.evaluation_plots", interrupted)
+    out = tmp_path / "s"
+    out.mkdir()
+    code, _, err = invoke("evaluate", run_dir, "-r", small_log, "--json", out / "e.json", "--csv", out / "e.csv",
+                          "--save-results", out / "e.zip", "--plot", out / "plots")  # fmt: skip
+    assert code == 130
+    assert_one_error_line(err, "interrupted; no output was written")
+    assert list(out.iterdir()) == []  # no output, no temporary, no plot directory
+
+
 def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     named = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/ground_truth/landmarks")
     assert named["lm_matched"] > 20
@@ -249,6 +280,15 @@ def test_bad_inputs_exit_3_with_one_line(tmp_path: Path) -> None:
     code, _, err = invoke("evaluate", bag, "--estimate-topic", "/nothing", "-r", ref)
     assert code == 3
     assert_one_error_line(err, "no messages on /nothing")
+
+
+@pytest.mark.parametrize("threshold", ["0", "-0.1", "nan", "inf"])
+def test_a_dense_threshold_out_of_range_is_refused_before_any_work(tmp_path: Path, threshold: str) -> None:
+    missing = tmp_path / "missing"  # not even read: the option is checked first
+    code, _, err = invoke("evaluate", missing, "-r", missing, "--reference-cloud", missing,
+                          "--dense-threshold", threshold)  # fmt: skip
+    assert code == 2
+    assert_one_error_line(err, "Invalid value for '--dense-threshold'")
 
 
 def test_info_names_the_pose_topics_a_bag_can_be_evaluated_against() -> None:

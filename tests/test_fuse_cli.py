@@ -168,3 +168,19 @@ def test_fuse_restart_refuses_a_dense_run_with_one_line(local_run, tmp_path: Pat
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) <= 2 and "point estimators" in lines[0] and "without --restart" in result.output
     assert not out.exists()
+
+
+def test_fuse_refuses_the_fixes_of_a_log_the_run_was_not_made_from(local_run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, local_dir, _ = local_run
+    other = tmp_path / "other.mcap"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["-q", "simulate", "-o", str(other), "--scenario", "figure8-gaps", "--iterations",
+                                 "450", "--fix-every", "10", "--seed", "4"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "fused"
+    result = runner.invoke(cli, ["fuse", str(local_dir), "--log", str(other), "-o", str(out)])
+    assert result.exit_code == 3
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"relpoint: error: {other} is not the log {local_dir} was run on (")
+    assert "give --log the log the run was made from (--other-log if LOG is that recording" in line
+    assert not out.exists()

@@ -227,3 +227,68 @@ def test_temporaries_are_found_for_a_name_with_glob_characters(tmp_path: Path) -
     (tmp_path / ".sigma=0.k3x.partial").mkdir()  # what an unescaped "[0.1]" would match
     assert remove_temporaries(tmp_path / "sigma=[0.1]") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == [".sigma=0.k3x.partial"]
+
+
+def test_an_output_set_appears_whole_when_an_interrupt_comes_while_it_is_renamed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+    import signal
+
+    from formats import atomic
+    from relpoint.errors import Interrupted
+
+    renamed: list[str] = []
+
+    def replace_and_interrupt(source: object, target: object) -> None:
+        if not renamed:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C as the first output is renamed
+        real_replace(source, target)
+        renamed.append(Path(str(target)).name)
+
+    real_replace = os.replace
+    targets = [tmp_path / "a.json", tmp_path / "plots" / "b.png"]
+    with pytest.raises(Interrupted, match="interrupted after every output was written"), atomic.output_set():
+        for target in targets:
+            atomic.write_text(target, "x")
+        monkeypatch.setattr(atomic.os, "replace", replace_and_interrupt)
+    assert renamed == ["a.json", "b.png"]  # the interrupt waited for the last rename
+    assert all(target.read_text() == "x" for target in targets)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.json", "b.png", "plots"]  # no temporary
+
+
+UNREADABLE_INPUTS = """
+import json, sys
+from click.testing import CliRunner
+from relpoint_cli.main import cli
+log, good, run = sys.argv[1:4]
+commands = [["info", log], ["run", log, "-e", "ekf", "-o", run + "-x"], ["export", log, "-o", run + ".tum"],
+            ["evaluate", log, "-r", good], ["evaluate", run, "-r", log], ["compare", run, "-r", log],
+            ["fuse", run, "--log", log, "-o", run + "-fused"]]
+print(json.dumps([(c[0], *(lambda r: (r.exit_code, r.stderr))(CliRunner().invoke(cli, c))) for c in commands]))
+"""
+
+
+def test_an_unreadable_log_is_an_input_error_naming_the_way_out(tmp_path: Path, log: Path) -> None:
+    import os
+    import shutil
+
+    run = tmp_path / "run"
+    code, err = invoke("run", str(log), "-e", "ekf", "-o", str(run))
+    assert code == 0, err
+    locked = tmp_path / "locked.mcap"
+    shutil.copy(log, locked)
+    locked.chmod(0)
+    # root reads any file: drop the capabilities that let it (setpriv, from util-linux)
+    prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"] if os.geteuid() == 0 else []
+    if prefix and shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: every file is readable")
+    probe = subprocess.run([*prefix, "cat", str(locked)], capture_output=True)
+    if probe.returncode == 0:
+        pytest.skip("this user can read a file of mode 000")
+    done = subprocess.run([*prefix, sys.executable, "-c", UNREADABLE_INPUTS, str(locked), str(log), str(run)],
+                          capture_output=True, text=True, cwd=REPO, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    for command, code, err in json.loads(done.stdout):
+        assert code == 3, (command, err)
+        assert err == f"relpoint: error: {locked}: cannot read (permission denied); check its permissions\n", command

@@ -62,6 +62,12 @@ def test_unknown_estimator_and_parameters_are_usage_errors(tmp_path: Path, small
     assert not (tmp_path / "o").exists()
 
 
+def test_a_negative_seed_is_a_usage_error(tmp_path: Path, small_log: Path) -> None:
+    code, err = invoke("run", str(small_log), "--estimator", ESTIMATOR, "--seed", "-1", "-o", str(tmp_path / "o"))
+    assert code == 2 and "Invalid value for '--seed': -1 is not in the range x>=0" in err
+    assert not (tmp_path / "o").exists()
+
+
 def test_missing_points_topic_is_an_input_error(tmp_path: Path, small_log: Path) -> None:
     code, err = invoke(
         "run", str(small_log), "--estimator", ESTIMATOR, "--points-topic", "/lidar", "-o", str(tmp_path / "o")

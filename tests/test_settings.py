@@ -193,6 +193,15 @@ def test_values_given_directly_are_normalised_before_the_checks() -> None:
     assert EkfConfig(position_noise=1).position_noise == 1  # an int is a number
 
 
+def test_a_digit_separator_is_no_number_on_the_command_line() -> None:
+    # Python reads int("1_0") and float("1_0") as 10: a typo of 1.0 or 10 silently became 10.
+    for item in ("fix_gate_patience=1_0", "fix_gate_probability=0.9_9", "icp_iterations=2,1_0"):
+        klass = DenseConfig if item.startswith("icp") else EkfConfig
+        with pytest.raises(UsageError, match="must be"):
+            klass.from_strings([item])
+    assert EkfConfig.from_strings(["fix_gate_patience=10"]).fix_gate_patience == 10
+
+
 def test_from_mapping_and_from_strings_read_each_value_as_its_kind() -> None:
     config = DenseConfig.from_strings(["icp_iterations=(2, 3)", "pyramid-levels=2", "map_normals=yes"])
     assert config.icp_iterations == (2, 3) and config.pyramid_levels == 2 and config.map_normals is True

@@ -56,3 +56,11 @@ def test_run_evaluate_and_export_crop_the_same_stretch(tmp_path: Path, small_log
 def test_an_empty_window_is_a_usage_error() -> None:
     code, _, err = invoke("export", "x.tum", "-o", "y.tum", "--t-start", "5", "--t-end", "1")
     assert code == 2 and err.count("\n") == 1 and "--t-start/--t-end" in err
+
+
+def test_a_window_past_the_end_of_the_log_is_an_input_error_naming_its_span(tmp_path: Path, small_log: Path) -> None:
+    code, _, err = invoke("run", small_log, "-e", "ekf", "-o", tmp_path / "late", "--t-start", "1000")
+    assert code == 3
+    assert err.startswith(f"relpoint: error: {small_log}: --t-start 1000 leaves no observation; the log spans ")
+    assert err.count("\n") == 1 and "seconds from the log's first message" in err
+    assert not (tmp_path / "late").exists()
