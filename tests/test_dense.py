@@ -23,6 +23,7 @@ from relpoint.estimators.dense.icp import (
     increment_matrix,
     linear_system,
     normal_equations,
+    solve_increment,
     track,
 )
 from relpoint.estimators.dense.maps import build_pyramid, make_level, normal_map, vertex_map
@@ -118,6 +119,56 @@ def test_icp_with_depth_weights_and_map_normals_recovers_the_motion(room: RgbdSi
     n_true, cost_true = alignment_cost(np.linalg.inv(delta), *source[2], target[2], SETTINGS)
     n_start, cost_start = alignment_cost(np.eye(4), *source[2], target[2], SETTINGS)
     assert n_true > n_start and cost_true < 0.5 * cost_start
+
+
+def _plane_depth(k: Intrinsics, T_world_camera: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Depth (H, W) of the floor plane z = 0 (world) seen from a camera above it, 1 mm noise."""
+    u, v = np.meshgrid(np.arange(k.width), np.arange(k.height))
+    rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones(u.shape)], -1)
+    normal = T_world_camera[:3, :3].T @ [0.0, 0.0, 1.0]  # in the camera
+    depth = -T_world_camera[2, 3] / (rays @ normal)
+    return np.where(depth > 0, depth + rng.normal(0, 0.001, depth.shape), 0).astype(np.float32)
+
+
+def _looking_down(x: float, height: float = 1.2) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", 180 - 20, degrees=True).as_matrix()  # optical axis down, tilted
+    T[:3, 3] = [x, 0.0, height]
+    return T
+
+
+def test_a_single_plane_leaves_three_directions_unobserved() -> None:
+    # The in-plane translations and the rotation about the normal are unobservable: a condition-number test
+    # on the raw normal equations (radians against metres) missed it and the pose followed the noise.
+    rng = np.random.default_rng(0)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    level = make_level(_plane_depth(k, _looking_down(0.0), rng), k)
+    source, normals = level.vertices[level.valid], level.normals[level.valid]
+    A, b = linear_system(source, source + 0.003 * normals, normals)
+    increment = solve_increment(*normal_equations(A, b))
+    assert increment is not None and increment.unobserved == 3
+    # Along the observed directions it moves the points onto the target planes: 3 mm along the normal.
+    np.testing.assert_allclose(A @ increment.x, b, atol=2e-4)
+    # A room constrains every direction.
+    room = simulate_rgbd(RgbdConfig(frames=1, noise=False, seed=1)).frame(0)
+    level = make_level(room.depth, room.intrinsics)
+    source, normals = level.vertices[level.valid], level.normals[level.valid]
+    A, b = linear_system(source, source + 0.003 * normals, normals)
+    increment = solve_increment(*normal_equations(A, b))
+    assert increment is not None and increment.unobserved == 0
+
+
+def test_frames_of_a_single_plane_are_counted_as_degenerate_and_warned() -> None:
+    from relpoint import pipeline
+
+    rng = np.random.default_rng(1)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    frames = [DepthFrame(i * 33_333_333, _plane_depth(k, _looking_down(0.01 * i), rng), k) for i in range(6)]
+    result = pipeline.run(iter(frames), DenseFusion(DenseConfig(min_correspondences=50)))
+    assert result.summary["degenerate_frames"] == 5 and result.summary["lost_frames"] == 0
+    assert any("degenerate geometry" in w and "3 of 6 directions" in w for w in result.warnings)
+    # Along the normal (height) the plane still tracks.
+    np.testing.assert_allclose(result.trajectory.positions[:, 1:], 0.0, atol=3e-3)
 
 
 def test_depth_noise_model_grows_with_depth() -> None:
@@ -239,6 +290,7 @@ def test_dense_estimator_on_the_simulated_room() -> None:
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
     assert weights.max() > 5 and colors.dtype == np.uint8 and colors.max() > 0
     assert len(estimator.landmark_map()) == 0
+    assert summary["degenerate_frames"] == 0 and summary["lost_frames"] == 0
 
 
 def test_the_coarsest_icp_level_tracks_every_rendered_point() -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -174,6 +175,11 @@ class DenseFusion(Estimator[DepthFrame]):
         self._model_index: npt.NDArray[np.int64] | None = None
         self._last_stamp: int | None = None
         self.lost_frames = 0
+        self.lost_reasons: Counter[str] = Counter()
+        # Frames whose pairs left directions of motion unobserved (one plane in view, a corridor): the pose
+        # keeps the prediction along them, so the trajectory is unreliable there.
+        self.degenerate_frames = 0
+        self._unobserved: Counter[int] = Counter()
         self.removed_points = 0
         self.last_track: Any = None
         self._radial: npt.NDArray[np.float32] | None = None
@@ -273,13 +279,20 @@ class DenseFusion(Estimator[DepthFrame]):
             step = invert_pose(self._T_world_camera) @ invert_pose(result.T_camera_world) if result.ok else None
             if step is not None and float(np.linalg.norm(step[:3, 3])) <= self.config.max_step:
                 T_world_camera = invert_pose(result.T_camera_world)
+                if result.unobserved:
+                    self._degenerate(result.unobserved)
             else:
                 # Held, and not fused: a frame placed at a pose it was not tracked to would corrupt the map.
                 self.lost_frames += 1
                 if step is not None:
+                    self.lost_reasons["ICP moved the camera beyond max_step"] += 1
                     reason = f"ICP moved it {float(np.linalg.norm(step[:3, 3])):.2f} m, beyond max_step {self.config.max_step:g} m"
-                else:
+                elif result.correspondences < self.config.min_correspondences:
+                    self.lost_reasons["too few ICP pairs: little of the frame's depth matches the map"] += 1
                     reason = f"ICP ended with {result.correspondences} pairs (min_correspondences {self.config.min_correspondences})"
+                else:
+                    self.lost_reasons["singular normal equations"] += 1
+                    reason = "the ICP normal equations were singular"
                 logger.warning("frame %d: tracking failed (%s); pose held, frame not fused", self._frames, reason)
                 self._frames += 1
                 self._last_stamp = frame.stamp_ns
@@ -307,6 +320,17 @@ class DenseFusion(Estimator[DepthFrame]):
         self._frames += 1
         self._last_stamp = frame.stamp_ns
         return Pose.from_matrix(frame.stamp_ns, T_world_camera)
+
+    def _degenerate(self, unobserved: int) -> None:
+        """Count a frame whose pairs left ``unobserved`` directions of motion unconstrained; warn once."""
+        if self.degenerate_frames == 0:
+            logger.warning(
+                "frame %d: degenerate geometry (e.g. one plane in view): the depth leaves %d of 6 directions of "
+                "motion unobserved, the pose keeps ICP's start along them; further frames are counted in "
+                "run.json (degenerate_frames)", self._frames, unobserved,
+            )  # fmt: skip
+        self.degenerate_frames += 1
+        self._unobserved[unobserved] += 1
 
     def _before_map(self, frame: DepthFrame, usable: int) -> Pose:
         """A frame with too few depths in range to start the map (a camera's first frames are often
@@ -373,11 +397,27 @@ class DenseFusion(Estimator[DepthFrame]):
             "input_points": self._input_points,
             "compression_ratio": points / self._input_points if self._input_points else 0.0,
             "lost_frames": self.lost_frames,
+            "lost_reasons": dict(self.lost_reasons),
+            "degenerate_frames": self.degenerate_frames,
             "frames_before_map": self.frames_before_map,
             "predicted_frames": self.predicted_frames,
             "icp_iterations_per_frame": self._icp_iterations / max(self._frames - 1, 1),
             "removed_unstable_points": self.removed_points,
         }
+
+    def run_warnings(self) -> list[str]:
+        warnings = []
+        if self.lost_reasons:
+            reasons = ", ".join(f"{n} {reason}" for reason, n in self.lost_reasons.most_common())
+            warnings.append(f"dense: why frames were lost: {reasons}")
+        if self.degenerate_frames:
+            most = self._unobserved.most_common(1)[0][0]
+            warnings.append(
+                f"dense: {self.degenerate_frames} of {self._frames} frames saw degenerate geometry (e.g. one plane): "
+                f"their depth left up to {max(self._unobserved)} of 6 directions of motion unobserved (mostly "
+                f"{most}), where the pose keeps ICP's start (the last pose); the trajectory is unreliable there"
+            )
+        return warnings
 
 
 SPEC = EstimatorSpec(
