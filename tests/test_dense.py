@@ -550,6 +550,24 @@ def test_a_frame_that_moves_beyond_max_step_counts_as_lost() -> None:
     assert DenseConfig().max_step == 0.5
 
 
+def test_a_gap_in_the_frames_widens_the_association_gate_and_is_reported() -> None:
+    # The gate covers the motion between two frames; across missing frames the camera moved further, and
+    # ICP converged short of it without a word (a 1 s gap in the 7-Scenes kitchen: 8 cm of a 20 cm jump).
+    from relpoint import pipeline
+
+    sim = simulate_rgbd(RgbdConfig(frames=23, noise=False, seed=3))
+    kept = [*range(6), *range(20, 23)]  # 14 intervals missing: an 8 cm jump (the gate alone ended 8 cm off)
+    frames = [sim.frame(i) for i in kept]
+    config = DenseConfig(icp_distance=0.02)  # 2.4 times the motion between two frames
+    result = pipeline.run(iter(frames), DenseFusion(config))
+    assert result.summary["gap_frames"] == 1 and result.summary["lost_frames"] == 0
+    assert any("after a gap in time" in warning for warning in result.warnings)
+    truth = (invert_pose(sim.poses[0]) @ sim.poses[kept])[:, :3, 3]
+    jump = np.linalg.norm(truth[6] - truth[5])
+    assert jump > 3 * config.icp_distance  # the gate without widening could not cover it
+    assert np.linalg.norm(result.trajectory.positions - truth, axis=1).max() < 0.005
+
+
 # --- frames and images as other cameras and tools write them ------------------------------------------
 
 
