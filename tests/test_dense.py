@@ -568,6 +568,25 @@ def test_a_gap_in_the_frames_widens_the_association_gate_and_is_reported() -> No
     assert np.linalg.norm(result.trajectory.positions - truth, axis=1).max() < 0.005
 
 
+@pytest.mark.parametrize(("cx", "cy"), [(79.0, 29.5), (39.5, -3.0), (0.0, 0.0)])
+def test_a_principal_point_on_or_beyond_the_border_is_warned_once(
+    cx: float, cy: float, caplog: pytest.LogCaptureFixture
+) -> None:
+    from relpoint import pipeline
+
+    rng = np.random.default_rng(0)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    depth = [_plane_depth(k, _looking_down(0.0), rng) for _ in range(3)]
+    odd = Intrinsics(80, 60, 70.0, 70.0, cx, cy)
+    frames = [DepthFrame(i * 33_333_333, d, odd) for i, d in enumerate(depth)]
+    with caplog.at_level("WARNING"):
+        result = pipeline.run(iter(frames), DenseFusion(DenseConfig(min_correspondences=50)))
+    assert sum("principal point" in r.getMessage() for r in caplog.records) == 2  # once, and in the summary
+    assert any("principal point" in w for w in result.warnings)
+    normal = [DepthFrame(i * 33_333_333, d, k) for i, d in enumerate(depth)]
+    assert not any("principal point" in w for w in pipeline.run(iter(normal), DenseFusion()).warnings)
+
+
 # --- frames and images as other cameras and tools write them ------------------------------------------
 
 

@@ -30,7 +30,7 @@ from relpoint.estimators.dense.maps import Level, build_pyramid
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, invert_pose
 from relpoint.settings import Settings, setting
-from relpoint.types import DepthFrame, LandmarkMap, Pose
+from relpoint.types import DepthFrame, Intrinsics, LandmarkMap, Pose
 
 logger = logging.getLogger(__name__)
 
@@ -186,6 +186,8 @@ class DenseFusion(Estimator[DepthFrame]):
         self._tracked_stamp: int | None = None  # stamp of the last frame fused at a tracked pose
         self._intervals: deque[int] = deque(maxlen=INTERVAL_HISTORY)
         self.gap_frames = 0
+        self._checked_intrinsics: set[Intrinsics] = set()
+        self._odd_principal_point: str | None = None
         self._widest_gate = 0.0
         self._longest_gap_ns = 0
         self.lost_frames = 0
@@ -273,6 +275,8 @@ class DenseFusion(Estimator[DepthFrame]):
             raise EstimatorError("the dense estimator takes depth frames (DepthFrame), not point observations")
         if self._last_stamp is not None and frame.stamp_ns <= self._last_stamp:
             raise EstimatorError(f"depth frame stamp {frame.stamp_ns} ns is not after the previous one")
+        if frame.intrinsics not in self._checked_intrinsics:
+            self._check_principal_point(frame.intrinsics)
         if self._last_stamp is not None:
             self._intervals.append(frame.stamp_ns - self._last_stamp)
         pyramid = self.pyramid(frame)
@@ -336,6 +340,21 @@ class DenseFusion(Estimator[DepthFrame]):
         self._frames += 1
         self._last_stamp = self._tracked_stamp = frame.stamp_ns
         return Pose.from_matrix(frame.stamp_ns, T_world_camera)
+
+    def _check_principal_point(self, k: Intrinsics) -> None:
+        """Warn (once) of a principal point on or beyond the image border: a camera's optical axis meets
+        its image near the middle, so such a CameraInfo is most likely wrong (another image size, a
+        cropped or binned image, fields in the wrong places) and every back-projected point with it."""
+        self._checked_intrinsics.add(k)
+        if 0 < k.cx < k.width - 1 and 0 < k.cy < k.height - 1:
+            return
+        message = (
+            f"the camera_info's principal point ({k.cx:g}, {k.cy:g}) lies on or beyond the border of its "
+            f"{k.width}x{k.height} image: the intrinsics are most likely wrong, and the map and path with them"
+        )
+        if self._odd_principal_point is None:
+            logger.warning("frame %d: %s", self._frames, message)
+            self._odd_principal_point = message
 
     def _gap_settings(self, stamp_ns: int) -> IcpSettings:
         """ICP settings for a frame at ``stamp_ns``: after a gap (more than ``GAP_RATIO`` typical intervals
@@ -450,6 +469,8 @@ class DenseFusion(Estimator[DepthFrame]):
         if self.lost_reasons:
             reasons = ", ".join(f"{n} {reason}" for reason, n in self.lost_reasons.most_common())
             warnings.append(f"dense: why frames were lost: {reasons}")
+        if self._odd_principal_point:
+            warnings.append(f"dense: {self._odd_principal_point}")
         if self.gap_frames:
             warnings.append(
                 f"dense: {self.gap_frames} frames came after a gap in time (up to {self._longest_gap_ns * 1e-9:.3g} s "
