@@ -175,6 +175,7 @@ def run(
     if summary.get("lost_frames"):
         warnings.append(f"{estimator.name} lost tracking in {summary['lost_frames']} of {len(stamps)} frames "
                         "(each held at the last pose and not fused)")  # fmt: skip
+    warnings.extend(estimator.run_warnings())
     if summary.get("association_collapsed"):
         warnings.append(f"{estimator.name}: the association collapsed in {summary['association_collapsed']} of "
                         f"{len(stamps)} iterations (the map may hold duplicates from there)")  # fmt: skip

@@ -23,6 +23,7 @@ from relpoint.estimators.dense.icp import (
     increment_matrix,
     linear_system,
     normal_equations,
+    solve_increment,
     track,
 )
 from relpoint.estimators.dense.maps import build_pyramid, make_level, normal_map, vertex_map
@@ -120,6 +121,56 @@ def test_icp_with_depth_weights_and_map_normals_recovers_the_motion(room: RgbdSi
     assert n_true > n_start and cost_true < 0.5 * cost_start
 
 
+def _plane_depth(k: Intrinsics, T_world_camera: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Depth (H, W) of the floor plane z = 0 (world) seen from a camera above it, 1 mm noise."""
+    u, v = np.meshgrid(np.arange(k.width), np.arange(k.height))
+    rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones(u.shape)], -1)
+    normal = T_world_camera[:3, :3].T @ [0.0, 0.0, 1.0]  # in the camera
+    depth = -T_world_camera[2, 3] / (rays @ normal)
+    return np.where(depth > 0, depth + rng.normal(0, 0.001, depth.shape), 0).astype(np.float32)
+
+
+def _looking_down(x: float, height: float = 1.2) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", 180 - 20, degrees=True).as_matrix()  # optical axis down, tilted
+    T[:3, 3] = [x, 0.0, height]
+    return T
+
+
+def test_a_single_plane_leaves_three_directions_unobserved() -> None:
+    # The in-plane translations and the rotation about the normal are unobservable: a condition-number test
+    # on the raw normal equations (radians against metres) missed it and the pose followed the noise.
+    rng = np.random.default_rng(0)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    level = make_level(_plane_depth(k, _looking_down(0.0), rng), k)
+    source, normals = level.vertices[level.valid], level.normals[level.valid]
+    A, b = linear_system(source, source + 0.003 * normals, normals)
+    increment = solve_increment(*normal_equations(A, b))
+    assert increment is not None and increment.unobserved == 3
+    # Along the observed directions it moves the points onto the target planes: 3 mm along the normal.
+    np.testing.assert_allclose(A @ increment.x, b, atol=2e-4)
+    # A room constrains every direction.
+    room = simulate_rgbd(RgbdConfig(frames=1, noise=False, seed=1)).frame(0)
+    level = make_level(room.depth, room.intrinsics)
+    source, normals = level.vertices[level.valid], level.normals[level.valid]
+    A, b = linear_system(source, source + 0.003 * normals, normals)
+    increment = solve_increment(*normal_equations(A, b))
+    assert increment is not None and increment.unobserved == 0
+
+
+def test_frames_of_a_single_plane_are_counted_as_degenerate_and_warned() -> None:
+    from relpoint import pipeline
+
+    rng = np.random.default_rng(1)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    frames = [DepthFrame(i * 33_333_333, _plane_depth(k, _looking_down(0.01 * i), rng), k) for i in range(6)]
+    result = pipeline.run(iter(frames), DenseFusion(DenseConfig(min_correspondences=50)))
+    assert result.summary["degenerate_frames"] == 5 and result.summary["lost_frames"] == 0
+    assert any("degenerate geometry" in w and "3 of 6 directions" in w for w in result.warnings)
+    # Along the normal (height) the plane still tracks.
+    np.testing.assert_allclose(result.trajectory.positions[:, 1:], 0.0, atol=3e-3)
+
+
 def test_depth_noise_model_grows_with_depth() -> None:
     z = np.array([0.5, 1.0, 2.0, 4.0], dtype=np.float32)
     sigma = depth_sigma(z)
@@ -140,12 +191,38 @@ def test_vertex_and_normal_maps_of_a_tilted_plane() -> None:
     normals, valid = normal_map(vertices, depth)
     np.testing.assert_allclose(vertices[..., 2], depth)
     np.testing.assert_allclose(vertices[10, 12], depth[10, 12] * rays[10, 12], rtol=1e-5)
-    assert not valid[5, 7] and not valid[4, 7] and not valid[0].any() and valid[10, 12]
+    # The pixel without depth has no normal; its neighbours and the border take one-sided differences.
+    assert not valid[5, 7] and valid[4, 7] and valid[0].all() and valid[10, 12]
     np.testing.assert_allclose(normals[valid], np.broadcast_to(n, (int(valid.sum()), 3)), atol=1e-4)
     level = make_level(depth, k)
     np.testing.assert_array_equal(level.valid, valid)
     np.testing.assert_allclose(level.normals, normals, atol=1e-6)
     assert level.planes[6].sum() == valid.sum() and not level.planes[:3, ~valid.reshape(-1)].any()
+
+
+def test_normals_survive_scattered_missing_depth() -> None:
+    # Stereo cameras leave speckle holes: with half the pixels missing at random, requiring all four direct
+    # neighbours kept 3 % of the normals (640x480 kitchen frames lost tracking in 59 of 60 frames).
+    k = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
+    a = math.radians(25)
+    n = np.array([0.0, -math.sin(a), -math.cos(a)])
+    rays = np.stack(np.meshgrid((np.arange(80) - 39.5) / 60, (np.arange(60) - 29.5) / 60), -1)
+    rays = np.concatenate([rays, np.ones((60, 80, 1))], -1)
+    depth = (-1.5 / (rays @ n)).astype(np.float32)
+    depth[np.random.default_rng(0).random(depth.shape) < 0.5] = 0.0
+    normals, valid = normal_map(vertex_map(depth, k), depth)
+    assert not valid[depth == 0].any()
+    assert valid.sum() > 0.8 * (depth > 0).sum()
+    np.testing.assert_allclose(normals[valid], np.broadcast_to(n, (int(valid.sum()), 3)), atol=1e-4)
+
+
+def test_a_normal_does_not_reach_across_a_depth_edge() -> None:
+    k = Intrinsics(20, 10, 20.0, 20.0, 9.5, 4.5)
+    depth = np.full((10, 20), 1.0, dtype=np.float32)
+    depth[:, 10:] = 2.0  # a step: the columns next to it take one-sided differences on their own side
+    normals, valid = normal_map(vertex_map(depth, k), depth)
+    assert valid.all()
+    np.testing.assert_allclose(normals[:, 8:12], np.broadcast_to([0.0, 0.0, -1.0], (10, 4, 3)), atol=1e-5)
 
 
 def test_render_keeps_the_nearest_point_per_pixel() -> None:
@@ -213,6 +290,7 @@ def test_dense_estimator_on_the_simulated_room() -> None:
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
     assert weights.max() > 5 and colors.dtype == np.uint8 and colors.max() > 0
     assert len(estimator.landmark_map()) == 0
+    assert summary["degenerate_frames"] == 0 and summary["lost_frames"] == 0
 
 
 def test_the_coarsest_icp_level_tracks_every_rendered_point() -> None:
@@ -521,6 +599,43 @@ def test_a_frame_that_moves_beyond_max_step_counts_as_lost() -> None:
     assert result.summary["lost_frames"] == 5
     np.testing.assert_allclose(result.trajectory.positions, 0.0, atol=1e-12)  # held at the first pose
     assert DenseConfig().max_step == 0.5
+
+
+def test_a_gap_in_the_frames_widens_the_association_gate_and_is_reported() -> None:
+    # The gate covers the motion between two frames; across missing frames the camera moved further, and
+    # ICP converged short of it without a word (a 1 s gap in the 7-Scenes kitchen: 8 cm of a 20 cm jump).
+    from relpoint import pipeline
+
+    sim = simulate_rgbd(RgbdConfig(frames=23, noise=False, seed=3))
+    kept = [*range(6), *range(20, 23)]  # 14 intervals missing: an 8 cm jump (the gate alone ended 8 cm off)
+    frames = [sim.frame(i) for i in kept]
+    config = DenseConfig(icp_distance=0.02)  # 2.4 times the motion between two frames
+    result = pipeline.run(iter(frames), DenseFusion(config))
+    assert result.summary["gap_frames"] == 1 and result.summary["lost_frames"] == 0
+    assert any("after a gap in time" in warning for warning in result.warnings)
+    truth = (invert_pose(sim.poses[0]) @ sim.poses[kept])[:, :3, 3]
+    jump = np.linalg.norm(truth[6] - truth[5])
+    assert jump > 3 * config.icp_distance  # the gate without widening could not cover it
+    assert np.linalg.norm(result.trajectory.positions - truth, axis=1).max() < 0.005
+
+
+@pytest.mark.parametrize(("cx", "cy"), [(79.0, 29.5), (39.5, -3.0), (0.0, 0.0)])
+def test_a_principal_point_on_or_beyond_the_border_is_warned_once(
+    cx: float, cy: float, caplog: pytest.LogCaptureFixture
+) -> None:
+    from relpoint import pipeline
+
+    rng = np.random.default_rng(0)
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    depth = [_plane_depth(k, _looking_down(0.0), rng) for _ in range(3)]
+    odd = Intrinsics(80, 60, 70.0, 70.0, cx, cy)
+    frames = [DepthFrame(i * 33_333_333, d, odd) for i, d in enumerate(depth)]
+    with caplog.at_level("WARNING"):
+        result = pipeline.run(iter(frames), DenseFusion(DenseConfig(min_correspondences=50)))
+    assert sum("principal point" in r.getMessage() for r in caplog.records) == 2  # once, and in the summary
+    assert any("principal point" in w for w in result.warnings)
+    normal = [DepthFrame(i * 33_333_333, d, k) for i, d in enumerate(depth)]
+    assert not any("principal point" in w for w in pipeline.run(iter(normal), DenseFusion()).warnings)
 
 
 # --- frames and images as other cameras and tools write them ------------------------------------------

@@ -90,3 +90,8 @@ class Estimator(abc.ABC, Generic[InputT]):
     def summary(self) -> dict[str, Any]:
         """Estimator-specific summary figures for run.json (counts, flags); JSON-serialisable."""
         return {}
+
+    def run_warnings(self) -> list[str]:
+        """What makes this run's result doubtful, beyond what :meth:`summary` counts generically (one line
+        each, for run.json's ``warnings`` and stderr)."""
+        return []
