@@ -33,7 +33,7 @@ from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationResult, EvaluationSettings, evaluate_trajectory, landmark_metrics
 from relpoint.evaluation.dense import dense_metrics
 from relpoint.evaluation.evaluate import frame_mismatch
-from relpoint.evaluation.landmarks import has_ground_truth_ids
+from relpoint.evaluation.landmarks import ground_truth_ids_unique, has_ground_truth_ids
 from relpoint.geometry import FloatArray
 from relpoint.pipeline import RunResult
 from relpoint.types import GroundTruthLandmarks, LandmarkMap, TimeWindow, Trajectory
@@ -124,7 +124,13 @@ def measure(
         alignment = result.alignment if settings.align is not AlignMode.NONE else None
         summary |= landmark_metrics(landmarks, truth, alignment=alignment, purity=landmarks.purity).summary
         key = "lm_err_aligned_rmse" if alignment is not None else "lm_err_rmse"
-        if len(landmarks) and not has_ground_truth_ids(landmarks):
+        if not ground_truth_ids_unique(truth):
+            repeated = len(truth.ids) - len(np.unique(truth.ids))
+            log.warning("the ground truth's landmarks repeat ids (%d of %d ids name a landmark already named): "
+                        "the id-based landmark figures are undefined; lm_nn_* give each landmark's distance to the "
+                        "nearest true one", repeated, len(truth.ids))  # fmt: skip
+            key = key.replace("lm_err", "lm_nn")
+        elif len(landmarks) and not has_ground_truth_ids(landmarks):
             log.warning("the map's landmarks name no ground-truth id (the log's clouds carry no `id` field): the "
                         "id-based landmark figures are undefined; lm_nn_* give each landmark's distance to the "
                         "nearest true one")  # fmt: skip

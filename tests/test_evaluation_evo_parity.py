@@ -432,6 +432,19 @@ def test_a_map_without_ids_gets_nearest_neighbour_figures_not_false_landmarks() 
     assert s["lm_nn_max"] == pytest.approx(nearest.max())
 
 
+def test_a_ground_truth_that_repeats_ids_is_evaluated_as_one_without_ids() -> None:
+    # A log that gives a landmark's id to another once the first left view: matching by id would pair
+    # landmarks with whichever true landmark comes first, and report a correct map metres off.
+    estimated, truth = _landmark_case()
+    repeated = GroundTruthLandmarks(truth.positions, np.where(truth.ids == 13, 10, truth.ids), truth.dynamic)
+    s = landmark_metrics(estimated, repeated).summary
+    assert s["lm_matched"] == 0 and all(math.isnan(s[k]) for k in ("lm_err_rmse", "lm_false", "dyn_precision"))
+    assert (
+        s["lm_nn_rmse"]
+        == landmark_metrics(dataclasses.replace(estimated, gt_id=np.full(6, -1)), truth).summary["lm_nn_rmse"]
+    )
+
+
 def test_landmark_metrics_on_crafted_case() -> None:
     estimated, truth = _landmark_case()
     purity = np.array([1.0, 0.9, 0.5, 0.0, 1.0, 1.0])

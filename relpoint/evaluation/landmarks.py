@@ -24,6 +24,7 @@ Undefined ratios (nothing to divide by) are NaN.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,8 +122,14 @@ def landmark_metrics(
     observed_ids:
         Optional ids of the ground-truth landmarks that were ever observed; the mapped fraction is then
         taken over those instead of all static ones.
+
+    A ground truth whose ids repeat (:func:`ground_truth_ids_unique`) is evaluated as a map without
+    ids: the id-based figures are NaN and ``lm_nn_*`` stand in.
     """
     m = len(landmarks)
+    if not ground_truth_ids_unique(ground_truth):
+        # One id names several true landmarks: no landmark can be told which one it stands for.
+        landmarks = dataclasses.replace(landmarks, gt_id=np.full(m, -1, dtype=np.int64))
     known, row = _lookup(ground_truth, landmarks.gt_id)
     gt_dynamic = ground_truth.dynamic[row] & known if len(ground_truth.ids) else np.zeros(m, bool)
     static_est = ~landmarks.dynamic
@@ -165,6 +172,12 @@ def landmark_metrics(
     if m and not np.any(landmarks.gt_id >= 0):
         summary |= _without_ids(landmarks, ground_truth, alignment)
     return LandmarkEvaluation(summary, index, landmarks.gt_id[index], error, error_aligned)
+
+
+def ground_truth_ids_unique(ground_truth: GroundTruthLandmarks) -> bool:
+    """Whether every true landmark has an id of its own (a log may reuse an id for another landmark once
+    the first left view; then the ids say nothing of which true landmark an estimate stands for)."""
+    return len(np.unique(ground_truth.ids)) == len(ground_truth.ids)
 
 
 def has_ground_truth_ids(landmarks: LandmarkMap) -> bool:
