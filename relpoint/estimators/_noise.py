@@ -20,7 +20,8 @@ taken from the first iterations of the log itself, in two parts:
 
 The same held-back observations also tell how hard the sensor accelerates
 (:func:`estimate_acceleration`): the consecutive registrations chained into a path, velocities over
-``ACCELERATION_SPAN_S`` and their changes. A motion model's acceleration noise written in m/s^2 for a
+``ACCELERATION_SPAN_S``, their changes, and the white acceleration noise over one interval that
+explains them. A motion model's acceleration noise written in m/s^2 for a
 vehicle (2 m/s^2) lets a tabletop sensor's prediction wander over several of its landmarks' spacings,
 and the association with it; unset, the EKF's and FastSLAM's ``linear_acceleration_noise`` is
 ``ACCELERATION_MARGIN`` times what the path shows, never more than the vehicle default and never
@@ -62,13 +63,16 @@ VEHICLE_ACCELERATION = 2.0
 #: Velocities are taken over about this span (s) of the held-back path: over one iteration the
 #: registrations' own error, divided by dt^2, would swamp a slow sensor's acceleration.
 ACCELERATION_SPAN_S = 0.5
-#: The derived acceleration noise is this many times the median acceleration the path shows: the
-#: first observations may be the calmest of the log, and the filters lose little to a noise too
-#: large, where one too small breaks the association (on the 7-Scenes kitchen keypoints, whose first
-#: second shows 0.11 m/s^2, the EKF's ATE is 3.6 cm at 1-2 m/s^2, 4.0 cm at 0.5 and 5.1 cm at 0.1;
-#: on a tabletop scene at 0.3 m range, 0.4 mm at 0.01-0.3 m/s^2 and 14 mm at 2). A turn sharper
-#: than that is what the association's collapse retry (up to 16 x the noise) is for.
-ACCELERATION_MARGIN = 16.0
+#: The derived acceleration noise is this many times what the path shows: the first observations may
+#: be the calmest of the log, and a hand-held camera's shake is faster than the span can see. Too
+#: small a noise breaks the association; too large a one lets a prediction over a long interval
+#: wander over several landmarks. The 7-Scenes kitchen keypoints (30 Hz, 0.35 m/s^2 measured) give
+#: the EKF 3.5-3.9 cm at 1-3 m/s^2, 4.0 cm at 0.5 and 5.1 cm at 0.1; a static scene seen at 2 Hz
+#: with 0.5 m between frames (0.12 m/s^2) gives landmarks 0.15 m off at 0.25 m/s^2, 0.33 m at 0.5,
+#: 1.0 m at 1 and 1.6 m at 2; a tabletop scene at 0.3 m range, 0.4 mm ATE at 0.01-0.3 and 14 mm at 2.
+#: A turn sharper than the margin allows is what the association's collapse retry (up to 16 x the
+#: noise) is for.
+ACCELERATION_MARGIN = 4.0
 
 
 def register(
@@ -169,11 +173,15 @@ def _chained_positions(observations: Sequence[PointObservation]) -> tuple[FloatA
 
 
 def estimate_acceleration(observations: Sequence[PointObservation]) -> float | None:
-    """Median linear acceleration (m/s^2) of the path the observations' registrations chain into.
+    """White acceleration noise (m/s^2, per iteration's interval) that explains how the velocity of the
+    path the observations' registrations chain into changes.
 
     Velocities are differences of positions ``m`` observations apart, ``m`` spanning about
-    ``ACCELERATION_SPAN_S`` (at most a third of the path); the acceleration is the change of velocity
-    between consecutive spans over their time. None when the path cannot be chained or is too short.
+    ``ACCELERATION_SPAN_S`` (at most a third of the path); their median change between consecutive
+    spans, over the span's time ``S``, is an acceleration smoothed over ``S``. Under white acceleration
+    noise the velocity wanders as the square root of time, so the noise over one interval ``dt`` is
+    that times ``sqrt(S / dt) = sqrt(m)``: the motion models' ``(a dt)^2`` per iteration then wander the
+    velocity as much over ``S`` as the path did. None when the path cannot be chained or is too short.
     """
     path = _chained_positions(observations)
     if path is None:
@@ -189,7 +197,7 @@ def estimate_acceleration(observations: Sequence[PointObservation]) -> float | N
     velocity = (positions[m:] - positions[:-m]) / span[:, None]
     change = np.linalg.norm(velocity[m:] - velocity[:-m], axis=1)
     between = 0.5 * (span[m:] + span[:-m])
-    return float(np.median(change / between))
+    return float(np.median(change / between)) * math.sqrt(m)
 
 
 def derived_acceleration_noise(acceleration: float | None, sigma: float) -> float:
