@@ -144,6 +144,15 @@ def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
     if isinstance(error, PermissionError):
         return unreadable_input(path, error)
     detail = str(error) or type(error).__name__
+    if isinstance(error, ReaderError) and "not in timestamp order" in detail:
+        # valid MCAP (its messages may come in any order), but without chunk indexes rosbags reads
+        # them only in log-time order; `mcap recover` copies the chunks and writes their indexes
+        storage = "MCAP file" if layout is Layout.MCAP else "bag's MCAP storage file"
+        return InputError(
+            f"{path}: the {storage} is unindexed (no chunk indexes or summary) and its messages are not in "
+            "log-time order: relpoint reads such a file only with its index",
+            "write an indexed copy with `mcap recover IN.mcap -o OUT.mcap` (the MCAP CLI) and read that",
+        )
     return InputError(f"{path}: the {layout.noun} is truncated or corrupt ({detail})", layout.repair_hint)
 
 
