@@ -217,7 +217,10 @@ def describe_storage(path: str | os.PathLike[str], layout: Layout | None = None)
 def _describe_mcap(path: Path) -> Storage:
     with path.open("rb") as stream:
         summary = make_reader(stream).get_summary()
-    codecs = sorted({c.compression for c in summary.chunk_indexes if c.compression}) if summary else []
+    if summary is not None and summary.chunk_indexes:
+        codecs = sorted({c.compression for c in summary.chunk_indexes if c.compression})
+    else:  # written without chunk indexes: the first chunk tells
+        codecs = [codec] if (codec := _first_chunk_compression(path)) else []
     stats = summary.statistics if summary else None
     file = StorageFile(
         path.name, path.stat().st_size,
@@ -226,6 +229,28 @@ def _describe_mcap(path: Path) -> Storage:
         stats.message_end_time - stats.message_start_time if stats else None,
     )  # fmt: skip
     return Storage(Layout.MCAP, "mcap", (file,), "+".join(codecs), "chunk" if codecs else "")
+
+
+#: MCAP record opcodes read by :func:`_first_chunk_compression`.
+_MCAP_MESSAGE, _MCAP_CHUNK, _MCAP_DATA_END, _MCAP_FOOTER = 0x05, 0x06, 0x0F, 0x02
+
+
+def _first_chunk_compression(path: Path) -> str:
+    """The compression of the MCAP file's first chunk (``""`` if none, or no chunk before the first
+    message): read record by record from the start, skipping each record's content, so the cost is
+    that of the records before the first chunk (schemas, channels, metadata)."""
+    with path.open("rb") as stream:
+        stream.seek(len(MCAP_MAGIC))
+        while len(head := stream.read(9)) == 9:
+            opcode, length = head[0], int.from_bytes(head[1:], "little")
+            if opcode in (_MCAP_MESSAGE, _MCAP_DATA_END, _MCAP_FOOTER):
+                return ""
+            if opcode == _MCAP_CHUNK:  # start, end time, uncompressed size, crc, then the compression string
+                fields = stream.read(32)
+                size = int.from_bytes(fields[28:32], "little")
+                return stream.read(min(size, 64)).decode("utf-8", "replace") if len(fields) == 32 else ""
+            stream.seek(length, os.SEEK_CUR)
+    return ""
 
 
 def _describe_ros1(path: Path) -> Storage:

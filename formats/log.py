@@ -15,6 +15,8 @@ rosbags' CDR serialiser and the typestore's standard message definitions.
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import json
 import logging
 import os
@@ -93,6 +95,17 @@ ROLE_OPTIONS: dict[str, str] = {
 }
 
 
+#: Most that ``log_time - header.stamp`` may differ between the topics of one pass over a log (ns). The
+#: records are merged by stamp, which holds back up to this much of the log; recorders' receive latency
+#: is well below it, while topics stamped on different clocks (sim time and wall time, a device clock)
+#: differ by far more and cannot be merged.
+MAX_STAMP_SKEW_NS = 10_000_000_000
+
+#: ``log_time - header.stamp`` (ns) beyond which a topic is reported as off the log format (which has
+#: them equal): merging by stamp still works, but times shown from log_time are not the stamps.
+STAMP_OFFSET_WARNING_NS = 1_000_000_000
+
+
 @dataclass(frozen=True)
 class Record:
     """One decoded message: its role, ``header.stamp`` in ns, and the core-type value.
@@ -131,6 +144,15 @@ def _corrupt(path: Path, layout: Layout, error: BaseException) -> InputError:
     if isinstance(error, PermissionError):
         return unreadable_input(path, error)
     detail = str(error) or type(error).__name__
+    if isinstance(error, ReaderError) and "not in timestamp order" in detail:
+        # valid MCAP (its messages may come in any order), but without chunk indexes rosbags reads
+        # them only in log-time order; `mcap recover` copies the chunks and writes their indexes
+        storage = "MCAP file" if layout is Layout.MCAP else "bag's MCAP storage file"
+        return InputError(
+            f"{path}: the {storage} is unindexed (no chunk indexes or summary) and its messages are not in "
+            "log-time order: relpoint reads such a file only with its index",
+            "write an indexed copy with `mcap recover IN.mcap -o OUT.mcap` (the MCAP CLI) and read that",
+        )
     return InputError(f"{path}: the {layout.noun} is truncated or corrupt ({detail})", layout.repair_hint)
 
 
@@ -181,6 +203,13 @@ class LogReader:
         #: Counts of skipped data, e.g. ``{"points: non-finite points": 12}``: the most one pass over the
         #: log met (every pass over a topic meets the same messages, so reading it again adds nothing).
         self.skipped: Counter[str] = Counter()
+        #: What a pass found doubtful about the log's time stamps (each once), for run.json.
+        self.warnings: list[str] = []
+        # Per topic, from the summary pass: the range of log_time - header.stamp (up to the first stamp
+        # that does not increase) and that first stamp with the one before it.
+        self._offsets: dict[str, tuple[int, int]] = {}
+        self._backwards: dict[str, tuple[int, int]] = {}
+        self._offsets_told = False
         #: How the log is laid out on disk.
         self.layout = detect_layout(self.path)
         check_storage(self.path, self.layout)
@@ -252,14 +281,24 @@ class LogReader:
         first: dict[str, int] = {}
         last: dict[str, int] = {}
         counts: Counter[str] = Counter()
+        stamped: dict[tuple[str, str], bool | None] = {}  # (topic, type) -> ROS 1 serialised, None: no header
+        previous: dict[str, int] = {}
         reader = self._open()
         try:
-            # No CDR decoding here: the pass only reads record headers and verifies chunk checksums.
-            for connection, log_time, _ in reader.messages():
+            # No CDR decoding here: the pass reads record headers, each stamped message's header.stamp
+            # straight from its bytes, and verifies chunk checksums.
+            for connection, log_time, raw in reader.messages():
                 topic = connection.topic
                 counts[topic] += 1
                 first.setdefault(topic, log_time)
                 last[topic] = log_time
+                key = (topic, connection.msgtype)
+                if key not in stamped:
+                    encoding = getattr(connection.ext, "serialization_format", ROS1_ENCODING)
+                    header = ros2.normalise_typename(connection.msgtype) in ros2.HEADER_FIRST_TYPES
+                    stamped[key] = (encoding == ROS1_ENCODING) if header else None
+                if stamped[key] is not None and topic not in self._backwards:
+                    self._note_stamp(topic, log_time, ros2.raw_stamp_ns(raw, bool(stamped[key])), previous)
             if self.layout is Layout.ROSBAG2:
                 self._check_counts(reader, counts)
             topics: dict[str, TopicInfo] = {}
@@ -280,6 +319,19 @@ class LogReader:
             raise
         self._spare = reader
         return topics
+
+    def _note_stamp(self, topic: str, log_time: int, stamp: int | None, previous: dict[str, int]) -> None:
+        """Widen ``topic``'s range of log_time - stamp, unless its stamps stopped increasing here."""
+        if stamp is None:
+            return
+        before = previous.get(topic)
+        if before is not None and stamp <= before:
+            self._backwards[topic] = (stamp, before)
+            return
+        previous[topic] = stamp
+        offset = log_time - stamp
+        low, high = self._offsets.get(topic, (offset, offset))
+        self._offsets[topic] = (min(low, offset), max(high, offset))
 
     def _check_counts(self, reader: AnyReader, counts: Counter[str]) -> None:
         """The messages read must be the ones metadata.yaml records: sqlite3 storage has no checksum, and a
@@ -363,15 +415,26 @@ class LogReader:
         self._release(reader)
 
     def records(self, roles: Iterable[str]) -> Iterator[Record]:
-        """Decoded messages of ``roles`` in log-time order.
+        """Decoded messages of ``roles`` in ``header.stamp`` order (the order the estimators need).
 
-        Checks that stamps strictly increase per topic (else :class:`InputError`). Invalid data inside
-        valid messages (non-finite points, empty clouds, malformed messages) is skipped, counted in
-        :attr:`skipped` (once however many passes read it) and logged once per kind.
+        Recorders log a message when they receive it, so across topics log-time order is not stamp
+        order (a cloud stamped at capture reaches the recorder after the odometry of that instant). The
+        messages are read in log-time order and merged by stamp in a buffer that holds a record until
+        the log time has passed its stamp by the largest ``log_time - header.stamp`` of the topics
+        read (measured in the summary pass); equal stamps keep their log order, and a log whose
+        log times are its stamps goes through unchanged and unbuffered.
+
+        Checks that stamps strictly increase per topic (else :class:`InputError`), and that the topics
+        read share one clock (their ``log_time - header.stamp`` within :data:`MAX_STAMP_SKEW_NS`). Invalid
+        data inside valid messages (non-finite points, empty clouds, malformed messages) is skipped,
+        counted in :attr:`skipped` (once however many passes read it) and logged once per kind.
         """
         counts: Counter[str] = Counter()  # this pass's
         roles = [r for r in roles if self.role_present(r)]
         topic_roles = {self.topics.roles()[r]: r for r in roles}
+        horizon = self._merge_horizon(list(topic_roles))
+        held: list[tuple[int, int, Record]] = []  # (stamp, arrival, record), a heap
+        arrival = itertools.count()
         previous: dict[str, int] = {}
         reader = self._open()
         try:
@@ -380,7 +443,10 @@ class LogReader:
                 c for c in reader.connections
                 if c.topic in topic_roles and ros2.normalise_typename(c.msgtype) == ROLE_TYPES[topic_roles[c.topic]]
             ]  # fmt: skip
-            for connection, _, raw in reader.messages(connections=connections):
+            for connection, log_time, raw in reader.messages(connections=connections):
+                # every message from here on is stamped at or after log_time - horizon
+                while horizon is not None and held and held[0][0] <= log_time - horizon:
+                    yield heapq.heappop(held)[2]
                 topic = connection.topic
                 role = topic_roles[topic]
                 if len(raw) > ros2.MAX_MESSAGE_BYTES:  # refused before a byte of it is decoded
@@ -398,13 +464,18 @@ class LogReader:
                     continue
                 before = previous.get(topic)
                 if before is not None and record.stamp_ns <= before:
-                    raise InputError(
-                        f"{self.path}: {topic} stamp {record.stamp_ns * 1e-9:.9f} s is not after the "
-                        f"previous {before * 1e-9:.9f} s (stamps must strictly increase per topic)",
-                        "fix the recording's stamps, or cut the log before that point with `mcap filter`",
-                    )
+                    raise self._not_increasing(topic, record.stamp_ns, before)
                 previous[topic] = record.stamp_ns
-                yield record
+                if horizon is None:  # one topic: its stamps increase in log order
+                    yield record
+                    continue
+                # a stamp the summary pass could not read from the bytes may lag more: wait for it too
+                horizon = max(horizon, log_time - record.stamp_ns)
+                heapq.heappush(held, (record.stamp_ns, next(arrival), record))
+                while held and held[0][0] <= log_time - horizon:
+                    yield heapq.heappop(held)[2]
+            while held:
+                yield heapq.heappop(held)[2]
         except _READ_ERRORS as error:
             reader.close()
             raise _corrupt(self.path, self.layout, error) from None
@@ -415,6 +486,61 @@ class LogReader:
             reader.close()
             raise
         self._release(reader)
+
+    def _not_increasing(self, topic: str, stamp_ns: int, before_ns: int) -> InputError:
+        return InputError(
+            f"{self.path}: {topic} stamp {stamp_ns * 1e-9:.9f} s is not after the previous "
+            f"{before_ns * 1e-9:.9f} s (stamps must strictly increase per topic)",
+            "fix the recording's stamps, or cut the log before that point with `mcap filter`",
+        )
+
+    def _merge_horizon(self, topics: list[str]) -> int | None:
+        """The largest ``log_time - header.stamp`` of ``topics``, by which a pass holds records back to merge
+        them by stamp; ``None`` for one topic, which needs no merging.
+
+        Raises :class:`InputError` when the topics' offsets lie more than :data:`MAX_STAMP_SKEW_NS` apart
+        (stamped on different clocks); warns once of a topic whose offset is over
+        :data:`STAMP_OFFSET_WARNING_NS`.
+        """
+        self._warn_of_offsets()
+        offsets = {topic: self._offsets[topic] for topic in topics if topic in self._offsets}
+        if len(topics) < 2:
+            return None
+        if not offsets:
+            return 0
+        (lowest, (low, _)), (highest, (_, high)) = (
+            min(offsets.items(), key=lambda item: item[1][0]), max(offsets.items(), key=lambda item: item[1][1])
+        )  # fmt: skip
+        if high - low > MAX_STAMP_SKEW_NS:
+            for topic in (lowest, highest):  # a topic whose stamps go backwards is the clearer error
+                if topic in self._backwards:
+                    raise self._not_increasing(topic, *self._backwards[topic])
+            raise InputError(
+                f"{self.path}: log_time - header.stamp is {low * 1e-9:.3f} s on {lowest} but {high * 1e-9:.3f} s "
+                f"on {highest}: their stamps are not on one clock (or the recording stalled), so their messages "
+                "cannot be put in stamp order",
+                "stamp every topic from one clock, or leave a topic out (e.g. --no-odometry, --no-fixes)",
+            )
+        return high
+
+    def _warn_of_offsets(self) -> None:
+        """Warn once, for every role's topic, of a ``log_time - header.stamp`` over
+        :data:`STAMP_OFFSET_WARNING_NS` (the log format has them equal)."""
+        if self._offsets_told:
+            return
+        self._offsets_told = True
+        far = {}
+        for topic in dict.fromkeys(self.topics.roles().values()):
+            low, high = self._offsets.get(topic, (0, 0))
+            offset = high if abs(high) >= abs(low) else low
+            if abs(offset) > STAMP_OFFSET_WARNING_NS:
+                far[topic] = offset
+        if far:
+            warning = (f"log_time - header.stamp reaches {max(far.values(), key=abs) * 1e-9:.3f} s on "
+                       f"{', '.join(sorted(far))} (the log format has them equal): messages are ordered and "
+                       "timed by header.stamp")  # fmt: skip
+            log.warning("%s", warning)
+            self.warnings.append(warning)
 
     def _skip(self, counts: Counter[str], kind: str, detail: str, count: int = 1) -> None:
         """Count ``count`` items of ``kind`` in this pass's ``counts``; :attr:`skipped` keeps the largest pass."""

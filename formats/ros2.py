@@ -14,6 +14,7 @@ classes over five distributions, a tenth of a second at the first message of eve
 from __future__ import annotations
 
 import functools
+import struct
 from typing import Any
 
 import numpy as np
@@ -144,6 +145,28 @@ def stamp_ns_of(message: Any) -> int:
     """``header.stamp`` of a message in integer nanoseconds."""
     stamp = message.header.stamp
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+#: The message types whose first field is a ``std_msgs/Header`` (every type a log role carries).
+HEADER_FIRST_TYPES = frozenset({POINT_CLOUD2, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, ODOMETRY, IMAGE, CAMERA_INFO})
+
+
+def raw_stamp_ns(raw: bytes | memoryview, ros1: bool = False) -> int | None:
+    """``header.stamp`` in ns of a serialised message whose first field is its header, without decoding it.
+
+    ``raw`` is CDR (a 4-byte encapsulation header, then ``int32 sec, uint32 nanosec``) or, with ``ros1``,
+    ROS 1 serialised (``uint32 seq, uint32 secs, uint32 nsecs``); ``None`` when it is too short or in a
+    CDR variant other than plain CDR.
+    """
+    if len(raw) < 12:
+        return None
+    if ros1:
+        sec, nanosec = struct.unpack_from("<II", raw, 4)
+    elif raw[0] == 0 and raw[1] in (0, 1):  # CDR_BE, CDR_LE
+        sec, nanosec = struct.unpack_from("<iI" if raw[1] else ">iI", raw, 4)
+    else:
+        return None
+    return sec * 1_000_000_000 + nanosec
 
 
 def _pose_msg(position: Any, quat_xyzw: Any) -> Any:

@@ -225,7 +225,7 @@ def execute_run(
         "input": {**log_record(reader.path, reader.layout), "roles": sorted(roles),
                   "topics": {role: reader.topics.roles()[role] for role in sorted(roles)}},
         "skipped": dict(sorted((reader.skipped + Counter(result.skipped)).items())),
-        "warnings": list(result.warnings),
+        "warnings": [*reader.warnings, *result.warnings],
         **({"time_window": dataclasses.asdict(window)} if window is not None and not window.is_open else {}),
         **(extra_info or {}),
     }  # fmt: skip

@@ -412,3 +412,37 @@ def test_a_malformed_metadata_file_is_one_line(tmp_path: Path) -> None:
     assert result.exit_code == 3
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "not a rosbag2 metadata file (YAML" in lines[0] and "line 2" in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    ("compression", "chunked", "summary", "expected"),
+    [("zstd", True, True, "zstd"), ("zstd", True, False, "zstd"), ("lz4", True, False, "lz4"),
+     ("", True, False, ""), ("", False, False, "")],
+)  # fmt: skip
+def test_the_compression_of_an_mcap_file_without_chunk_indexes_is_told_by_its_first_chunk(
+    tmp_path: Path, compression: str, chunked: bool, summary: bool, expected: str
+) -> None:
+    from mcap.writer import CompressionType, IndexType, Writer
+
+    from formats import ros2
+    from formats.layouts import describe_storage
+    from relpoint.types import Pose
+
+    path = tmp_path / "noindex.mcap"
+    codec = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE}[compression]
+    with path.open("wb") as stream:
+        writer = Writer(stream, compression=codec, use_chunking=chunked, index_types=IndexType.NONE,
+                        use_summary_offsets=summary, use_statistics=summary, repeat_channels=summary,
+                        repeat_schemas=summary)  # fmt: skip
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(
+            ros2.POSE_STAMPED, "ros2msg", ros2.message_definition(ros2.POSE_STAMPED).encode()
+        )
+        channel = writer.register_channel("/ground_truth/pose", "cdr", schema)
+        writer.add_metadata("recorder", {"tool": "test"})
+        for k in range(20):
+            message = ros2.serialize(ros2.pose_to_msg(Pose(k * 10**8, (k, 0, 0), (0, 0, 0, 1))), ros2.POSE_STAMPED)
+            writer.add_message(channel, k * 10**8, message, k * 10**8)
+        writer.finish()
+    storage = describe_storage(path)
+    assert (storage.compression_format, storage.compression_mode) == (expected, "chunk" if expected else "")

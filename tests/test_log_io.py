@@ -270,3 +270,25 @@ def test_own_message_types_are_the_standard_ones() -> None:
     message = ros2.odometry_to_msg(OdometryMeasurement(123_456_789, [1.0, 0.1, -0.2], [0.01, -0.02, 0.3], np.eye(6)))
     assert ros2.serialize(message, ros2.ODOMETRY) == bytes(standard.serialize_cdr(message, ros2.ODOMETRY))
     assert ros2.typestore_of("sensor_msgs/msg/Imu") is standard
+
+
+def test_an_unindexed_mcap_file_out_of_log_time_order_says_so_and_how_to_index_it(tmp_path: Path) -> None:
+    from mcap.writer import IndexType, Writer
+
+    path = tmp_path / "unindexed.mcap"
+    with path.open("wb") as stream:  # valid MCAP: messages may come in any log-time order
+        writer = Writer(stream, index_types=IndexType.NONE, use_summary_offsets=False, use_statistics=False,
+                        repeat_channels=False, repeat_schemas=False, chunk_size=200)  # fmt: skip
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(
+            ros2.POSE_STAMPED, "ros2msg", ros2.message_definition(ros2.POSE_STAMPED).encode()
+        )
+        channel = writer.register_channel("/ground_truth/pose", "cdr", schema)
+        for k in (3, 1, 0, 2, 5, 4):
+            message = ros2.serialize(ros2.pose_to_msg(Pose(k * 10**8, (k, 0, 0), (0, 0, 0, 1))), ros2.POSE_STAMPED)
+            writer.add_message(channel, k * 10**8, message, k * 10**8)
+        writer.finish()
+    with pytest.raises(InputError) as caught:
+        LogReader(path)
+    assert "unindexed (no chunk indexes or summary) and its messages are not in log-time order" in caught.value.message
+    assert "truncated" not in caught.value.message and "mcap recover" in caught.value.hint
