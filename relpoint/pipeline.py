@@ -45,6 +45,46 @@ MAX_TIMELINE = 64
 #: Most points a dense map snapshot keeps (an even subsample); the final map is always whole.
 MAX_SNAPSHOT_POINTS = 100_000
 
+#: How many times the scene's extent (:class:`SceneExtent`) a pose may lie from the origin. A path
+#: covers a million times its sensor's range only after, say, 35,000 km with a 35 m lidar; a filter
+#: whose numerics have come apart places its pose at 1e9 to 1e78 m, finite but absurd.
+ABSURD_EXTENTS = 1e6
+
+
+class SceneExtent:
+    """The scene's size so far (m): the farthest observed point from its sensor and the farthest fix from
+    the origin (a fix in an Earth-centred frame places the whole run millions of metres out), at least 1 m."""
+
+    def __init__(self) -> None:
+        self.metres = 1.0
+
+    def observe(self, item: PointObservation | DepthFrame) -> None:
+        if isinstance(item, PointObservation):
+            reach = float(np.sqrt(np.max(np.sum(item.points**2, axis=1)))) if len(item.points) else 0.0
+        else:  # the farthest depth along the image's widest ray
+            k = item.intrinsics
+            reach = float(item.depth.max(initial=0.0)) * math.hypot(1.0, k.width / k.fx, k.height / k.fy)
+        self.metres = max(self.metres, reach)
+
+    def fix(self, fix: PositionFix) -> None:
+        self.metres = max(self.metres, float(np.linalg.norm(fix.position)))
+
+    def check(self, name: str, positions: np.ndarray, stamps_ns: np.ndarray, when: str) -> None:
+        """Raise :class:`EstimatorError` if any of ``positions`` (K, 3) lies more than
+        :data:`ABSURD_EXTENTS` times the extent from the origin; ``when`` says at what stage."""
+        distances = np.linalg.norm(positions, axis=1)
+        beyond = np.flatnonzero(~(distances <= ABSURD_EXTENTS * self.metres))
+        if not len(beyond):
+            return
+        k = int(beyond[0])
+        raise EstimatorError(
+            f"{name} broke down numerically: {when} it placed the pose at {stamps_ns[k]} ns {distances[k]:.3g} m "
+            f"from the origin, {distances[k] / self.metres:.1g} times the scene's extent ({self.metres:.3g} m: the "
+            "farthest observed point and fix)",
+            "no result is written; try another estimator, or run without the fixes or odometry to find the input "
+            "that breaks it",
+        )
+
 
 def _snapshot(estimator: Estimator, stamp_ns: int) -> MapSnapshot:
     dense = estimator.dense_map()
@@ -86,6 +126,7 @@ def run(
     timeline: list[MapSnapshot] = []
     timeline_every = 4
     screen = InputScreen()
+    extent = SceneExtent()
     failed = 0
     start = time.perf_counter()
     estimator.prepare()
@@ -99,12 +140,14 @@ def run(
                 estimator.add_odometry(odometry)
         elif isinstance(item, PositionFix):
             if (fix := screen.fix(item)) is not None:
+                extent.fix(fix)
                 estimator.add_fix(fix)
         elif isinstance(item, PointObservation | DepthFrame):
             if isinstance(item, PointObservation):
                 item = screen.points(item)
             elif (item := screen.depth(item)) is None:
                 continue
+            extent.observe(item)
             start = time.perf_counter()
             try:
                 pose = estimator.step(item)
@@ -121,6 +164,7 @@ def run(
                     f"{estimator.name} lost its pose at {pose.stamp_ns} ns (not finite) after {len(stamps)} iterations",
                     "check the log's stamps and values, or try another estimator",
                 )
+            extent.check(estimator.name, np.array([pose.position]), np.array([pose.stamp_ns]), "in the loop")
             if stamps and pose.stamp_ns <= stamps[-1]:
                 raise EstimatorError(f"{estimator.name} returned a pose out of time order at {pose.stamp_ns} ns")
             stamps.append(pose.stamp_ns)
@@ -163,6 +207,10 @@ def run(
         )
     )
     seconds_finish = time.perf_counter() - start
+    if not np.all(np.isfinite(trajectory.positions)):
+        raise EstimatorError(f"{estimator.name} lost its trajectory when finishing it (not finite)",
+                             "check the log's stamps and values, or try another estimator")  # fmt: skip
+    extent.check(estimator.name, trajectory.positions, trajectory.stamps_ns, "finishing its trajectory,")
     landmarks = estimator.landmark_map()
     if map_every > 0:
         # The last snapshot is the final map (after any final adjustment).

@@ -21,10 +21,11 @@ from click.testing import CliRunner
 from formats import ros2
 from formats.trajectory_files import read_tum
 from relpoint import pipeline
+from relpoint.errors import EstimatorError
 from relpoint.estimators.base import Estimator
 from relpoint.screening import InputScreen
 from relpoint.simulation import SimulationConfig, simulate
-from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix
+from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 from relpoint_cli.main import cli
 from tests.hostile_logs import far_point, one_point, time_gap, write_log
 
@@ -149,6 +150,50 @@ def test_a_singular_iteration_is_skipped_counted_and_the_run_goes_on() -> None:
     result = pipeline.run(iter(inputs), _Singular())
     assert len(result.trajectory) == 6
     assert result.skipped == {"iterations: numerics failed (skipped)": 3}
+
+
+class _RunsOff(Estimator):
+    """Tracks at the origin, then (from iteration ``at``, or only in :meth:`finish`) places its pose at
+    ``distance`` m, finite but absurd: the numerics of a filter that has come apart."""
+
+    name = "runs-off"
+
+    def __init__(self, distance: float, at: int | None) -> None:
+        self.distance, self.at, self.calls = distance, at, 0
+
+    def step(self, observation: PointObservation) -> Pose:
+        self.calls += 1
+        x = self.distance if self.at is not None and self.calls >= self.at else float(self.calls)
+        return Pose(observation.stamp_ns, (x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+    def finish(self, trajectory: Trajectory) -> Trajectory:
+        if self.at is not None:
+            return trajectory
+        positions = trajectory.positions.copy()
+        positions[-1, 0] = self.distance
+        return Trajectory(trajectory.stamps_ns, positions, trajectory.quats_xyzw)
+
+    def landmark_map(self) -> LandmarkMap:
+        return _Singular().landmark_map()
+
+
+@pytest.mark.parametrize(("distance", "at"), [(1.3e78, 5), (1e9, 5), (1.3e78, None)])
+def test_a_pose_far_beyond_the_scene_is_an_estimator_failure(distance: float, at: int | None) -> None:
+    # Finite, so the pipeline's check for a lost pose let 1e78 m through with exit 0.
+    rng = np.random.default_rng(0)
+    inputs = [PointObservation(k * 10**8, rng.normal(size=(10, 3)) * 20.0) for k in range(1, 10)]
+    with pytest.raises(EstimatorError, match="broke down") as error:
+        pipeline.run(iter(inputs), _RunsOff(distance, at))
+    assert f"{distance:.3g} m" in str(error.value) and "runs-off" in str(error.value)
+
+
+def test_a_pose_far_out_with_far_fixes_is_no_failure() -> None:
+    # Fixes in an Earth-centred frame place the scene millions of metres out: that is its extent.
+    rng = np.random.default_rng(0)
+    inputs: list[object] = [PositionFix(10**8, [6.4e6, 0.0, 0.0], np.eye(3))]
+    inputs += [PointObservation(k * 10**8, rng.normal(size=(10, 3))) for k in range(1, 10)]
+    result = pipeline.run(iter(inputs), _RunsOff(6.4e6, 3))  # type: ignore[arg-type]
+    assert len(result.trajectory) == 9
 
 
 def test_the_screen_keeps_real_ranges_and_drops_absurd_ones() -> None:

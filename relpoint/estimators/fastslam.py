@@ -110,8 +110,8 @@ _SLOT_ARRAYS = {
 """Attributes indexed by particle and landmark slot, with the value of an empty slot: capacity grows
 and a dropped landmark's gap closes in each of them."""
 #: Attributes indexed by particle; resampling copies each of them.
-_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_frame_cov", "_frame_draws",
-                    "_frame_param_cov", *_SLOT_ARRAYS)  # fmt: skip
+_PARTICLE_ARRAYS = ("positions", "rotations", "twists", "_Sigma", "counts", "_fix_cov", "_frame_draws",
+                    *_SLOT_ARRAYS)  # fmt: skip
 
 
 def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
@@ -132,6 +132,33 @@ def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> n
     cumulative = np.cumsum(w)
     cumulative[-1] = 1.0
     return np.minimum(np.searchsorted(cumulative, pointers, side="left"), n - 1).astype(np.int64)
+
+
+def _fix_update(
+    P: FloatArray, H: FloatArray, nu: FloatArray, P_fix: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Kalman update of each particle's errors by a position fix (eq. 31-32 on the joint state).
+
+    Parameters
+    ----------
+    P: (n, m, m) covariance of each particle's errors.
+    H: (n, 3, m) each particle's position error as a function of them.
+    nu: (n, 3) the fix minus each particle's position (m).
+    P_fix: (3, 3) the fix's covariance (m^2).
+
+    Returns
+    -------
+    The correction of the errors (n, m), their covariance after the fix (n, m, m) and the
+    innovation's covariance (n, 3, 3). The covariance is updated in Joseph form and symmetrised, so it
+    stays positive semi-definite whatever the gain's rounding.
+    """
+    H_t = np.swapaxes(H, 1, 2)
+    S = H @ P @ H_t + P_fix + np.eye(3) * 1e-12  # the floor keeps a zero-covariance fix invertible
+    K = P @ H_t @ np.linalg.inv(S)  # (n, m, 3)
+    correction = np.einsum("pij,pj->pi", K, nu)
+    A = np.eye(P.shape[-1]) - K @ H
+    fused = A @ P @ np.swapaxes(A, 1, 2) + K @ P_fix @ np.swapaxes(K, 1, 2)
+    return correction, 0.5 * (fused + np.swapaxes(fused, 1, 2)), S
 
 
 class FastSlam(Estimator[PointObservation]):
@@ -168,13 +195,16 @@ class FastSlam(Estimator[PointObservation]):
         self.covs = np.zeros((n, self._capacity, 3, 3))
         self._seen = np.zeros((n, self._capacity), dtype=np.int64)
         self._last = np.zeros((n, self._capacity), dtype=np.int64)  # iteration each landmark was last seen
-        self._frame_cov = np.zeros((n, 3, 3))  # covariance of each particle's position in the fixes' frame
         # Each particle's draw (dt (m), dphi (rad)) from the frame fit's uncertainty at the pinning
         # (zeros before it): resampled with the particle, so the fixes' selection among the draws shows.
         self._frame_draws = np.zeros((n, 6))
-        # Each particle's uncertainty of its frame (dt (m), dphi (rad)) about the fit's centre, from the
-        # pinning on: a fix corrects the frame (turning the particle's pose and whole map) by its share.
-        self._frame_param_cov = np.zeros((n, 6, 6))
+        # From the pinning on, the joint covariance of each particle's errors (e, f): e (3, m) the part
+        # of its position's error in ``world`` that its frame does not explain (the drawn poses'
+        # spread, the drift between fixes), f = (dt (m), dphi (rad)) its frame's error about the fit's
+        # centre. Its position's error is e + J(p) f (J: FrameFit.perturbation_jacobian): far from
+        # the centre the frame's rotation is metres of it. A fix corrects both, the frame's share by
+        # turning the particle's pose and whole map (_fix_update).
+        self._fix_cov = np.zeros((n, 9, 9))
         # The rate the particles' place in world drifts at between fixes (m/m): fix_drift, or measured
         # on the fused fixes' innovations when it is unset (relpoint.estimators._drift_rate).
         self._drift_rate = DriftRate(DRIFT_PRIOR) if cfg.fix_drift is None else None
@@ -263,13 +293,13 @@ class FastSlam(Estimator[PointObservation]):
             # The pose drawn each iteration carries the proposal's spread into the particle's place in
             # ``world``: its frame covariance grows by it (most in stretches without landmarks).
             drawn = (Sigma if proposal else prior)[:, :3, :3]
-            self._frame_cov += drawn
+            self._fix_cov[:, :3, :3] += drawn
             # A turned map drifts in proportion to the distance travelled, which the collapsed
             # particles' spread does not show: a random walk of the drift rate per metre stands for it.
             if self._step_stamp_ns is not None:
                 dt = (observation.stamp_ns - self._step_stamp_ns) * 1e-9
                 distance = np.linalg.norm(self.twists[:, :3], axis=1) * dt
-                self._frame_cov += (self._fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
+                self._fix_cov[:, :3, :3] += (self._fix_drift * distance)[:, None, None] ** 2 * np.eye(3)
                 if self._drift_rate is not None:
                     w = self.weights
                     self._drift_rate.travel(float(w @ distance), float(w @ np.trace(drawn, axis1=1, axis2=2)) / 3.0)
@@ -334,7 +364,9 @@ class FastSlam(Estimator[PointObservation]):
             return
         fix_position = np.asarray(fix.position, dtype=np.float64) + moved
         P_fix = np.asarray(fix.covariance, dtype=np.float64)
-        C = self._frame_cov  # (n, 3, 3): covariance of each particle's position in world
+        P = self._fix_cov  # (n, 9, 9): each particle's (e, f)
+        H = self._position_jacobian()  # (n, 3, 9): the position's error is H (e, f)
+        C = H @ P @ np.swapaxes(H, 1, 2)  # (n, 3, 3): covariance of each particle's position in world
         S = C + P_fix + np.eye(3) * 1e-12  # the floor keeps a zero-covariance fix invertible
         S_inv = np.linalg.inv(S)
         nu = fix_position - self.positions  # (n, 3)
@@ -348,37 +380,35 @@ class FastSlam(Estimator[PointObservation]):
             # particles' covariance that grows, until the fix lies on the gate's edge, and the fix
             # pulls them by the gain that follows. Inflating the fix's covariance instead left the
             # drifted particles where they were (figure8-gaps: 9-28 m against 1.6-2.2 m).
-            # (the frame's own uncertainty is not what grew: the turn below stays its share)
-            C = C * self._filter_inflation(nu, C, P_fix)
-            S = C + P_fix + np.eye(3) * 1e-12
-            S_inv = np.linalg.inv(S)
+            # The growth is drift, not the frame's own uncertainty: it goes to e, and the frame's
+            # share of the correction below stays what the frame's covariance makes it.
+            a = self._filter_inflation(nu, C, P_fix)
+            P = P.copy()
+            P[:, :3, :3] += (a - 1.0) * C
         mean_before, draw_before = self.weights @ self.positions, self.weights @ self._frame_draws
-        if self._drift_rate is not None:  # the correction the fix measures of the path without its jumps
-            self._drift_rate.fix(fix_position - (mean_before - self._jumps), fix_variances)
+        if self._drift_rate is not None:
+            # The correction the fix measures of the path without its jumps holds the frame's error
+            # beside the drift: its share of the position's variance here is noise to the drift rate,
+            # not a walk (counted as drift, a frame turned by 2 deg measured a rate of 0.2-0.4 m/m on a
+            # map that drifted by centimetres, and the fixes' noise was fused into it).
+            J = H[:, :, 3:]
+            frame_share = self.weights @ np.diagonal(J @ P[:, 3:, 3:] @ np.swapaxes(J, 1, 2), axis1=1, axis2=2)
+            self._drift_rate.fix(fix_position - (mean_before - self._jumps), fix_variances + frame_share)
+        correction, self._fix_cov, S = _fix_update(P, H, nu, P_fix)
+        S_inv = np.linalg.inv(S)
         _, logdet = np.linalg.slogdet(S)
         self.log_weights = self.log_weights - 0.5 * (np.einsum("pa,pab,pb->p", nu, S_inv, nu) + logdet + 3 * _LOG_2PI)
         self.log_weights -= logsumexp(self.log_weights)
-        # Eq. 31-32: x_v = x_c + C (C + P_fix)^-1 (x_b - x_c), P_v = C - C (C + P_fix)^-1 C. The shift
-        # moves the particle's pose and the landmarks it saw lately together, as one local frame.
-        K = C @ S_inv
-        shift = np.einsum("pij,pj->pi", K, nu)
-        # The share of the frame's own uncertainty (a turn about the fit's centre, which a position
-        # alone cannot correct) moves the particle rigidly, pose, heading and whole map: shifted
-        # alone, the positions followed the fixes while the heading kept the fit's error, and every
-        # landmark seen since was placed along it (2-3 deg on a 60 m pass, 1.5 m at 30 m range).
-        J = self._frame_fit.perturbation_jacobian(self.positions)  # (n, 3, 6)
-        J_t = np.swapaxes(J, 1, 2)
-        K_frame = self._frame_param_cov @ J_t @ S_inv  # (n, 6, 3)
-        correction = np.einsum("pij,pj->pi", K_frame, nu)  # (n, 6): (dt, dphi)
-        self._turn_frames(correction)
-        shift = shift - np.einsum("pij,pj->pi", J, correction)  # what the frame's turn did not move
+        # The frame's share of the correction (a turn about the fit's centre, which a position alone
+        # cannot correct) moves the particle rigidly, pose, heading and whole map: shifted alone, the
+        # positions followed the fixes while the heading kept the fit's error, and every landmark
+        # seen since was placed along it (2-3 deg on a 60 m pass, 1.5 m at 30 m range). The rest
+        # (eq. 31-32 on e) shifts the pose and the landmarks it saw lately together, as one local frame.
+        self._turn_frames(correction[:, 3:])
+        shift = correction[:, :3]
         self.positions = self.positions + shift
         recent = self._last >= self._stats["iterations"] - self.config.fix_window
         self.means += np.where(recent[:, :, None], shift[:, None, :], 0.0)
-        fused = C - K @ C
-        self._frame_cov = 0.5 * (fused + np.swapaxes(fused, 1, 2))
-        frame_fused = self._frame_param_cov - K_frame @ J @ self._frame_param_cov
-        self._frame_param_cov = 0.5 * (frame_fused + np.swapaxes(frame_fused, 1, 2))
         self._stats["fixes"] += 1
         # The jump of the mean position (weights and positions both moved), but for the change of the
         # particles' mean frame draw, which finish() takes out for every pose alike.
@@ -392,6 +422,24 @@ class FastSlam(Estimator[PointObservation]):
         if self.config.smooth_trajectory:
             self._fix_jumps.append((self._stats["iterations"], jump))
             self._fixes_taken.append((fix.stamp_ns, np.asarray(fix.position, dtype=np.float64), fix_variances))
+
+    def _position_jacobian(self, positions: FloatArray | None = None) -> FloatArray:
+        """``H`` (n, 3, 9) with each particle's position error ``H (e, f) = e + J(p) f`` (``_fix_cov``), at
+        ``positions`` (n, 3) (the particles' own when None)."""
+        assert self._frame_fit is not None
+        n = self.config.particles
+        H = np.zeros((n, 3, 9))
+        H[:, :, :3] = np.eye(3)
+        H[:, :, 3:] = self._frame_fit.perturbation_jacobian(self.positions if positions is None else positions)
+        return H
+
+    def position_covariance(self, positions: FloatArray | None = None) -> FloatArray:
+        """Covariance (n, 3, 3) m^2 of each particle's position in ``world``, its frame's share included,
+        at ``positions`` (n, 3) (the particles' own when None; zeros before the fixes pin the frame)."""
+        if self._frame_fit is None:
+            return np.zeros((self.config.particles, 3, 3))
+        H = self._position_jacobian(positions)
+        return H @ self._fix_cov @ np.swapaxes(H, 1, 2)
 
     def _turn_frames(self, correction: FloatArray) -> None:
         """Move each particle ``p`` rigidly by ``correction[p] = (dt, dphi)`` about the fit's centre ``c``
@@ -474,15 +522,15 @@ class FastSlam(Estimator[PointObservation]):
         self.rotations = R @ self.rotations
         self.means = np.einsum("pij,pmj->pmi", R, self.means) + shift[:, None, :]
         self.covs = R[:, None] @ self.covs @ np.swapaxes(R, 1, 2)[:, None]
-        J = fit.perturbation_jacobian(self.positions)
-        self._frame_cov = J @ fit.covariance @ np.swapaxes(J, 1, 2)
-        self._frame_param_cov = np.broadcast_to(fit.covariance, (n, 6, 6)).copy()
-        if self._drift_rate is not None:
-            self._drift_rate.start(float(self.weights @ np.trace(self._frame_cov, axis1=1, axis2=2)) / 3.0)
-        self._Sigma[:, :3, :] = np.einsum("pij,pjk->pik", R, self._Sigma[:, :3, :])
-        self._Sigma[:, :, :3] = np.einsum("pki,pji->pkj", self._Sigma[:, :, :3], R)
+        self._fix_cov = np.zeros((n, 9, 9))
+        self._fix_cov[:, 3:, 3:] = fit.covariance
         self._frame = None
         self._frame_fit = fit
+        if self._drift_rate is not None:
+            C = self.position_covariance()
+            self._drift_rate.start(float(self.weights @ np.trace(C, axis1=1, axis2=2)) / 3.0)
+        self._Sigma[:, :3, :] = np.einsum("pij,pjk->pik", R, self._Sigma[:, :3, :])
+        self._Sigma[:, :, :3] = np.einsum("pki,pji->pkj", self._Sigma[:, :, :3], R)
         self._stats["frame_pinned_at"] = self._stats["iterations"]
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
