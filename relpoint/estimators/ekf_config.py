@@ -82,11 +82,11 @@ class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
     applied as 2 x this in radians per axis, since a small rotation d has quaternion part d/2)."""
     linear_acceleration_noise: float | None = setting(None, low=0, high=1e4)
     """Constant-velocity model: white linear acceleration noise (m/s^2). Unset (the default): ``relpoint run``
-    takes 4 times the acceleration noise that explains the path its first observations register into, within
+    takes 5 times the acceleration noise that explains the path its first observations register into, within
     2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m
     (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports both as
-    ``linear_acceleration_noise`` and ``acceleration_measured``): 2 m/s^2 on the simulator, about 1.4
-    on a hand-held camera at 30 Hz, 0.5 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop. Built directly,
+    ``linear_acceleration_noise`` and ``acceleration_measured``): 2 m/s^2 on the simulator, about 1.8
+    on a hand-held camera at 30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop. Built directly,
     without ``SPEC.factory``: 2 m/s^2."""
     angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity model: white angular acceleration noise (rad/s^2)."""
