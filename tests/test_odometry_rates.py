@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.ekf import EkfConfig, EkfSlam
+from relpoint.estimators.fastslam import FastSlam, FastSlamConfig
 from relpoint.types import OdometryMeasurement, PointObservation
 
 OBSERVATION_NS = 100_000_000  # 10 Hz
@@ -101,3 +102,21 @@ def test_a_stopped_odometry_stream_hands_over_to_the_motion_model() -> None:
     # about a second on the constant-velocity model, not the 5 cm of the odometry held as exact
     assert np.sqrt(ekf.covariance[1, 1]) > 0.25
     assert ekf.pose().position[0] == pytest.approx(5.0, abs=1e-6)  # the last twist carries on
+
+
+def _fastslam_spread_after_one_interval(rate_hz: int) -> np.ndarray:
+    """The variance (3,) of 200 FastSLAM particles' positions after one interval of odometry at ``rate_hz``."""
+    slam = FastSlam(
+        FastSlamConfig(observation_sigma=0.1, linear_acceleration_noise=2.0, particles=200), np.random.default_rng(0)
+    )
+    slam.step(_empty(0))
+    for stamp in np.arange(0, OBSERVATION_NS, 1_000_000_000 // rate_hz):
+        slam.add_odometry(OdometryMeasurement(int(stamp), [5.0, 0.0, 0.0], [0.0, 0.0, 0.2], TWIST_COVARIANCE))
+    slam.step(_empty(OBSERVATION_NS))
+    return np.var(slam.positions, axis=0)
+
+
+def test_fastslam_proposal_does_not_grow_with_the_odometry_rate() -> None:
+    # pose_noise was added at every record, ten times per interval at 100 Hz (eight times the spread)
+    ratio = _fastslam_spread_after_one_interval(100).sum() / _fastslam_spread_after_one_interval(10).sum()
+    assert 0.6 < ratio < 1.6  # the same prior, drawn by 200 particles
