@@ -12,14 +12,14 @@ errors make the held twist differ from the true one, and neither shrinks as mess
   the last observation interval and of the message's hold: over a span ``T`` it moves the pose by
   ``e T``, however many messages share the span.
 * The change of the velocity while the twist is held. A message held over several observations
-  (odometry slower than the points) is extrapolated: beyond the first observation interval from
-  its stamp, over which a twist describes the motion as well as at the observations' rate, the
-  velocity drifts by ``a tau`` with the motion model's acceleration noise ``a`` and the pose by
-  ``a tau^2 / 2`` (``tau`` the time held beyond that interval). Held half a second on a vehicle,
-  this dominates.
+  (odometry slower than the points) is extrapolated: from the first observation after its stamp
+  (up to which a twist describes the motion as at the observations' rate) the velocity drifts by
+  ``a tau`` with the motion model's acceleration noise ``a`` and the pose by ``a tau^2 / 2``. Held
+  half a second on a vehicle, this dominates.
 
-A message held more than :data:`STALE_INTERVALS` typical odometry intervals is dropped: the filter
-falls back to its motion model, as without odometry, until the next one.
+A message held more than :data:`STALE_INTERVALS` typical odometry intervals while observations
+arrive is dropped: the filter falls back to its motion model, as without odometry, until the next
+one. A gap in both streams (a paused recording) is not the odometry stopping.
 """
 
 from __future__ import annotations
@@ -47,24 +47,26 @@ class OdometryHold:
         self._intervals: deque[int] = deque(maxlen=_HISTORY)
         self._last_stamp_ns: int | None = None
         self._observed_ns: int | None = None
-        self._observation_intervals: deque[int] = deque(maxlen=_HISTORY)
+        self._overtaken_ns: int | None = None  # the first observation after the held message's stamp
 
     def hold(self, odometry: OdometryMeasurement) -> None:
         """Hold ``odometry`` from its stamp on (the filter has predicted to its stamp)."""
         if self._last_stamp_ns is not None and odometry.stamp_ns > self._last_stamp_ns:
             self._intervals.append(odometry.stamp_ns - self._last_stamp_ns)
         self._last_stamp_ns = odometry.stamp_ns
+        self._overtaken_ns = None
         self.held = odometry
 
     def observed(self, stamp_ns: int) -> None:
         """Mark an observation at ``stamp_ns``: the twist error is shared from here or the message's stamp."""
-        if self._observed_ns is not None and stamp_ns > self._observed_ns:
-            self._observation_intervals.append(stamp_ns - self._observed_ns)
         self._observed_ns = stamp_ns
+        if self.held is not None and self._overtaken_ns is None and stamp_ns > self.held.stamp_ns:
+            self._overtaken_ns = stamp_ns
 
     def expiry_ns(self) -> int | None:
-        """The stamp (ns) after which the held message is stale, or None (none held, no typical interval yet)."""
-        if self.held is None or not self._intervals:
+        """The stamp (ns) after which the held message is stale, or None: none held, no typical interval
+        yet, or no observation since its stamp (a pause of the whole log is not the odometry stopping)."""
+        if self.held is None or not self._intervals or self._overtaken_ns is None:
             return None
         return self.held.stamp_ns + int(STALE_INTERVALS * float(np.median(self._intervals)))
 
@@ -96,11 +98,11 @@ class OdometryHold:
         span_from = held.stamp_ns if self._observed_ns is None else min(held.stamp_ns, self._observed_ns)
         s0, s1 = max(start_ns - span_from, 0) * 1e-9, (end_ns - span_from) * 1e-9
         Q_span = Q_twist * ((s1**2 - s0**2) / dt**2 - 1.0)  # (e T)^2 grows by this, in units of dt^2
-        if self._observation_intervals:
-            # A twist stands for the motion over an observation interval from its stamp, as at the
-            # observations' rate; held beyond, it is extrapolated and the velocity's change counts.
-            covered = int(np.median(self._observation_intervals))
-            t0 = max(start_ns - held.stamp_ns - covered, 0) * 1e-9
-            t1 = max(end_ns - held.stamp_ns - covered, 0) * 1e-9
+        if self._overtaken_ns is not None:
+            # Up to the first observation after its stamp a twist stands for the motion as at the
+            # observations' rate; held over more observations it is extrapolated, and the velocity's
+            # change counts from there.
+            t0 = max(start_ns - self._overtaken_ns, 0) * 1e-9
+            t1 = max(end_ns - self._overtaken_ns, 0) * 1e-9
             Q_span = Q_span + np.diag(A * (t1**4 - t0**4) / (4.0 * dt**2))  # (a tau^2 / 2)^2 likewise
         return Q_twist, Q_span
