@@ -60,6 +60,7 @@ from relpoint.estimators._landmark_motion import (
 )
 from relpoint.estimators._movers import MoverTracks, moved_landmarks
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators._odometry_hold import OdometryHold
 from relpoint.estimators._recent_path import RecentPath
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators._trajectory_smoothing import PairHistory, smoothed_trajectory, summed_fix_jumps
@@ -123,7 +124,7 @@ class EkfSlam(Estimator[PointObservation]):
         self._seen_last = 0  # landmarks the last observation with points paired or started
         # The positions of the latest iterations, to carry a fix stamped before the state's time to it.
         self._recent = RecentPath()
-        self._odometry: OdometryMeasurement | None = None
+        self._hold = OdometryHold()
         self._observations: list[int] = []
         self._id_votes: list[Counter[int]] = []
         self._known: dict[int, int] = {}
@@ -175,6 +176,7 @@ class EkfSlam(Estimator[PointObservation]):
         if self._stamp_ns is None:
             self._stamp_ns = observation.stamp_ns
         self._predict_to(observation.stamp_ns)
+        self._hold.observed(self._stamp_ns)
         points = np.asarray(observation.points)
         pairs: tuple[FloatArray, npt.NDArray[np.int64]] | None = None
         if len(points):
@@ -228,10 +230,11 @@ class EkfSlam(Estimator[PointObservation]):
         return self.pose()
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
-        """Hold a body-frame twist from its stamp until the next one (process model eq. 3-7)."""
+        """Hold a body-frame twist from its stamp until the next one (process model eq. 3-7); the
+        interval up to its stamp is predicted with the twist held before it."""
         if self._stamp_ns is not None:
             self._predict_to(odometry.stamp_ns)
-        self._odometry = odometry
+        self._hold.hold(odometry)
 
     def add_fix(self, fix: PositionFix) -> None:
         """Fuse an absolute position as a direct, covariance-weighted measurement of ``p`` (eq. 31-32).
@@ -303,6 +306,7 @@ class EkfSlam(Estimator[PointObservation]):
             "linear_acceleration_noise": self.config.acceleration_noise,
             "state_size": int(self._P.shape[0]),
             "time_gaps_bridged": self._gaps.bridged,
+            "odometry_stale": self._hold.stale,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
@@ -432,6 +436,16 @@ class EkfSlam(Estimator[PointObservation]):
     # ------------------------------------------------------------------------------------ prediction
 
     def _predict_to(self, stamp_ns: int) -> None:
+        """Predict to ``stamp_ns``: with the held odometry until it goes stale, then with the motion model."""
+        assert self._stamp_ns is not None
+        expiry = self._hold.expiry_ns()
+        if expiry is not None and expiry < stamp_ns:
+            if expiry > self._stamp_ns:
+                self._predict_span(expiry)
+            self._hold.drop()
+        self._predict_span(stamp_ns)
+
+    def _predict_span(self, stamp_ns: int) -> None:
         assert self._stamp_ns is not None
         dt = (stamp_ns - self._stamp_ns) * 1e-9
         if dt > 0.0:
@@ -453,31 +467,33 @@ class EkfSlam(Estimator[PointObservation]):
         self._stamp_ns = stamp_ns
 
     def _motion(self, dt: float) -> tuple[FloatArray, FloatArray]:
-        """Propagate the nominal vehicle state by ``dt`` s; return its Jacobian F and process noise Q."""
+        """Propagate the nominal vehicle state by ``dt`` s from the state's stamp; return its Jacobian F
+        and process noise Q."""
         cfg = self.config
         nv = self._nv
         F = np.eye(nv)
         Q = np.zeros((nv, nv))
-        if self._odometry is not None:
-            # Eq. 7: X(k+1) = F(X(k), U(k) + noise); the held odometry twist is the input U.
-            u = np.concatenate([self._odometry.linear, self._odometry.angular])
-            # axes the message leaves unset take the constant-velocity model's noise over the interval
-            Q_u = self._odometry.twist_covariance(
-                np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
-            )
+        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_acceleration_noise], 3)
+        if self._hold.held is not None:
+            assert self._stamp_ns is not None
+            # Eq. 7: X(k+1) = F(X(k), U(k) + noise); the held odometry twist is the input U, its noise
+            # that of holding it over this interval (relpoint.estimators._odometry_hold).
+            u = self._hold.twist()
+            Q_u, Q_span = self._hold.noise(self._stamp_ns, self._stamp_ns + round(dt * 1e9), acceleration)
             p, R, F_pose, G = twist_step(self._position, self._rotation, u[:3], u[3:], dt)
             F[:6, :6] = F_pose
+            Q[:6, :6] = G @ Q_span @ G.T
             if nv == 12:
                 # The new twist is the input itself: it forgets the old twist and shares the input noise.
                 F[6:, 6:] = 0.0
                 G = np.vstack([G, np.eye(6)])
                 self._twist = u.copy()
-            Q = G @ Q_u @ G.T
+            Q[: len(G), : len(G)] += G @ Q_u @ G.T
         elif nv == 12:
             p, R, F_pose, G = twist_step(self._position, self._rotation, self._twist[:3], self._twist[3:], dt)
             F[:6, :6] = F_pose
             F[:6, 6:] = G
-            q = np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            q = (acceleration * dt) ** 2
             # Acceleration acts over the interval: it moves the twist and, through it, the pose.
             G_full = np.vstack([G, np.eye(6)])
             Q = G_full @ np.diag(q) @ G_full.T

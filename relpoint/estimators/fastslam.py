@@ -74,6 +74,7 @@ from relpoint.estimators._loop_closure import (
     register_loop,
 )
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators._odometry_hold import OdometryHold
 from relpoint.estimators._recent_path import RecentPath
 from relpoint.estimators._time_gaps import GapBridge
 from relpoint.estimators._trajectory_smoothing import summed_fix_jumps
@@ -223,10 +224,11 @@ class FastSlam(Estimator[PointObservation]):
         self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
         self._stamp_ns: int | None = None
         self._moved = False
+        self._predicted = False  # predicted since the last observation (pose_noise is added once per iteration)
         self._twist_unknown = False
         self._step_stamp_ns: int | None = None
         self._Sigma = np.zeros((n, 12, 12))
-        self._odometry: OdometryMeasurement | None = None
+        self._hold = OdometryHold()
         self._stats = Counter[str]()
         self._stats["association_widened"] = 0  # iterations proposed again under a wider prior (run.json)
         self._stats["association_collapsed"] = 0  # ... and those whose association collapsed all the same
@@ -274,7 +276,11 @@ class FastSlam(Estimator[PointObservation]):
         if self._stamp_ns is None:
             self._stamp_ns = observation.stamp_ns
         self._predict_to(observation.stamp_ns)
+        self._hold.observed(self._stamp_ns)
         Sigma, self._Sigma = self._Sigma, np.zeros_like(self._Sigma)
+        if self._predicted:  # once per iteration, however many records split the prediction
+            Sigma[:, :6, :6] += np.eye(6) * self.config.pose_noise**2
+            self._predicted = False
         # 1.0 samples the motion model, except while the initial twist is unknown: a blind draw from
         # its wide prior (initial_speed_sigma) leaves most particles metres off after one step.
         proposal = self.config.variant == "2.0" or self._twist_unknown
@@ -534,10 +540,11 @@ class FastSlam(Estimator[PointObservation]):
         self._stats["frame_pinned_at"] = self._stats["iterations"]
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
-        """Hold a body-frame twist as the proposal's input from its stamp until the next one."""
+        """Hold a body-frame twist as the proposal's input from its stamp until the next one; the
+        interval up to its stamp is predicted with the twist held before it."""
         if self._stamp_ns is not None:
             self._predict_to(odometry.stamp_ns)
-        self._odometry = odometry
+        self._hold.hold(odometry)
 
     def landmark_map(self) -> LandmarkMap:
         """The map of the particle with the largest weight (before the fixes pin the frame: provisionally placed)."""
@@ -569,6 +576,7 @@ class FastSlam(Estimator[PointObservation]):
             "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             "time_gaps_bridged": self._gaps.bridged,
+            "odometry_stale": self._hold.stale,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),
             **self._fix_gate.summary(),
@@ -633,12 +641,22 @@ class FastSlam(Estimator[PointObservation]):
     # ------------------------------------------------------------------------------------ proposal
 
     def _predict_to(self, stamp_ns: int) -> None:
-        """Move every particle's nominal state to ``stamp_ns`` and grow the pending prior covariance.
+        """Move every particle's nominal state to ``stamp_ns`` and grow the pending prior covariance:
+        with the held odometry until it goes stale, then with the constant-velocity model.
 
         The prior (N, 12, 12) is over the error ``(dp, dtheta, dv, dw)`` with ``R_true = R Exp(dtheta)``;
         it is sampled (1.0) or refined by the points and then sampled (2.0) at the next observation,
         so odometry records between observations only accumulate it.
         """
+        assert self._stamp_ns is not None
+        expiry = self._hold.expiry_ns()
+        if expiry is not None and expiry < stamp_ns:
+            if expiry > self._stamp_ns:
+                self._predict_span(expiry)
+            self._hold.drop()
+        self._predict_span(stamp_ns)
+
+    def _predict_span(self, stamp_ns: int) -> None:
         assert self._stamp_ns is not None
         dt = (stamp_ns - self._stamp_ns) * 1e-9
         if dt > 0.0:
@@ -648,16 +666,14 @@ class FastSlam(Estimator[PointObservation]):
         cfg = self.config
         n = cfg.particles
         F = np.zeros((n, 12, 12))
-        if self._odometry is not None:
-            u = np.concatenate([self._odometry.linear, self._odometry.angular])
-            twist = np.broadcast_to(u, (n, 6))
-            # axes the message leaves unset take the constant-velocity model's noise over the interval
-            Q_twist = self._odometry.twist_covariance(
-                np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
-            )
+        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_acceleration_noise], 3)
+        if self._hold.held is not None:
+            twist = np.broadcast_to(self._hold.twist(), (n, 6))
+            # the noise of holding the twist over this interval (relpoint.estimators._odometry_hold)
+            Q_twist, Q_span = self._hold.noise(self._stamp_ns, self._stamp_ns + round(dt * 1e9), acceleration)
         else:
             twist = self.twists
-            q = np.repeat([(cfg.acceleration_noise * dt) ** 2, (cfg.angular_acceleration_noise * dt) ** 2], 3)
+            q = (acceleration * dt) ** 2
             if not self._moved:
                 q += np.repeat([cfg.initial_speed_sigma**2, cfg.initial_turn_rate_sigma**2], 3)
                 self._twist_unknown = True
@@ -665,16 +681,16 @@ class FastSlam(Estimator[PointObservation]):
             F[:, 6:, 6:] = np.eye(6)  # the twist persists; with odometry the input replaces it
         positions, rotations, F_pose, G = twist_step(self.positions, self.rotations, twist[:, :3], twist[:, 3:], dt)
         F[:, :6, :6] = F_pose
-        if self._odometry is None:
+        if self._hold.held is None:
             F[:, :6, 6:] = G
         self.positions, self.rotations, self.twists = positions, rotations, np.array(twist)
-        self._moved = True
+        self._moved = self._predicted = True
         self._stamp_ns = stamp_ns
         # The twist noise acts over the interval: it moves the pose through G and becomes the new twist error.
         G_full = np.concatenate([G, np.broadcast_to(np.eye(6), (n, 6, 6))], axis=1)  # (n, 12, 6)
         Sigma = F @ self._Sigma @ np.swapaxes(F, 1, 2) + G_full @ Q_twist @ np.swapaxes(G_full, 1, 2)
-        Sigma[:, :3, :3] += np.eye(3) * cfg.pose_noise**2
-        Sigma[:, 3:6, 3:6] += np.eye(3) * cfg.pose_noise**2
+        if self._hold.held is not None:
+            Sigma[:, :6, :6] += G @ Q_span @ np.swapaxes(G, 1, 2)
         self._Sigma = Sigma
 
     def _apply_sample(self, Sigma: FloatArray) -> None:
