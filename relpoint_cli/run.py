@@ -93,7 +93,8 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
         result = execute_run(
             reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,
-            on_iteration=lambda *_: bar.update(1), map_every=map_every, window=window,
+            on_iteration=lambda *_: bar.update(1), on_finish=lambda doing: bar.set_description(f"{estimator_name}: {doing}"),
+            map_every=map_every, window=window,
         )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()
