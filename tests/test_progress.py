@@ -65,3 +65,10 @@ def test_the_run_bar_says_what_the_estimator_does_after_its_last_iteration(
     assert status in _stderr_of(run, tmp_path, terminal=True)
     assert status not in _stderr_of(["-q", *run, "--overwrite"], tmp_path, terminal=True)
     assert status not in _stderr_of([*run, "--overwrite"], tmp_path, terminal=False)
+
+
+def test_a_cropped_run_bar_does_not_count_the_whole_log(tmp_path: Path) -> None:
+    _stderr_of(["-q", "simulate", "-o", "log.mcap", "--iterations", "60", "--density", "5"], tmp_path, terminal=False)
+    shown = _stderr_of(["run", "log.mcap", "-e", "ekf", "-o", "out", "--t-end", "1"], tmp_path, terminal=True)
+    assert "ekf:" in shown and "iter" in shown
+    assert "/60" not in shown
