@@ -122,13 +122,23 @@ def load_settings(path: str | os.PathLike[str], section: str | None = None) -> d
     """Settings from a ``.toml``, ``.yaml``/``.yml`` (or ``.json``) file as a flat mapping.
 
     With ``section``, a table of that name is used if the file has one (so one file can hold the
-    settings of several commands, e.g. ``[simulate]``). Raises :class:`UsageError` naming the file and
+    settings of several commands, e.g. ``[simulate]``), and the file's other tables are ignored;
+    without one, a table in the file is an error. Raises :class:`UsageError` naming the file and
     the problem when it cannot be read or parsed.
     """
     data = read_document(path)
     if section and isinstance(data.get(section), dict):
         data = data[section]
     nested = [key for key, value in data.items() if isinstance(value, dict)]
+    if nested and section:
+        # Other tables are ignored beside a [section] table: one file may hold several estimators' settings.
+        tables = ", ".join(f"[{key}]" for key in nested)
+        raise UsageError(
+            f"config file {path}: {tables} {'is' if len(nested) == 1 else 'are'} for another estimator or command, "
+            f"and the file has no [{section}] table",
+            f"put {section}'s settings under [{section}] (the other tables are then ignored), or run what {tables} "
+            f"{'is' if len(nested) == 1 else 'are'} for",
+        )
     if nested:
         raise UsageError(f"config file {path}: unexpected table(s) {', '.join(nested)}")
     return data

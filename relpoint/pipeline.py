@@ -100,10 +100,15 @@ def run(
     estimator: Estimator,
     *,
     on_iteration: Callable[[int, Pose], None] | None = None,
+    on_finish: Callable[[str], None] | None = None,
     map_every: int = 0,
     skipped_before: Mapping[str, int] | None = None,
 ) -> RunResult:
     """Run ``estimator`` over ``inputs`` (time-ordered) and collect its results.
+
+    ``on_finish`` is called once after the last iteration, before the estimator's
+    :meth:`~relpoint.estimators.base.Estimator.finish` (which may take a while), with what it does
+    (:attr:`~relpoint.estimators.base.Estimator.finishing`).
 
     With ``map_every`` > 0 the landmark map is also recorded every that many iterations and after the
     last one (for landmark error over time, the paper's Fig. 8).
@@ -198,6 +203,8 @@ def run(
         counts = ", ".join(f"{n} {kind}" for kind, n in sorted(dropped.items())) or "every observation is empty"
         raise InputError(f"the log holds no usable point in its {len(stamps)} observations ({counts})",
                          "check the points topic's fields and values, and the log format's limits")  # fmt: skip
+    if on_finish is not None:
+        on_finish(estimator.finishing)
     start = time.perf_counter()
     trajectory = estimator.finish(
         Trajectory(

@@ -214,7 +214,7 @@ def execute_run(
 
     ``window`` crops the log's observations, odometry and fixes (seconds from the first one read);
     the estimator runs as :func:`run_estimator` runs it, with ``options`` (``use_odometry``,
-    ``use_fixes``, ``on_iteration``, ``map_every``); ``extra_info`` is added to run.json.
+    ``use_fixes``, ``on_iteration``, ``on_finish``, ``map_every``); ``extra_info`` is added to run.json.
     """
     result, roles = run_estimator(reader, spec, config, seed=seed, window=window, **options)
     run_info = {
@@ -246,6 +246,7 @@ def run_estimator(
     use_odometry: bool = True,
     use_fixes: bool = True,
     on_iteration: Callable[[int, Any], None] | None = None,
+    on_finish: Callable[[str], None] | None = None,
     map_every: int = 0,
     window: TimeWindow | None = None,
 ) -> tuple[pipeline.RunResult, list[str]]:
@@ -253,7 +254,8 @@ def run_estimator(
     input roles; the result and the roles read."""
     roles = input_roles(reader, spec, use_odometry=use_odometry, use_fixes=use_fixes)
     estimator = spec.factory(config, np.random.default_rng(seed))
-    result = drive(reader, estimator, roles, on_iteration=on_iteration, map_every=map_every, window=window)
+    result = drive(reader, estimator, roles, on_iteration=on_iteration, on_finish=on_finish, map_every=map_every,
+                   window=window)  # fmt: skip
     return result, roles
 
 
@@ -263,6 +265,7 @@ def drive(
     roles: list[str],
     *,
     on_iteration: Callable[[int, Any], None] | None = None,
+    on_finish: Callable[[str], None] | None = None,
     map_every: int = 0,
     window: TimeWindow | None = None,
 ) -> pipeline.RunResult:
@@ -285,7 +288,7 @@ def drive(
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             return pipeline.run(
-                estimator_inputs(records, reader.skipped), estimator, on_iteration=on_iteration,
+                estimator_inputs(records, reader.skipped), estimator, on_iteration=on_iteration, on_finish=on_finish,
                 map_every=map_every, skipped_before=reader.skipped,
             )  # fmt: skip
     except (EstimatorError, InputError):

@@ -76,6 +76,19 @@ def format_summary(plan: BatchPlan, outcome: BatchOutcome) -> str:
     return "\n".join(text)
 
 
+def _failure_hint(results: Path, outcome: BatchOutcome, csv_path: Path) -> str:
+    """Where to read why jobs failed: a failed job's job.log, or results.csv for jobs that wrote none
+    (refused before running, or their directory refused as not relpoint's)."""
+    failed = [row["job"] for row in outcome.rows if row["status"] == "failed"]
+    logs = [results / job / "job.log" for job in failed if (results / job / "job.log").is_file()]
+    if not logs:
+        return f"no failed job wrote a job.log: the error column of {csv_path} says why each failed"
+    hint = f"see {logs[0]}" + (f" (and {len(logs) - 1} more job.log under {results})" if len(logs) > 1 else "")
+    if len(logs) < len(failed):
+        hint += f"; {len(failed) - len(logs)} wrote none: the error column of {csv_path} says why"
+    return hint
+
+
 @contextlib.contextmanager
 def _start_up_objects() -> Iterator[None]:
     """No garbage collection while the command starts up; what it made is frozen at the end.
@@ -221,4 +234,6 @@ def batch(ctx: click.Context, plan_file: Path, jobs: int | None, scheduler: str 
     failed = outcome.count("failed")
     if failed:
         stopped = " (--fail-fast stopped the batch)" if outcome.stopped_early else ""
-        raise JobFailed(f"{failed} of {len(plan.jobs)} job(s) failed{stopped}", f"see {plan.results}/JOB/job.log")
+        raise JobFailed(
+            f"{failed} of {len(plan.jobs)} job(s) failed{stopped}", _failure_hint(plan.results, outcome, csv_path)
+        )

@@ -89,11 +89,13 @@ def run(ctx: click.Context, log: Path, estimator_name: str, output: Path, params
     config = build_config(spec, config_file, params)
     output = check_output_directory(output, command="run", inputs=[log, config_file], overwrite=overwrite)
     reader = LogReader(log, topics_from(topic_names))
+    # A cropped run's iterations are not counted ahead: its bar shows no total rather than the whole log's.
     total = reader.topic_infos.get(reader.topics.depth if "depth" in spec.needs else reader.topics.points)
-    with progress_bar(total.count if total else None, estimator_name, unit="iter") as bar:
+    with progress_bar(total.count if total and window.is_open else None, estimator_name, unit="iter") as bar:
         result = execute_run(
             reader, spec, config, output, seed=seed, use_odometry=not no_odometry, use_fixes=not no_fixes,
-            on_iteration=lambda *_: bar.update(1), map_every=map_every, window=window,
+            on_iteration=lambda *_: bar.update(1), on_finish=lambda doing: bar.set_description(f"{estimator_name}: {doing}"),
+            map_every=map_every, window=window,
         )  # fmt: skip
     if not ctx.find_root().obj.get("quiet"):
         timing = result.timing_summary()

@@ -223,6 +223,21 @@ def test_failed_job_is_recorded_and_the_others_complete(
     job_log = (tmp_path / "results" / "broken" / "ekf" / "default" / "job.log").read_text()
     assert "FAILED: InputError" in job_log and "Traceback" in job_log
     assert "failed broken/ekf/default: InputError" in outcome.stdout
+    assert f"see {tmp_path / 'results' / 'broken' / 'ekf' / 'default' / 'job.log'}" in outcome.stderr
+
+
+def test_a_refused_job_directory_points_to_the_reason_not_to_a_missing_job_log(tmp_path: Path, small_log: Path) -> None:
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'logs = ["{small_log}"]\nestimators = ["ekf"]\n[evaluation]\nkitti = false\n')
+    mine = tmp_path / "results" / "small" / "ekf" / "default"
+    mine.mkdir(parents=True)
+    (mine / "notes.txt").write_text("mine\n")
+    outcome = invoke(str(plan), "--jobs", "1")
+    assert outcome.exit_code == 4, outcome.output
+    assert "is not a relpoint output" in outcome.stdout
+    assert "job.log" not in outcome.stderr.replace("no failed job wrote a job.log", "")
+    assert f"the error column of {tmp_path / 'results' / 'results.csv'} says why" in outcome.stderr
+    assert sorted(path.name for path in mine.iterdir()) == ["notes.txt"]
 
 
 def test_fail_fast_stops_at_the_first_failure(

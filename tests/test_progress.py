@@ -53,3 +53,22 @@ def test_a_terminal_that_reports_no_width_still_shows_the_bar(tmp_path: Path) ->
 @pytest.mark.parametrize(("args", "terminal"), [(["-q", *SIMULATE], True), (SIMULATE, False)])
 def test_no_bar_when_quiet_or_not_a_terminal(tmp_path: Path, args: list[str], terminal: bool) -> None:
     assert "simulate:" not in _stderr_of(args, tmp_path, terminal=terminal)
+
+
+@pytest.mark.parametrize(("estimator", "doing"), [("relpoint", "final adjustment"), ("ekf", "smoothing trajectory")])
+def test_the_run_bar_says_what_the_estimator_does_after_its_last_iteration(
+    tmp_path: Path, estimator: str, doing: str
+) -> None:
+    _stderr_of(["-q", "simulate", "-o", "log.mcap", "--iterations", "60", "--density", "5"], tmp_path, terminal=False)
+    run = ["run", "log.mcap", "-e", estimator, "-o", "out"]
+    status = f"{estimator}: {doing}"
+    assert status in _stderr_of(run, tmp_path, terminal=True)
+    assert status not in _stderr_of(["-q", *run, "--overwrite"], tmp_path, terminal=True)
+    assert status not in _stderr_of([*run, "--overwrite"], tmp_path, terminal=False)
+
+
+def test_a_cropped_run_bar_does_not_count_the_whole_log(tmp_path: Path) -> None:
+    _stderr_of(["-q", "simulate", "-o", "log.mcap", "--iterations", "60", "--density", "5"], tmp_path, terminal=False)
+    shown = _stderr_of(["run", "log.mcap", "-e", "ekf", "-o", "out", "--t-end", "1"], tmp_path, terminal=True)
+    assert "ekf:" in shown and "iter" in shown
+    assert "/60" not in shown

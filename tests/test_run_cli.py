@@ -62,6 +62,15 @@ def test_unknown_estimator_and_parameters_are_usage_errors(tmp_path: Path, small
     assert not (tmp_path / "o").exists()
 
 
+def test_a_config_file_with_only_another_estimators_table_says_so(tmp_path: Path, small_log: Path) -> None:
+    config = tmp_path / "params.toml"
+    config.write_text("[relpoint]\nmax_iterations = 5\n")
+    code, err = invoke("run", str(small_log), "-e", ESTIMATOR, "--config", str(config), "-o", str(tmp_path / "o"))
+    assert code == 2 and "[relpoint] is for another estimator or command, and the file has no [ekf] table" in err
+    assert "put ekf's settings under [ekf] (the other tables are then ignored)" in err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_negative_seed_is_a_usage_error(tmp_path: Path, small_log: Path) -> None:
     code, err = invoke("run", str(small_log), "--estimator", ESTIMATOR, "--seed", "-1", "-o", str(tmp_path / "o"))
     assert code == 2 and "Invalid value for '--seed': -1 is not in the range x>=0" in err

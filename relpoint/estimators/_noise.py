@@ -233,7 +233,8 @@ class NoiseAdaptive(Estimator[PointObservation]):
     ``measure_acceleration``, the median acceleration of the held-back path (m/s^2, or None when it
     cannot be chained; :func:`estimate_acceleration`). ``fallback`` is the noise when no pair of the
     first observations can be registered (too few points); ``sigma``, when given, is the noise the
-    settings already hold, and is not estimated. Odometry and fixes that
+    settings already hold, and is not estimated; ``finishing`` is the real estimator's
+    :attr:`~Estimator.finishing`. Odometry and fixes that
     arrive while observations are held back are replayed in their order. ``prepare`` is the real
     estimator's :meth:`~Estimator.prepare` work that needs no noise (compiling its code), run before
     the first iteration as the pipeline asks.
@@ -248,6 +249,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
         prepare: Callable[[], None] | None = None,
         sigma: float | None = None,
         measure_acceleration: bool = False,
+        finishing: str = Estimator.finishing,
     ) -> None:
         self._build = build
         self._known_sigma = sigma
@@ -264,6 +266,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
         self.estimated = False
         self.acceleration: float | None = None
         self.name = name  # type: ignore[misc]  # the wrapped estimator's name
+        self.finishing = finishing  # type: ignore[misc]  # and what its finish() does
 
     def _start(self) -> None:
         observations = [item for kind, item in self._held if kind == "step"]

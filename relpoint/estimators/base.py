@@ -38,6 +38,8 @@ class Estimator(abc.ABC, Generic[InputT]):
     """
 
     name: ClassVar[str]
+    #: What :meth:`finish` does, in a few words, for a progress display while it runs.
+    finishing: ClassVar[str] = "finishing"
 
     @abc.abstractmethod
     def step(self, observation: InputT) -> Pose:

@@ -97,6 +97,7 @@ class EkfSlam(Estimator[PointObservation]):
     """
 
     name: ClassVar[str] = "ekf"
+    finishing: ClassVar[str] = "smoothing trajectory"
 
     def __init__(self, config: EkfConfig | None = None, rng: np.random.Generator | None = None) -> None:
         del rng  # the EKF draws no random numbers

@@ -172,6 +172,7 @@ class FastSlam(Estimator[PointObservation]):
     """
 
     name: ClassVar[str] = "fastslam"
+    finishing: ClassVar[str] = "smoothing trajectory"
 
     def __init__(self, config: FastSlamConfig | None, rng: np.random.Generator) -> None:
         self.config = cfg = config or FastSlamConfig()

@@ -60,7 +60,8 @@ class EstimatorSpec:
 
         compile_code = getattr(self.estimator_class, "compile", None)
         return NoiseAdaptive(build, SIMULATOR_SIGMA, self.name, prepare=compile_code, sigma=config.observation_sigma,
-                             measure_acceleration=measure_acceleration)  # fmt: skip
+                             measure_acceleration=measure_acceleration,
+                             finishing=getattr(self.estimator_class, "finishing", Estimator.finishing))  # fmt: skip
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
         """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``) over them:
