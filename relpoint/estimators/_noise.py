@@ -342,6 +342,9 @@ class NoiseAdaptive(Estimator[PointObservation]):
         measured = {"acceleration_measured": self.acceleration} if self._measure_acceleration else {}
         return {**inner, "observation_sigma": self.sigma, "observation_sigma_estimated": self.estimated, **measured}
 
+    def run_warnings(self) -> list[str]:
+        return self._inner.run_warnings() if self._inner is not None else []
+
     def __getattr__(self, name: str) -> Any:
         # Anything else (diagnostics the benchmarks and tests read) comes from the built estimator.
         inner = self.__dict__.get("_inner")

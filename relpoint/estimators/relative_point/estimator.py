@@ -158,6 +158,8 @@ class RelativePointEstimator(
         self._regroup_queue: deque[int] = deque()
         self._first_groups: deque[int] = deque()
         self._over_grouped: set[int] = set()
+        # Iterations whose view held nothing mapped after the map had begun: a new root was anchored there.
+        self._map_restarts: list[int] = []
         self._newly_mapped: list[IntArray] = []
         self._next_creation_try: dict[int, int] = {}
         self.adjustment_report: dict[str, Any] | None = None
@@ -293,8 +295,23 @@ class RelativePointEstimator(
             "groups_created": self.groups.created,
             "groups_removed": self.groups.removed,
             "group_fit_failures": self.groups.failed_fits,
+            "map_restarts": len(self._map_restarts),
             **({"final_adjustment": self.adjustment_report} if self.adjustment_report else {}),
         }
+
+    def run_warnings(self) -> list[str]:
+        """A map begun again: nothing mapped was in view (after a gap in the observations, a jump, or
+        a view with no point seen before), so a new part was anchored to the pose predicted then, and
+        nothing ties it to the map before it. The path and map after it may be off by the move."""
+        if not self._map_restarts:
+            return []
+        where = ", ".join(str(k) for k in self._map_restarts[:5]) + (", ..." if len(self._map_restarts) > 5 else "")
+        return [
+            f"relpoint: the map was begun again {len(self._map_restarts)} time(s) (iterations {where}): no point "
+            "seen before was in view, so each new part is placed only by the motion predicted across the break; "
+            "the path and map after it may be off by that move. With odometry, ekf or fastslam carry the pose "
+            "across such a break"
+        ]
 
     # -- the phases of one iteration -------------------------------------------------------------
 

@@ -60,6 +60,7 @@ class EstimatorState:
     _regroup_queue: deque[int]
     _first_groups: deque[int]
     _over_grouped: set[int]
+    _map_restarts: list[int]
     _newly_mapped: list[IntArray]
     _next_creation_try: dict[int, int]
     _support: list[tuple[IntArray, npt.NDArray[np.float32]] | None]

@@ -162,6 +162,8 @@ class Grouping(EstimatorState):
         self._newly_mapped.append(newly_mapped)
         if group.kind == FIRST:
             self._first_groups.append(group.gid)
+        if group.kind == ROOT and self.counts["root_groups"]:
+            self._map_restarts.append(k)
         self.counts[{ROOT: "root_groups", FIRST: "first_groups", LATER: "regroups"}[group.kind]] += 1
         crowded = members[store.n_groups[members] > config.max_groups_per_point]
         self._over_grouped.update(crowded.tolist())

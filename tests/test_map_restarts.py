@@ -1,0 +1,40 @@
+"""Relative Point says when its map had to begin again: a view with nothing seen before in it (after a
+gap or a jump) starts a part of the map that nothing ties to the one before."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relpoint import pipeline
+from relpoint.estimators import ESTIMATORS
+from relpoint.types import PointObservation
+
+
+def _observations(jump: bool) -> list[PointObservation]:
+    """80 iterations at 10 Hz of a sensor creeping along x past 60 landmarks; with ``jump`` it leaves
+    them after 40 iterations for 60 others 500 m away, never seen together."""
+    rng = np.random.default_rng(2)
+    near = rng.uniform(-10.0, 10.0, (60, 3))
+    away = np.array([500.0, 0.0, 0.0])
+    far = rng.uniform(-10.0, 10.0, (60, 3)) + away
+    observations = []
+    for k in range(80):
+        position = np.array([0.05 * k, 0.0, 0.0])
+        landmarks, ids = (far, np.arange(100, 160)) if jump and k >= 40 else (near, np.arange(60))
+        if jump and k >= 40:
+            position = position + away
+        points = landmarks - position + rng.normal(0.0, 0.02, landmarks.shape)
+        observations.append(PointObservation(k * 100_000_000, points, ids))
+    return observations
+
+
+@pytest.mark.parametrize("jump", [False, True])
+def test_a_map_begun_again_is_counted_and_warned(jump: bool) -> None:
+    spec = ESTIMATORS["relpoint"]
+    result = pipeline.run(_observations(jump), spec.factory(spec.config_class(), np.random.default_rng(0)))
+    assert result.summary["map_restarts"] == int(jump)
+    begun_again = [warning for warning in result.warnings if "begun again" in warning]
+    assert len(begun_again) == int(jump)
+    if jump:
+        assert "iterations 4" in begun_again[0]  # the first iteration of the far view, or just after
