@@ -25,6 +25,7 @@ one. A gap in both streams (a paused recording) is not the odometry stopping.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -74,6 +75,17 @@ class OdometryHold:
         """Stop holding a stale message (counted)."""
         self.held = None
         self.stale += 1
+
+    def prediction_ends(self, state_ns: int, stamp_ns: int) -> Iterator[int]:
+        """The stamps (ns) a filter at ``state_ns`` predicts to, in turn, on its way to ``stamp_ns``: the
+        held message's expiry first when it falls in between (the message is dropped once the filter
+        has predicted to it, so the rest of the way takes the motion model), then ``stamp_ns``."""
+        expiry = self.expiry_ns()
+        if expiry is not None and expiry < stamp_ns:
+            if expiry > state_ns:
+                yield expiry
+            self.drop()
+        yield stamp_ns
 
     def twist(self) -> FloatArray:
         """The held twist (6,): (vx, vy, vz, wx, wy, wz), m/s and rad/s, sensor frame."""

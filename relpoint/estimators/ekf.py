@@ -439,12 +439,8 @@ class EkfSlam(Estimator[PointObservation]):
     def _predict_to(self, stamp_ns: int) -> None:
         """Predict to ``stamp_ns``: with the held odometry until it goes stale, then with the motion model."""
         assert self._stamp_ns is not None
-        expiry = self._hold.expiry_ns()
-        if expiry is not None and expiry < stamp_ns:
-            if expiry > self._stamp_ns:
-                self._predict_span(expiry)
-            self._hold.drop()
-        self._predict_span(stamp_ns)
+        for end_ns in self._hold.prediction_ends(self._stamp_ns, stamp_ns):
+            self._predict_span(end_ns)
 
     def _predict_span(self, stamp_ns: int) -> None:
         assert self._stamp_ns is not None

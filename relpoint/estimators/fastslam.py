@@ -650,12 +650,8 @@ class FastSlam(Estimator[PointObservation]):
         so odometry records between observations only accumulate it.
         """
         assert self._stamp_ns is not None
-        expiry = self._hold.expiry_ns()
-        if expiry is not None and expiry < stamp_ns:
-            if expiry > self._stamp_ns:
-                self._predict_span(expiry)
-            self._hold.drop()
-        self._predict_span(stamp_ns)
+        for end_ns in self._hold.prediction_ends(self._stamp_ns, stamp_ns):
+            self._predict_span(end_ns)
 
     def _predict_span(self, stamp_ns: int) -> None:
         assert self._stamp_ns is not None
