@@ -12,6 +12,7 @@ from relpoint.errors import UsageError
 from relpoint.estimators import ESTIMATORS
 from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
+from relpoint.estimators._noise import MotionNoiseSettings
 from relpoint.estimators.dense.estimator import DenseConfig
 from relpoint.estimators.ekf import EkfConfig
 from relpoint.estimators.fastslam import FastSlamConfig
@@ -26,7 +27,7 @@ from relpoint_app.batch_plan import RunOptions
 
 CLASSES = (
     RelativePointConfig, EkfConfig, FastSlamConfig, DenseConfig, FusionConfig, SimulationConfig, RgbdConfig,
-    KeypointSettings, EvaluationSettings, RunOptions, MovingLandmarkSettings, FixFusionSettings,
+    KeypointSettings, EvaluationSettings, RunOptions, MovingLandmarkSettings, FixFusionSettings, MotionNoiseSettings,
 )  # fmt: skip
 NUMERIC = ("int", "float", "int | None", "float | None", "tuple[int, ...]", "tuple[float, ...]")
 

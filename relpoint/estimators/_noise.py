@@ -34,15 +34,18 @@ it returned for the held-back iterations are replaced in :meth:`finish`.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray, kabsch
+from relpoint.settings import Settings, setting
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
 #: Median length of a 3D Gaussian vector with unit per-axis deviation, times sqrt(2) (two noisy points).
@@ -210,6 +213,33 @@ def derived_acceleration_noise(acceleration: float | None, sigma: float) -> floa
         return VEHICLE_ACCELERATION
     floor = VEHICLE_ACCELERATION * min(1.0, sigma / SIMULATOR_SIGMA)
     return float(min(VEHICLE_ACCELERATION, max(ACCELERATION_MARGIN * acceleration, floor)))
+
+
+_MotionSettings = TypeVar("_MotionSettings", bound="MotionNoiseSettings")
+
+
+@dataclass(frozen=True)
+class MotionNoiseSettings(Settings):
+    """The constant-velocity model's linear acceleration noise, which the EKF (its prediction) and
+    FastSLAM (its proposal) share, and which ``relpoint run`` takes from the log when it is unset."""
+
+    linear_acceleration_noise: float | None = setting(None, low=0, high=1e4)
+    """Constant-velocity model: white linear acceleration noise (m/s^2). Unset (the default): ``relpoint
+    run`` takes 5 times the acceleration noise that explains the path its first observations register
+    into, within 2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m
+    (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports both as
+    ``linear_acceleration_noise`` and ``acceleration_measured``): 2 m/s^2 on the simulator, about 1.8
+    on a hand-held camera at 30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop.
+    Built directly, without ``SPEC.factory``: 2 m/s^2."""
+
+    def at_acceleration(self: _MotionSettings, acceleration: float) -> _MotionSettings:
+        """These settings with ``linear_acceleration_noise = acceleration`` (m/s^2)."""
+        return dataclasses.replace(self, linear_acceleration_noise=acceleration)
+
+    @property
+    def acceleration_noise(self) -> float:
+        """``linear_acceleration_noise`` (m/s^2), or the vehicle default when it is unset."""
+        return self.linear_acceleration_noise if self.linear_acceleration_noise is not None else VEHICLE_ACCELERATION
 
 
 def estimate_observation_noise(observations: Sequence[PointObservation]) -> float | None:

@@ -13,7 +13,7 @@ from typing import ClassVar
 from relpoint.errors import UsageError
 from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
-from relpoint.estimators._noise import VEHICLE_ACCELERATION
+from relpoint.estimators._noise import MotionNoiseSettings
 from relpoint.settings import setting
 
 MOTION_MODELS = ("constant_velocity", "constant_position")
@@ -26,7 +26,7 @@ CONSENSUS_MIN_PAIRS = 6
 
 
 @dataclass(frozen=True)
-class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
+class EkfConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSettings):
     """Settings of the EKF-SLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "ekf"
@@ -80,14 +80,6 @@ class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
     quaternion_noise: float = setting(0.05, low=0, high=1)
     """Constant-position model: noise per quaternion component per iteration (MRPT default 0.05;
     applied as 2 x this in radians per axis, since a small rotation d has quaternion part d/2)."""
-    linear_acceleration_noise: float | None = setting(None, low=0, high=1e4)
-    """Constant-velocity model: white linear acceleration noise (m/s^2). Unset (the default): ``relpoint run``
-    takes 5 times the acceleration noise that explains the path its first observations register into, within
-    2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m
-    (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports both as
-    ``linear_acceleration_noise`` and ``acceleration_measured``): 2 m/s^2 on the simulator, about 1.8
-    on a hand-held camera at 30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop. Built directly,
-    without ``SPEC.factory``: 2 m/s^2."""
     angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity model: white angular acceleration noise (rad/s^2)."""
     collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
@@ -139,15 +131,6 @@ class EkfConfig(MovingLandmarkSettings, FixFusionSettings):
     def at_noise(self, sigma: float) -> EkfConfig:
         """These settings with ``observation_sigma = sigma`` (m)."""
         return dataclasses.replace(self, observation_sigma=sigma)
-
-    def at_acceleration(self, acceleration: float) -> EkfConfig:
-        """These settings with ``linear_acceleration_noise = acceleration`` (m/s^2)."""
-        return dataclasses.replace(self, linear_acceleration_noise=acceleration)
-
-    @property
-    def acceleration_noise(self) -> float:
-        """``linear_acceleration_noise`` (m/s^2), or the vehicle default when it is unset."""
-        return self.linear_acceleration_noise if self.linear_acceleration_noise is not None else VEHICLE_ACCELERATION
 
     def check(self) -> None:
         """A point between the validation gate and the new-landmark gate is discarded: the new-landmark

@@ -13,7 +13,7 @@ from typing import ClassVar
 from relpoint.errors import UsageError
 from relpoint.estimators._fix_frame import FixFusionSettings
 from relpoint.estimators._landmark_motion import MovingLandmarkSettings
-from relpoint.estimators._noise import SIMULATOR_SIGMA, VEHICLE_ACCELERATION
+from relpoint.estimators._noise import SIMULATOR_SIGMA, MotionNoiseSettings
 from relpoint.settings import setting
 
 VARIANTS = ("2.0", "1.0")
@@ -25,7 +25,7 @@ SEARCH_RADIUS_SIGMAS = 5.0 / SIMULATOR_SIGMA
 
 
 @dataclass(frozen=True)
-class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
+class FastSlamConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSettings):
     """Settings of the FastSLAM estimator. Metres, radians, seconds."""
 
     settings_name: ClassVar[str] = "fastslam"
@@ -58,14 +58,6 @@ class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
     """A point that no landmark explains starts a landmark only if it also lies outside this wider
     quantile of every candidate landmark; points in between are discarded. Without the band a point
     of a drifted landmark (a loop closure) starts a duplicate that then wins every later association."""
-    linear_acceleration_noise: float | None = setting(None, low=0, high=1e4)
-    """Constant-velocity proposal: white linear acceleration noise (m/s^2). Unset (the default): ``relpoint run``
-    takes 5 times the acceleration noise that explains the path its first observations register into, within
-    2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m
-    (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports both as
-    ``linear_acceleration_noise`` and ``acceleration_measured``): 2 m/s^2 on the simulator, about 1.8
-    on a hand-held camera at 30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop. Built directly,
-    without ``SPEC.factory``: 2 m/s^2."""
     angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
     """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
     collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
@@ -120,15 +112,6 @@ class FastSlamConfig(MovingLandmarkSettings, FixFusionSettings):
     def at_noise(self, sigma: float) -> FastSlamConfig:
         """These settings with ``observation_sigma = sigma`` (m)."""
         return dataclasses.replace(self, observation_sigma=sigma)
-
-    def at_acceleration(self, acceleration: float) -> FastSlamConfig:
-        """These settings with ``linear_acceleration_noise = acceleration`` (m/s^2)."""
-        return dataclasses.replace(self, linear_acceleration_noise=acceleration)
-
-    @property
-    def acceleration_noise(self) -> float:
-        """``linear_acceleration_noise`` (m/s^2), or the vehicle default when it is unset."""
-        return self.linear_acceleration_noise if self.linear_acceleration_noise is not None else VEHICLE_ACCELERATION
 
     def check(self) -> None:
         """A point between the new-landmark quantile and the start quantile is discarded: the start

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from relpoint.estimators._noise import SIMULATOR_SIGMA, NoiseAdaptive, derived_acceleration_noise
+from relpoint.estimators._noise import SIMULATOR_SIGMA, MotionNoiseSettings, NoiseAdaptive, derived_acceleration_noise
 from relpoint.estimators.base import DEPTH, POINTS, Estimator
 from relpoint.settings import Settings
 
@@ -23,7 +23,7 @@ class EstimatorSpec:
     ``noise_adaptive``: the settings hold ``observation_sigma`` and an ``at_noise(sigma)`` that fits
     them to a noise; when the noise is unset, :meth:`factory` builds the estimator once the noise is
     estimated from the first observations (:class:`~relpoint.estimators._noise.NoiseAdaptive`), and so
-    is a motion model's unset ``linear_acceleration_noise`` (settings with ``at_acceleration(a)``).
+    is a motion model's unset ``linear_acceleration_noise`` (:class:`~relpoint.estimators._noise.MotionNoiseSettings`).
     """
 
     name: str
@@ -48,7 +48,7 @@ class EstimatorSpec:
         if not self.noise_adaptive:
             return self.estimator_class(config, rng)
         # A motion model whose acceleration noise is unset takes it from the held-back path.
-        measure_acceleration = getattr(config, "linear_acceleration_noise", 0.0) is None
+        measure_acceleration = isinstance(config, MotionNoiseSettings) and config.linear_acceleration_noise is None
         if config.observation_sigma is not None and not measure_acceleration:
             return self.estimator_class(config.at_noise(config.observation_sigma), rng)
 
