@@ -129,19 +129,39 @@ def _pair_estimate(residual: FloatArray, min_pairs: int) -> float | None:
     return float(np.median(residual)) / _PAIR_MEDIAN * math.sqrt(3 * n / (3 * n - 6))
 
 
+@dataclass(frozen=True)
+class ConsecutiveRegistrations:
+    """The observations of at least three points and the registrations of each onto the one before
+    (``register(previous, next)``, None where it failed): what both the noise and the acceleration
+    estimates chain, registered once."""
+
+    observations: list[PointObservation]
+    steps: list[tuple[FloatArray, FloatArray, FloatArray] | None]
+
+    @classmethod
+    def of(cls, observations: Sequence[PointObservation]) -> ConsecutiveRegistrations:
+        usable = [o for o in observations if len(o) >= 3]
+        return cls(usable, [register(a.points, b.points) for a, b in itertools.pairwise(usable)])
+
+
 def registration_noise(
-    observations: Sequence[PointObservation], min_pairs: int = 3, baseline: int | None = None
+    observations: Sequence[PointObservation],
+    min_pairs: int = 3,
+    baseline: int | None = None,
+    registrations: ConsecutiveRegistrations | None = None,
 ) -> float | None:
     """Per-axis noise (m) seen by registering observations ``baseline`` apart, or None if none could be.
 
-    Consecutive observations are registered first; observations ``baseline`` apart (default: half the
-    sequence) are then registered starting from the chained consecutive motions, so the sensor may
-    move far between them. An error that repeats from one observation to the next (the same surface
-    seen from almost the same place) shows only over the wider baseline; with ``baseline`` 1 only the
-    consecutive pairs count. The median of the pairs' estimates is returned.
+    Consecutive observations are registered first (or taken from ``registrations``, made of the same
+    observations); observations ``baseline`` apart (default: half the sequence) are then registered
+    starting from the chained consecutive motions, so the sensor may move far between them. An
+    error that repeats from one observation to the next (the same surface seen from almost the same
+    place) shows only over the wider baseline; with ``baseline`` 1 only the consecutive pairs count.
+    The median of the pairs' estimates is returned.
     """
-    usable = [o.points for o in observations if len(o) >= 3]
-    steps = [register(a, b) for a, b in itertools.pairwise(usable)]
+    registrations = registrations or ConsecutiveRegistrations.of(observations)
+    usable = [o.points for o in registrations.observations]
+    steps = registrations.steps
     baseline = max(1, len(usable) // 2 if baseline is None else baseline)
     estimates = []
     for i in range(len(usable) - baseline):
@@ -158,25 +178,24 @@ def registration_noise(
     return float(np.median(estimates)) if estimates else None
 
 
-def _chained_positions(observations: Sequence[PointObservation]) -> tuple[FloatArray, FloatArray] | None:
-    """Stamps (s) and positions (m, in the first observation's frame) of the observations of at least
-    ``MIN_POINTS`` points, chained from their consecutive registrations; None if any pair fails."""
-    usable = [o for o in observations if len(o) >= MIN_POINTS]
-    if len(usable) < 3:
+def _chained_positions(registrations: ConsecutiveRegistrations) -> tuple[FloatArray, FloatArray] | None:
+    """Stamps (s) and positions (m, in the first observation's frame) of the registered observations,
+    chained from their consecutive registrations; None if any pair failed or there are fewer than 3."""
+    if len(registrations.observations) < 3 or any(step is None for step in registrations.steps):
         return None
     R, t = np.eye(3), np.zeros(3)
     positions = [t]
-    for a, b in itertools.pairwise(usable):
-        step = register(a.points, b.points)
-        if step is None:
-            return None
+    for step in registrations.steps:
+        assert step is not None
         R, t = R @ step[0], R @ step[1] + t  # T_0<-k+1 = T_0<-k  T_k<-k+1
         positions.append(t)
-    stamps = np.array([o.stamp_ns for o in usable], dtype=np.float64) * 1e-9
+    stamps = np.array([o.stamp_ns for o in registrations.observations], dtype=np.float64) * 1e-9
     return stamps, np.array(positions)
 
 
-def estimate_acceleration(observations: Sequence[PointObservation]) -> float | None:
+def estimate_acceleration(
+    observations: Sequence[PointObservation], registrations: ConsecutiveRegistrations | None = None
+) -> float | None:
     """White acceleration noise (m/s^2, per iteration's interval) that explains how the velocity of the
     path the observations' registrations chain into changes.
 
@@ -187,7 +206,7 @@ def estimate_acceleration(observations: Sequence[PointObservation]) -> float | N
     that times ``sqrt(S / dt) = sqrt(m)``: the motion models' ``(a dt)^2`` per iteration then wander the
     velocity as much over ``S`` as the path did. None when the path cannot be chained or is too short.
     """
-    path = _chained_positions(observations)
+    path = _chained_positions(registrations or ConsecutiveRegistrations.of(observations))
     if path is None:
         return None
     stamps, positions = path
@@ -242,16 +261,19 @@ class MotionNoiseSettings(Settings):
         return self.linear_acceleration_noise if self.linear_acceleration_noise is not None else VEHICLE_ACCELERATION
 
 
-def estimate_observation_noise(observations: Sequence[PointObservation]) -> float | None:
+def estimate_observation_noise(
+    observations: Sequence[PointObservation], registrations: ConsecutiveRegistrations | None = None
+) -> float | None:
     """Per-axis observation noise (m): the registration noise, at least ``RANGE_FRACTION`` of the median range.
 
-    None when the observations hold no point at all.
+    None when the observations hold no point at all. ``registrations``: those of ``observations``, when
+    already made.
     """
     ranges = [np.linalg.norm(o.points, axis=1) for o in observations if len(o)]
     if not ranges:
         return None
     floor = RANGE_FRACTION * float(np.median(np.concatenate(ranges)))
-    registered = registration_noise(observations)
+    registered = registration_noise(observations, registrations=registrations)
     return max(floor, registered) if registered is not None else floor
 
 
@@ -300,14 +322,15 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def _start(self) -> None:
         observations = [item for kind, item in self._held if kind == "step"]
+        registrations = ConsecutiveRegistrations.of(observations)  # registered once for both estimates
         if self._known_sigma is not None:
             self.sigma = self._known_sigma
         else:
-            sigma = estimate_observation_noise(observations)
+            sigma = estimate_observation_noise(observations, registrations)
             self.estimated = sigma is not None
             self.sigma = sigma if sigma is not None else self._fallback
         if self._measure_acceleration:
-            self.acceleration = estimate_acceleration(observations)
+            self.acceleration = estimate_acceleration(observations, registrations)
         self._inner = self._build(self.sigma, self.acceleration)
         for kind, item in self._held:
             if kind == "step":
