@@ -178,14 +178,19 @@ def test_depth_noise_model_grows_with_depth() -> None:
     assert sigma[1] == pytest.approx(0.0012 + 0.0019 * 0.36, rel=1e-5)  # Nguyen et al. 2012 at 1 m
 
 
-def test_vertex_and_normal_maps_of_a_tilted_plane() -> None:
-    k = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
-    # The plane n . x = d with n = (0, -sin a, -cos a) (facing the camera), d = -1.5 m.
+def _tilted_plane(width: int, height: int, focal: float) -> tuple[Intrinsics, np.ndarray, np.ndarray, np.ndarray]:
+    """A camera (centred principal point) facing the plane n . x = d with n = (0, -sin a, -cos a),
+    a = 25 degrees, d = -1.5 m: its intrinsics, n, each pixel's ray (z = 1) and the depth (m)."""
+    k = Intrinsics(width, height, focal, focal, (width - 1) / 2, (height - 1) / 2)
     a = math.radians(25)
     n = np.array([0.0, -math.sin(a), -math.cos(a)])
-    rays = np.stack(np.meshgrid((np.arange(40) - 19.5) / 30, (np.arange(30) - 14.5) / 30), -1)
-    rays = np.concatenate([rays, np.ones((30, 40, 1))], -1)
-    depth = (-1.5 / (rays @ n)).astype(np.float32)
+    u, v = (np.arange(width) - k.cx) / focal, (np.arange(height) - k.cy) / focal
+    rays = np.concatenate([np.stack(np.meshgrid(u, v), -1), np.ones((height, width, 1))], -1)
+    return k, n, rays, (-1.5 / (rays @ n)).astype(np.float32)
+
+
+def test_vertex_and_normal_maps_of_a_tilted_plane() -> None:
+    k, n, rays, depth = _tilted_plane(40, 30, 30.0)
     depth[5, 7] = 0.0  # a missing pixel
     vertices = vertex_map(depth, k)
     normals, valid = normal_map(vertices, depth)
@@ -203,12 +208,7 @@ def test_vertex_and_normal_maps_of_a_tilted_plane() -> None:
 def test_normals_survive_scattered_missing_depth() -> None:
     # Stereo cameras leave speckle holes: with half the pixels missing at random, requiring all four direct
     # neighbours kept 3 % of the normals (640x480 kitchen frames lost tracking in 59 of 60 frames).
-    k = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
-    a = math.radians(25)
-    n = np.array([0.0, -math.sin(a), -math.cos(a)])
-    rays = np.stack(np.meshgrid((np.arange(80) - 39.5) / 60, (np.arange(60) - 29.5) / 60), -1)
-    rays = np.concatenate([rays, np.ones((60, 80, 1))], -1)
-    depth = (-1.5 / (rays @ n)).astype(np.float32)
+    k, n, _, depth = _tilted_plane(80, 60, 60.0)
     depth[np.random.default_rng(0).random(depth.shape) < 0.5] = 0.0
     normals, valid = normal_map(vertex_map(depth, k), depth)
     assert not valid[depth == 0].any()

@@ -15,6 +15,7 @@ from relpoint.estimators._noise import (
     estimate_acceleration,
 )
 from relpoint.evaluation import landmark_metrics
+from relpoint.geometry import so3_exp
 from relpoint.simulation import SimulationConfig, simulate
 from relpoint.types import PointObservation
 
@@ -28,8 +29,7 @@ def _circling_observations(scale: float, seconds: float = 3.0, rate_hz: float = 
     for k in range(int(seconds * rate_hz)):
         t = k / rate_hz
         position = scale * np.array([np.cos(t), np.sin(t), 0.0])
-        c, s = np.cos(t), np.sin(t)
-        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        rotation = so3_exp([0.0, 0.0, t])
         points = (landmarks - position) @ rotation  # R^T (m - p), row-wise
         observations.append(PointObservation(int(t * 1e9), points, np.arange(60)))
     return observations
@@ -69,11 +69,8 @@ def test_the_ekf_on_a_scene_a_hundred_times_smaller_gives_errors_a_hundred_times
 
 
 def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cz, sz, cy, sy, cx, sx = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-    ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
-    return rz @ ry @ rx
+    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return so3_exp([0.0, 0.0, yaw]) @ so3_exp([0.0, pitch, 0.0]) @ so3_exp([roll, 0.0, 0.0])
 
 
 def _fastslam_ate_on_a_tabletop(scale: float) -> float:
