@@ -3,6 +3,8 @@ fusion, and short simulated runs with error bounds a regression would break."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -76,8 +78,11 @@ def test_config_from_mapping_rejects_unknown_keys_and_round_trips() -> None:
 
 
 def test_spec_builds_an_ekf() -> None:
-    ekf = SPEC.factory(EkfConfig(observation_sigma=0.3, linear_acceleration_noise=2.0), np.random.default_rng(0))
-    assert isinstance(ekf, EkfSlam)
+    given = EkfConfig(observation_sigma=0.3, linear_acceleration_noise=2.0, odometry_check=False)
+    assert isinstance(SPEC.factory(given, np.random.default_rng(0)), EkfSlam)
+    # the odometry is checked against the first observations, which are held back for it
+    checked = SPEC.factory(dataclasses.replace(given, odometry_check=True), np.random.default_rng(0))
+    assert isinstance(checked, NoiseAdaptive)
     # an unset acceleration noise is taken from the first observations, the noise given is kept
     measured = SPEC.factory(EkfConfig(observation_sigma=0.3), np.random.default_rng(0))
     assert isinstance(measured, NoiseAdaptive) and measured.name == "ekf"

@@ -43,6 +43,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from relpoint.estimators._odometry_check import OdometryCheck, check_odometry
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray, kabsch
 from relpoint.settings import Settings, setting
@@ -251,6 +252,12 @@ class MotionNoiseSettings(Settings):
     on a hand-held camera at 30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop.
     Built directly, without ``SPEC.factory``: 2 m/s^2."""
 
+    odometry_check: bool = setting(True)
+    """Check the odometry against the motion the first observations register into, and where its
+    twist is biased by more than the deviation its messages state, raise that axis's variance by the
+    bias squared for the whole log (:mod:`relpoint.estimators._odometry_check`; ``run.json``:
+    ``odometry_check``). Only ``relpoint run`` (``SPEC.factory``) checks."""
+
     def at_acceleration(self: _MotionSettings, acceleration: float) -> _MotionSettings:
         """These settings with ``linear_acceleration_noise = acceleration`` (m/s^2)."""
         return dataclasses.replace(self, linear_acceleration_noise=acceleration)
@@ -301,11 +308,14 @@ class NoiseAdaptive(Estimator[PointObservation]):
         prepare: Callable[[], None] | None = None,
         sigma: float | None = None,
         measure_acceleration: bool = False,
+        check_odometry: bool = False,
         finishing: str = Estimator.finishing,
     ) -> None:
         self._build = build
         self._known_sigma = sigma
         self._measure_acceleration = measure_acceleration
+        self._check_odometry = check_odometry
+        self.odometry_check: OdometryCheck | None = None
         self._prepare = prepare
         self._fallback = fallback
         self._frames = max(2, frames)
@@ -322,7 +332,10 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def _start(self) -> None:
         observations = [item for kind, item in self._held if kind == "step"]
-        registrations = ConsecutiveRegistrations.of(observations)  # registered once for both estimates
+        odometry = [item for kind, item in self._held if kind == "odometry"] if self._check_odometry else []
+        needed = self._known_sigma is None or self._measure_acceleration or odometry
+        # registered once for every estimate (and not at all when none needs them)
+        registrations = ConsecutiveRegistrations.of(observations if needed else [])
         if self._known_sigma is not None:
             self.sigma = self._known_sigma
         else:
@@ -331,12 +344,14 @@ class NoiseAdaptive(Estimator[PointObservation]):
             self.sigma = sigma if sigma is not None else self._fallback
         if self._measure_acceleration:
             self.acceleration = estimate_acceleration(observations, registrations)
+        if odometry:
+            self.odometry_check = check_odometry(registrations.observations, registrations.steps, odometry)
         self._inner = self._build(self.sigma, self.acceleration)
         for kind, item in self._held:
             if kind == "step":
                 self._replayed.append(self._inner.step(item))
             elif kind == "odometry":
-                self._inner.add_odometry(item)
+                self._inner.add_odometry(self._checked(item))
             else:
                 self._inner.add_fix(item)
         self._held = []
@@ -356,9 +371,12 @@ class NoiseAdaptive(Estimator[PointObservation]):
             return self._replayed[-1]
         return Pose(observation.stamp_ns, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
+    def _checked(self, odometry: OdometryMeasurement) -> OdometryMeasurement:
+        return self.odometry_check.adjusted(odometry) if self.odometry_check is not None else odometry
+
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
         if self._inner is not None:
-            self._inner.add_odometry(odometry)
+            self._inner.add_odometry(self._checked(odometry))
         else:
             self._held.append(("odometry", odometry))
 
@@ -393,10 +411,13 @@ class NoiseAdaptive(Estimator[PointObservation]):
     def summary(self) -> dict[str, Any]:
         inner = self._inner.summary() if self._inner is not None else {}
         measured = {"acceleration_measured": self.acceleration} if self._measure_acceleration else {}
+        if self.odometry_check is not None:
+            measured["odometry_check"] = self.odometry_check.summary()
         return {**inner, "observation_sigma": self.sigma, "observation_sigma_estimated": self.estimated, **measured}
 
     def run_warnings(self) -> list[str]:
-        return self._inner.run_warnings() if self._inner is not None else []
+        checked = self.odometry_check.warnings() if self.odometry_check is not None else []
+        return checked + (self._inner.run_warnings() if self._inner is not None else [])
 
     def __getattr__(self, name: str) -> Any:
         # Anything else (diagnostics the benchmarks and tests read) comes from the built estimator.

@@ -49,7 +49,8 @@ class EstimatorSpec:
             return self.estimator_class(config, rng)
         # A motion model whose acceleration noise is unset takes it from the held-back path.
         measure_acceleration = isinstance(config, MotionNoiseSettings) and config.linear_acceleration_noise is None
-        if config.observation_sigma is not None and not measure_acceleration:
+        check_odometry = isinstance(config, MotionNoiseSettings) and config.odometry_check
+        if config.observation_sigma is not None and not (measure_acceleration or check_odometry):
             return self.estimator_class(config.at_noise(config.observation_sigma), rng)
 
         def build(sigma: float, acceleration: float | None) -> Estimator:
@@ -60,7 +61,7 @@ class EstimatorSpec:
 
         compile_code = getattr(self.estimator_class, "compile", None)
         return NoiseAdaptive(build, SIMULATOR_SIGMA, self.name, prepare=compile_code, sigma=config.observation_sigma,
-                             measure_acceleration=measure_acceleration,
+                             measure_acceleration=measure_acceleration, check_odometry=check_odometry,
                              finishing=getattr(self.estimator_class, "finishing", Estimator.finishing))  # fmt: skip
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
