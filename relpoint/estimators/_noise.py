@@ -39,15 +39,17 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from relpoint.estimators._odometry_check import OdometryCheck, check_odometry
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray, kabsch
 from relpoint.settings import Settings, setting
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
+
+if TYPE_CHECKING:
+    from relpoint.estimators._odometry_check import OdometryCheck
 
 #: Median length of a 3D Gaussian vector with unit per-axis deviation, times sqrt(2) (two noisy points).
 _PAIR_MEDIAN = 1.5382 * math.sqrt(2.0)
@@ -345,6 +347,8 @@ class NoiseAdaptive(Estimator[PointObservation]):
         if self._measure_acceleration:
             self.acceleration = estimate_acceleration(observations, registrations)
         if odometry:
+            from relpoint.estimators._odometry_check import check_odometry  # only for logs with odometry
+
             self.odometry_check = check_odometry(registrations.observations, registrations.steps, odometry)
         self._inner = self._build(self.sigma, self.acceleration)
         for kind, item in self._held:
