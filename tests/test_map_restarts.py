@@ -1,5 +1,6 @@
 """Relative Point says when its map had to begin again: a view with nothing seen before in it (after a
-gap or a jump) starts a part of the map that nothing ties to the one before."""
+gap or a jump) starts a part of the map that nothing ties to the one before; and when most of its
+iterations could not be located at all."""
 
 from __future__ import annotations
 
@@ -38,3 +39,33 @@ def test_a_map_begun_again_is_counted_and_warned(jump: bool) -> None:
     assert len(begun_again) == int(jump)
     if jump:
         assert "iterations 4" in begun_again[0]  # the first iteration of the far view, or just after
+
+
+def test_a_run_mostly_not_located_is_warned() -> None:
+    # Three to six points a frame, each seen in two frames only: rarely three mapped points in view,
+    # so the poses coast. The run used to end with exit 0, frozen poses and no word of it.
+    rng = np.random.default_rng(3)
+    observations, next_id = [], 0
+    for k in range(60):
+        n = int(rng.integers(3, 7))
+        landmarks = rng.uniform(-10.0, 10.0, (n, 3))
+        for copy in range(2):
+            position = np.array([0.5 * (k + copy), 0.0, 0.0])
+            observations.append((k + copy, landmarks - position, np.arange(next_id, next_id + n)))
+        next_id += n
+    frames = {}
+    for k, points, ids in observations:
+        frames.setdefault(k, []).append((points, ids))
+    sparse = [
+        PointObservation(k * 100_000_000, np.vstack([p for p, _ in parts]), np.concatenate([i for _, i in parts]))
+        for k, parts in sorted(frames.items())
+    ]
+    spec = ESTIMATORS["relpoint"]
+    result = pipeline.run(sparse, spec.factory(spec.config_class(), np.random.default_rng(0)))
+    degenerate = result.summary["degenerate_iterations"]
+    assert degenerate > 0.5 * len(sparse)
+    not_located = [warning for warning in result.warnings if "could not be located" in warning]
+    assert len(not_located) == 1 and f"{degenerate} of {len(sparse)}" in not_located[0]
+    assert "ekf or fastslam" in not_located[0]
+    located = pipeline.run(_observations(False), spec.factory(spec.config_class(), np.random.default_rng(0)))
+    assert not any("could not be located" in warning for warning in located.warnings)

@@ -114,6 +114,9 @@ from relpoint.types import LandmarkMap, PointObservation, Pose
 
 logger = logging.getLogger(__name__)
 
+#: A run warns when more than this share of its iterations could not be located (pose coasted).
+DEGENERATE_WARNING_SHARE = 0.2
+
 
 class RelativePointEstimator(
     Localisation, LoopClosing, Grouping, DynamicSweep, FinalAdjustment, Estimator[PointObservation]
@@ -300,18 +303,32 @@ class RelativePointEstimator(
         }
 
     def run_warnings(self) -> list[str]:
-        """A map begun again: nothing mapped was in view (after a gap in the observations, a jump, or
-        a view with no point seen before), so a new part was anchored to the pose predicted then, and
-        nothing ties it to the map before it. The path and map after it may be off by the move."""
+        """What makes the run doubtful: many iterations not located, or the map begun again.
+
+        Not located (``degenerate_iterations``): fewer than three usable non-collinear mapped points
+        in view, so the pose coasted on the predicted motion. Past ``DEGENERATE_WARNING_SHARE`` of the
+        iterations the path is mostly that prediction (on a sparse log, frozen poses) and the map is
+        placed by it. A map begun again: nothing mapped was in view (after a gap in the observations,
+        a jump, or a view with no point seen before), so a new part was anchored to the pose predicted
+        then, and nothing ties it to the map before it. The path and map after it may be off by the move."""
+        warnings = []
+        degenerate = self.counts["degenerate_iterations"]
+        if self._iteration and degenerate > DEGENERATE_WARNING_SHARE * self._iteration:
+            warnings.append(
+                f"relpoint: {degenerate} of {self._iteration} iterations could not be located (fewer than three "
+                "usable non-collinear mapped points in view), so their poses only carry the predicted motion on; "
+                "more points per frame would help, or, with odometry, ekf or fastslam"
+            )
         if not self._map_restarts:
-            return []
+            return warnings
         where = ", ".join(str(k) for k in self._map_restarts[:5]) + (", ..." if len(self._map_restarts) > 5 else "")
-        return [
+        warnings.append(
             f"relpoint: the map was begun again {len(self._map_restarts)} time(s) (iterations {where}): no point "
             "seen before was in view, so each new part is placed only by the motion predicted across the break; "
             "the path and map after it may be off by that move. With odometry, ekf or fastslam carry the pose "
             "across such a break"
-        ]
+        )
+        return warnings
 
     # -- the phases of one iteration -------------------------------------------------------------
 
