@@ -18,7 +18,7 @@ import click
 
 from formats.atomic import output_set, write_text
 from formats.evo_results import write_evo_result
-from formats.outputs import check_output_file
+from formats.outputs import check_output_file, resolve_output
 from relpoint.errors import GateExceeded, InputError, UsageError
 from relpoint.evaluation import (
     STATISTICS,
@@ -126,6 +126,18 @@ def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelatio
 
 def _is_stdout(path: Path | None) -> bool:
     return path is not None and str(path) == "-"
+
+
+def _refuse_shared_outputs(named: list[tuple[str, Path | None]]) -> None:
+    """A usage error when two output options name one file (the second would replace the first)."""
+    seen: dict[Path, str] = {}
+    for option, path in named:
+        if path is None or _is_stdout(path):
+            continue
+        resolved = resolve_output(path)
+        if resolved in seen:
+            raise UsageError(f"{seen[resolved]} and {option} both name {path}", "give them different files")
+        seen[resolved] = option
 
 
 @click.command(epilog=EXAMPLES)
@@ -257,7 +269,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
     if _is_stdout(json_path) and _is_stdout(csv_path):
         raise UsageError("--json - and --csv - both name stdout", "write one of them to a file")
-    for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
+    named = [("--json", json_path), ("--csv", csv_path), ("--save-results", save_results),
+             ("--save-rpe-results", save_rpe_results), *(("--plot", path) for path in plot_files)]  # fmt: skip
+    _refuse_shared_outputs(named)
+    for _, path in named:
         if path is not None and not _is_stdout(path):
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(

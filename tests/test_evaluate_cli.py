@@ -319,3 +319,18 @@ def test_an_estimate_too_short_for_the_rpe_still_gets_its_ape(tmp_path: Path, sm
     assert code == 5 and "rpe_trans_rmse not measured" in err, err
     code, _, err = invoke("evaluate", one, "-r", small_log, "--fail-above", "ate_rmsee=1")
     assert code == 2, err
+
+
+def test_one_path_for_two_outputs_is_a_usage_error(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    plots = tmp_path / "plots"
+    for outputs in (
+        ("--json", tmp_path / "same.json", "--csv", tmp_path / "same.json"),
+        ("--save-results", tmp_path / "s.zip", "--save-rpe-results", tmp_path / "s.zip"),
+        ("--json", plots / "errors.png", "--plot", plots),
+    ):
+        code, _, err = invoke(*args, *outputs)
+        assert code == 2
+        assert_one_error_line(err, "both name")
+    assert list(tmp_path.iterdir()) == []
