@@ -62,6 +62,12 @@ def register_csv_header_prefix(prefix: str) -> None:
     _CSV_HEADER_PREFIXES.add(prefix)
 
 
+def shown_path(path: str | os.PathLike[str]) -> str:
+    """``path`` as text that any UTF-8 writer accepts, for headers, titles and JSON: the bytes of a file name
+    that are not UTF-8 appear as ``\\xNN`` (Python keeps them as lone surrogates, which no encoder takes)."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
 def resolve_output(path: str | os.PathLike[str]) -> Path:
     """The absolute path an output is written to: a symlink is followed; a dangling one is refused."""
     path = Path(path)

@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 
 from formats.atomic import output_set, write_text
-from formats.outputs import check_output_file
+from formats.outputs import check_output_file, shown_path
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, table_keys, unique_labels
@@ -119,7 +119,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
         raise UsageError(f"-o and --plot both name {output}", "give them different files")
     figure_format = _plot_format(plot_format, plot) if plot is not None else None
     settings = EvaluationSettings(align=align)
-    names = list(labels) or [str(path).rstrip("/") or str(path) for path in results]
+    names = list(labels) or [shown_path(path).rstrip("/") or shown_path(path) for path in results]
     runs = [
         load_compared(label, path, reference, settings, reference_options=chosen)
         for label, path in zip(unique_labels(names), results, strict=True)

@@ -18,7 +18,7 @@ import click
 
 from formats.atomic import output_set, write_text
 from formats.evo_results import write_evo_result
-from formats.outputs import check_output_file, resolve_output
+from formats.outputs import check_output_file, resolve_output, shown_path
 from relpoint.errors import GateExceeded, InputError, UsageError
 from relpoint.evaluation import (
     STATISTICS,
@@ -298,20 +298,23 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
     # Absolute, and with everything that chose the poses: `relpoint compare` evaluates it again from these.
     inputs = {
-        "estimate": os.path.abspath(estimate),
-        "reference": os.path.abspath(reference),
+        "estimate": shown_path(os.path.abspath(estimate)),
+        "reference": shown_path(os.path.abspath(reference)),
         "reference_topic": reference_topic,
         "estimate_topic": estimate_topic,
         "landmarks_topic": landmarks_topic,
         "parent": parent,
         "child": child,
-        "times": None if times is None else os.path.abspath(times),
-        "reference_times": None if reference_times is None else os.path.abspath(reference_times),
+        "times": None if times is None else shown_path(os.path.abspath(times)),
+        "reference_times": None if reference_times is None else shown_path(os.path.abspath(reference_times)),
         "t_start": t_start,
         "t_end": t_end,
     }
     estimator = run_estimator(estimate)
-    names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
+    names = {
+        "reference_name": shown_path(reference.name or "reference"),
+        "estimate_name": shown_path(estimate.name or "estimate"),
+    }
     if names["reference_name"] == names["estimate_name"]:
         names["estimate_name"] += " (estimate)"
     with output_set():  # every output file appears, or none does (an interrupt while they are written)
@@ -325,7 +328,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
                                               **names))  # fmt: skip
         if plot_dir is not None:
             evaluation_plots(
-                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (shown_path(estimate), estimate_topic))),
                 estimator=estimator,
                 landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
             )  # fmt: skip

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -334,3 +336,22 @@ def test_one_path_for_two_outputs_is_a_usage_error(tmp_path: Path) -> None:
         assert code == 2
         assert_one_error_line(err, "both name")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_name_that_is_not_utf8_is_written_as_escapes(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    estimate = tmp_path / os.fsdecode(b"est\xff.txt")
+    estimate.write_bytes((data / "freiburg1_xyz-rgbdslam.txt").read_bytes())
+    reference = data / "freiburg1_xyz-groundtruth.txt"
+    exported = tmp_path / "e.tum"
+    code, _, err = invoke("export", estimate, "-o", exported)
+    assert code == 0, err
+    assert exported.read_text(encoding="utf-8").startswith("# relpoint export of " + str(tmp_path) + "/est\\xff.txt\n")
+    out = tmp_path / "out"
+    code, _, err = invoke("evaluate", estimate, "-r", reference, "--json", out / "e.json",
+                          "--save-results", out / "e.zip", "--plot", out / "plots")  # fmt: skip
+    assert code == 0, err
+    assert json.loads((out / "e.json").read_bytes())["inputs"]["estimate"].endswith("/est\\xff.txt")
+    with zipfile.ZipFile(out / "e.zip") as archive:
+        assert json.loads(archive.read("info.json"))["est_name"] == "est\\xff.txt"
+    assert len(list((out / "plots").iterdir())) == 3
