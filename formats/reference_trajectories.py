@@ -396,12 +396,25 @@ def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
 
 def load_ground_truth_landmarks(path: str | os.PathLike[str], topic: str | None = None) -> GroundTruthLandmarks | None:
     """The last ground-truth landmarks message (``topic``, default ``/ground_truth/landmarks``) of a
-    relpoint log, or None for other inputs."""
+    relpoint log, or None for other inputs.
+
+    A ``topic`` named by the user must be there: :class:`InputError` when ``path`` is not a log, or the
+    log has no PointCloud2 messages on it (the default topic may be missing: not every log has landmarks).
+    """
     path = Path(path)
     if not is_log(path):
+        if topic is not None:
+            raise InputError(f"{path} is not an MCAP file; --landmarks-topic applies only to a log reference")
         return None
     topics = Topics(ground_truth_landmarks=topic) if topic is not None else Topics()
     with LogReader(path, topics) as reader:
+        if topic is not None and not reader.role_present("ground_truth_landmarks"):
+            info = reader.topic_infos.get(topic)
+            clouds = sorted(t for t, i in reader.topic_infos.items() if i.typename == ros2.POINT_CLOUD2 and i.count)
+            hint = f"PointCloud2 topics here: {', '.join(clouds)}" if clouds else "the log has no PointCloud2 topic"
+            if info is None or info.count == 0:
+                raise InputError(f"{path}: no messages on {topic}", hint)
+            raise InputError(f"{path} {topic} carries {info.typename}, not {ros2.POINT_CLOUD2}", hint)
         return ground_truth_landmarks(reader)
 
 

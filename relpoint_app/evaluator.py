@@ -94,7 +94,9 @@ def evaluate_files(
                 "the window counts seconds from the reference's first pose",
             )
     landmarks = load_landmark_map(estimate)
-    truth = load_ground_truth_landmarks(reference, landmarks_topic) if landmarks is not None else None
+    # A topic the user named is checked even when the estimate has no map to compare with it.
+    wanted = landmarks is not None or landmarks_topic is not None
+    truth = load_ground_truth_landmarks(reference, landmarks_topic) if wanted else None
     history = estimate / "map_history.csv"
     snapshots = read_map_history_csv(history) if landmarks is not None and history.is_file() else []
     return measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)

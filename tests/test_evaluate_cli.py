@@ -224,8 +224,16 @@ def test_an_interrupt_while_the_outputs_are_written_leaves_none_of_them(
 def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     named = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/ground_truth/landmarks")
     assert named["lm_matched"] > 20
-    elsewhere = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/mocap/landmarks")
-    assert "lm_matched" not in elsewhere and elsewhere["ate_rmse"] == named["ate_rmse"]
+    for topic, fragment in (("/mocap/landmarks", "no messages on /mocap/landmarks"),
+                            ("/ground_truth/pose", "carries geometry_msgs/msg/PoseStamped")):  # fmt: skip
+        code, _, err = invoke("evaluate", run_dir, "--reference", small_log, "--landmarks-topic", topic)
+        assert code == 3
+        assert_one_error_line(err, fragment)
+    data = shared_data(*FR1)
+    code, _, err = invoke("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
+                          "--landmarks-topic", "/ground_truth/landmarks")  # fmt: skip
+    assert code == 3
+    assert_one_error_line(err, "--landmarks-topic applies only to a log reference")
 
 
 def test_fail_above_gates(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
