@@ -319,6 +319,8 @@ def load_trajectory(
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
+    if times is not None and (path.is_dir() or is_log(path)):
+        raise InputError(f"{path} is not a KITTI pose file; a times file applies only to KITTI poses")
     if path.is_dir() and not is_log(path):
         tum = path / "trajectory.tum"
         if not tum.is_file():

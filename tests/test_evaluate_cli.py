@@ -236,6 +236,18 @@ def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log
     assert_one_error_line(err, "--landmarks-topic applies only to a log reference")
 
 
+def test_a_times_file_for_a_run_directory_or_a_log_is_refused(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
+    missing = tmp_path / "no-such-times.txt"
+    for args in (("--times", missing), ("--reference-times", missing)):
+        code, _, err = invoke("evaluate", run_dir, "--reference", small_log, *args)
+        assert code == 3
+        assert_one_error_line(err, "a times file applies only to KITTI poses")
+    code, _, err = invoke("export", run_dir, "-o", tmp_path / "e.tum", "--times", missing)
+    assert code == 3
+    assert_one_error_line(err, "a times file applies only to KITTI poses")
+    assert not (tmp_path / "e.tum").exists()
+
+
 def test_fail_above_gates(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     json_path = tmp_path / "gate.json"
     base = ("evaluate", run_dir, "-r", small_log, "--json", json_path)
