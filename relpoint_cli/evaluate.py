@@ -281,7 +281,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         landmarks_topic=landmarks_topic,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
-    if not ctx.find_root().obj.get("quiet"):
+    quiet = bool(ctx.find_root().obj.get("quiet"))
+    if not quiet:
         for note in result.notes:
             click.echo(f"relpoint: warning: {note}", err=True)
     if save_rpe_results is not None and result.rpe is None:  # before any output is written
@@ -336,6 +337,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         click.echo(evaluation_json(summary, settings, inputs), nl=False)
     if _is_stdout(csv_path):
         click.echo(errors_csv_text(result, evaluation.landmark_error_over_time), nl=False)
-    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path) or _is_stdout(csv_path))
+    to_stderr = _is_stdout(json_path) or _is_stdout(csv_path)
+    if not (to_stderr and quiet):  # on stderr the table is a message, which -q silences
+        click.echo(format_table(summary, settings.pose_relation), err=to_stderr)
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

@@ -103,6 +103,14 @@ def test_csv_dash_writes_the_errors_to_stdout_and_the_table_to_stderr(tmp_path: 
     assert_one_error_line(err, "--json - and --csv - both name stdout")
 
 
+def test_quiet_silences_the_table_on_stderr() -> None:
+    data = shared_data(*FR1)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    for output in ("--json", "--csv"):
+        result = CliRunner().invoke(cli, ["-q", *map(str, args), output, "-"])
+        assert result.exit_code == 0 and result.stdout and result.stderr == ""
+
+
 def test_a_small_overlap_is_an_error_naming_both_time_ranges(tmp_path: Path) -> None:
     data = shared_data(*FR1)
     args = ["evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
