@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import zipfile
 from pathlib import Path
@@ -17,6 +18,7 @@ from formats.reference_trajectories import load_trajectory
 from formats.tables import write_map_csv
 from formats.trajectory_files import write_tum
 from relpoint.types import LandmarkMap, Trajectory
+from relpoint_app.evaluator import check_gates
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
 
@@ -383,3 +385,12 @@ def test_a_file_name_that_is_not_utf8_is_written_as_escapes(tmp_path: Path) -> N
     with zipfile.ZipFile(out / "e.zip") as archive:
         assert json.loads(archive.read("info.json"))["est_name"] == "est\\xff.txt"
     assert len(list((out / "plots").iterdir())) == 3
+
+
+def test_a_gate_message_shows_the_value_and_bound_apart() -> None:
+    bound = 0.01347008884973369
+    for value in (math.nextafter(bound, 1.0), bound * (1 + 1e-9), 0.1):
+        (message,) = check_gates({"ate_rmse": value}, {"ate_rmse": bound})
+        shown_value, shown_bound = message.removeprefix("ate_rmse=").split(" > ")
+        assert float(shown_value) > float(shown_bound), message
+    assert check_gates({"ate_rmse": 0.1}, {"ate_rmse": 0.05}) == ["ate_rmse=0.1 > 0.05"]
