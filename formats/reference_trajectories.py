@@ -43,7 +43,7 @@ from formats.trajectory_files import (
     read_relpoint_csv,
     read_tum,
 )
-from relpoint.errors import InputError
+from relpoint.errors import InputError, UsageError
 from relpoint.geometry import FloatArray, invert_pose
 from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
 
@@ -276,7 +276,7 @@ def log_trajectory(
     """:func:`mcap_trajectory` from a log already open."""
     if parent is not None or child is not None:
         if parent is None or child is None:
-            raise InputError(f"{reader.path}: a TF chain needs both --parent and --child")
+            raise UsageError("a TF chain needs both --parent and --child")
         return tf_chain_trajectory(reader, parent, child, topic or TF_TOPIC)
     if topic is None:
         topic = next(

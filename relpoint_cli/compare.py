@@ -20,7 +20,7 @@ from relpoint_app.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_tab
 from relpoint_app.comparer import load_compared
 from relpoint_app.plots import PLOT_FORMATS, comparison_plot
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import input_path, overwrite_option, read_paths
+from relpoint_cli.options import check_tf_chain, input_path, overwrite_option, read_paths
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
     """
     if labels and len(labels) != len(results):
         raise UsageError(f"{len(labels)} --label for {len(results)} results", "give one --label per RESULT, or none")
+    check_tf_chain(parent, child)
     wanted = _parse_keys(keys)
     file_format = _table_format(table_format, output)
     read = read_paths(*results, reference, reference_times)

@@ -44,6 +44,7 @@ from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import (
     FiniteFloatRange,
+    check_tf_chain,
     input_path,
     overwrite_option,
     read_paths,
@@ -259,6 +260,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     and completeness (dense_*) are added, after the trajectory alignment. --t-start/--t-end crop both
     trajectories to seconds after the reference's first pose.
     """
+    check_tf_chain(parent, child)
     window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
     settings = EvaluationSettings.from_mapping(options)

@@ -394,3 +394,14 @@ def test_a_gate_message_shows_the_value_and_bound_apart() -> None:
         shown_value, shown_bound = message.removeprefix("ate_rmse=").split(" > ")
         assert float(shown_value) > float(shown_bound), message
     assert check_gates({"ate_rmse": 0.1}, {"ate_rmse": 0.05}) == ["ate_rmse=0.1 > 0.05"]
+
+
+def test_half_a_tf_chain_is_a_usage_error(tmp_path: Path) -> None:
+    bag = shared_data(*BAG)
+    for frames in (("--parent", "map"), ("--child", "base_footprint")):
+        for args in (("evaluate", bag, "-r", bag), ("export", bag, "-o", tmp_path / "t.tum"),
+                     ("compare", tmp_path, "--reference", bag)):  # fmt: skip
+            code, _, err = invoke(*args, *frames)
+            assert code == 2, args
+            assert_one_error_line(err, "a TF chain needs both")
+    assert list(tmp_path.iterdir()) == []
