@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from formats.outputs import MARKER, OutputError, directory_owner, resolve_output
+from formats.outputs import MARKER, OutputError, directory_owner, mark_written, resolve_output
 
 
 class _OutputSet:
@@ -272,7 +272,10 @@ def _fill(target: Path, tmp: Path) -> None:
         raise
 
 
-def write_text(path: str | os.PathLike[str], text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically."""
+def write_text(path: str | os.PathLike[str], text: str, *, mark: bool = False) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically; ``mark``: record it as relpoint's
+    (:func:`formats.outputs.mark_written`, for formats with no header to say so)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+        if mark:
+            mark_written(tmp)

@@ -27,8 +27,9 @@ from formats.atomic import atomic_path
 from formats.signatures import ZIP_COMMENT_PREFIX
 from relpoint.errors import InputError
 
-#: Largest member of a result zip relpoint reads, bytes (a guard against zip bombs).
-MAX_MEMBER_BYTES = 1 << 30
+#: Most bytes relpoint inflates from one result zip, all the members it reads together (a guard against
+#: zip bombs: a few MB of zeros inflate to GB). An evo result of a million poses holds about 50 MB.
+MAX_RESULT_BYTES = 256 << 20
 
 
 @dataclass(frozen=True)
@@ -78,9 +79,19 @@ def write_evo_result(path: str | os.PathLike[str], evo_result: EvoResult) -> Non
 
 
 def _read_member(archive: zipfile.ZipFile, name: str, path: Path) -> bytes:
-    if archive.getinfo(name).file_size > MAX_MEMBER_BYTES:
-        raise InputError(f"{path}: {name} is larger than {MAX_MEMBER_BYTES >> 20} MiB")
+    """A member's bytes; the size it declares bounds what zipfile inflates (a longer stream is an error)."""
     return archive.read(name)
+
+
+def _check_sizes(archive: zipfile.ZipFile, names: list[str], path: Path) -> None:
+    """Refuse a zip whose members to read would inflate beyond :data:`MAX_RESULT_BYTES`, before any is read."""
+    total = sum(archive.getinfo(name).file_size for name in names)
+    if total > MAX_RESULT_BYTES:
+        raise InputError(
+            f"{path}: its arrays and JSON inflate to {total / 2**20:.0f} MiB, more than the "
+            f"{MAX_RESULT_BYTES >> 20} MiB an evo result file may hold",
+            "give a result zip written by evo_ape/evo_rpe --save_results or relpoint --save-results",
+        )
 
 
 def read_evo_result(path: str | os.PathLike[str]) -> EvoResult:
@@ -96,13 +107,14 @@ def read_evo_result(path: str | os.PathLike[str]) -> EvoResult:
             if not {"info.json", "stats.json"} <= set(names):
                 raise InputError(f"{path}: not an evo result file (no info.json and stats.json)",
                                  "give a zip written by evo_ape/evo_rpe --save_results or relpoint --save-results")  # fmt: skip
+            arrays_to_read = [name for name in names if name.endswith(".npy")]  # evo writes no .npz
+            _check_sizes(archive, ["info.json", "stats.json", *arrays_to_read], path)
             info = json.loads(_read_member(archive, "info.json", path).decode("utf-8"))
             stats = json.loads(_read_member(archive, "stats.json", path).decode("utf-8"))
             arrays = {}
-            for name in names:
-                if name.endswith((".npy", ".npz")):
-                    with io.BytesIO(_read_member(archive, name, path)) as buffer:
-                        arrays[Path(name).stem] = np.load(buffer, allow_pickle=False)
+            for name in arrays_to_read:
+                with io.BytesIO(_read_member(archive, name, path)) as buffer:
+                    arrays[Path(name).stem] = np.load(buffer, allow_pickle=False)
     except InputError:
         raise
     except (OSError, zipfile.BadZipFile) as error:

@@ -8,7 +8,8 @@ work starts. The rules (README, "Outputs"):
   :data:`MARKER` (or, for outputs written before the marker existed, a relpoint ``run.json``) and
   nothing that relpoint did not write. An output of another relpoint command is replaced only with
   ``overwrite``. A directory of anything else is refused, ``overwrite`` or not.
-- An existing file is replaced when relpoint recognisably wrote it (its header names relpoint), or
+- An existing file is replaced when relpoint recognisably wrote it (judged by its content, whatever its
+  name: the header relpoint writes, or for KITTI and times files :func:`mark_written`'s record), or
   with ``overwrite``; never when it is one of the command's inputs.
 - A symbolic link is written through (its target is replaced); a dangling one is refused.
 - The place is writable: a probe file is made and removed before the work starts, so a read-only
@@ -19,9 +20,12 @@ Each failure is a :class:`~relpoint.errors.UsageError` (exit 2) naming the path 
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import hashlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -56,6 +60,12 @@ def register_csv_header(header: Iterable[str] | str) -> None:
 def register_csv_header_prefix(prefix: str) -> None:
     """Declare the start of CSV header lines that relpoint writes with varying further columns."""
     _CSV_HEADER_PREFIXES.add(prefix)
+
+
+def shown_path(path: str | os.PathLike[str]) -> str:
+    """``path`` as text that any UTF-8 writer accepts, for headers, titles and JSON: the bytes of a file name
+    that are not UTF-8 appear as ``\\xNN`` (Python keeps them as lone surrogates, which no encoder takes)."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
 
 
 def resolve_output(path: str | os.PathLike[str]) -> Path:
@@ -183,50 +193,100 @@ def check_output_directory(
     return target
 
 
+#: Extended attribute holding the SHA-256 of what relpoint wrote to a file whose format has no place for a
+#: mark (KITTI poses, times files): see :func:`mark_written`.
+WRITTEN_XATTR = "user.relpoint.sha256"
+
+#: The first line of a TUM file relpoint writes (``# relpoint VERSION`` or ``# relpoint export of SOURCE``)
+#: and of a ``relpoint compare`` text table; a comment that merely mentions relpoint does not match.
+_TUM_FIRST_LINE = re.compile(rb"# relpoint (\d+\.\d+\S*|export of .*)")
+_TUM_LEGEND = b"# timestamp tx ty tz qx qy qz qw"
+_COMPARE_TEXT_FIRST_LINE = re.compile(rb"# relpoint compare: \d+ runs?")
+
+
+def _sha256(path: Path) -> str | None:
+    digest = hashlib.sha256()
+    try:
+        with path.open("rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+def mark_written(path: Path) -> None:
+    """Record on ``path`` (a finished file, before its rename) that relpoint wrote exactly this content.
+
+    For formats with no room for a header: KITTI poses (12 numbers a line, nothing else, or other tools
+    cannot read them) and times files. The SHA-256 of the content goes into an extended attribute, which
+    leaves no file beside the output, does not survive a plain copy, and no longer matches once the file
+    is edited, so neither a copy nor an edited file counts as relpoint's. A file system without extended
+    attributes keeps no mark: the next run then asks for ``--overwrite`` (the safe side).
+    """
+    digest = _sha256(path)
+    if digest is None or not hasattr(os, "setxattr"):
+        return
+    with contextlib.suppress(OSError):
+        os.setxattr(path, WRITTEN_XATTR, digest.encode("ascii"))
+
+
+def _marked(path: Path) -> bool:
+    try:
+        recorded = os.getxattr(path, WRITTEN_XATTR)
+    except (OSError, AttributeError):
+        return False
+    return recorded.decode("ascii", "replace") == _sha256(path)
+
+
 def written_by_relpoint(path: Path) -> bool:
-    """Whether a file's own header says relpoint wrote it (MCAP library, PLY/TUM comment, JSON key, CSV header)."""
+    """Whether a file's content says relpoint wrote it, whatever its name: the MCAP library, a PLY, TUM or
+    text-table header, a JSON key, a CSV header, image metadata, a zip comment, or :func:`mark_written`'s."""
     try:
         with path.open("rb") as stream:
             head = stream.read(_SNIFF_BYTES)
     except OSError:
         return False
-    suffix = path.suffix.lower()
-    if suffix == ".csv":
-        first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
-        return first in _CSV_HEADERS or any(first.startswith(prefix) for prefix in _CSV_HEADER_PREFIXES)
-    if suffix == ".json":
-        try:
-            if path.stat().st_size > 50_000_000:
-                return False
-            document = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return False
-        return isinstance(document, dict) and "relpoint_version" in document
-    if suffix == ".mcap":  # the header record's library string
-        return head.startswith(b"\x89MCAP") and b"relpoint/" in head[:256]
-    if suffix == ".ply":
+    first = head.split(b"\n", 1)[0].rstrip(b"\r")
+    if head.startswith(b"\x89MCAP"):  # the header record's library string
+        return b"relpoint/" in head[:256]
+    if head.startswith(b"ply"):
         header = head.split(b"end_header", 1)[0]
-        return head.startswith(b"ply") and any(
-            line.startswith(b"comment") and b"relpoint" in line for line in header.splitlines()
-        )
-    if suffix in (".tum", ".txt"):
-        comments = []
-        for line in head.splitlines():
+        return any(line.startswith(b"comment") and b"relpoint" in line for line in header.splitlines())
+    if head.startswith(b"\x89PNG"):
+        return b"Software\x00relpoint" in head
+    if head.startswith(b"%PDF"):  # the document information dictionary, near the end
+        return b"/Creator (relpoint " in _tail(path)
+    if head.startswith(b"PK"):  # an evo result zip: the archive comment
+        return is_relpoint_result_zip(path)
+    if b"<svg" in head:  # matplotlib's metadata: <dc:title>relpoint VERSION</dc:title> under dc:creator
+        return b"<dc:title>relpoint " in head
+    if head.startswith(b"<!-- relpoint "):
+        return True
+    if head.lstrip().startswith(b"{"):
+        return _relpoint_json(path)
+    if _COMPARE_TEXT_FIRST_LINE.fullmatch(first):
+        return True
+    if _TUM_FIRST_LINE.fullmatch(first):
+        for line in head.splitlines()[1:]:
+            if line.rstrip(b"\r") == _TUM_LEGEND:
+                return True
             if not line.startswith(b"#"):
                 break
-            comments.append(line)
-        return any(b"relpoint" in line for line in comments)
-    if suffix == ".png":
-        return head.startswith(b"\x89PNG") and b"Software\x00relpoint" in head
-    if suffix == ".svg":  # matplotlib's metadata: <dc:title>relpoint VERSION</dc:title> under dc:creator
-        return b"<svg" in head and b"<dc:title>relpoint " in head
-    if suffix == ".pdf":  # the document information dictionary, near the end
-        return head.startswith(b"%PDF") and b"/Creator (relpoint " in _tail(path)
-    if suffix == ".md":
-        return head.startswith(b"<!-- relpoint ")
-    if suffix == ".zip":  # an evo result zip: the archive comment
-        return is_relpoint_result_zip(path)
-    return False
+    text = first.decode("utf-8", "replace").strip()
+    if text in _CSV_HEADERS or any(text.startswith(prefix) for prefix in _CSV_HEADER_PREFIXES):
+        return True
+    return _marked(path)
+
+
+def _relpoint_json(path: Path) -> bool:
+    try:
+        if path.stat().st_size > 50_000_000:
+            return False
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(document, dict) and "relpoint_version" in document
 
 
 def _tail(path: Path) -> bytes:

@@ -43,7 +43,7 @@ from formats.trajectory_files import (
     read_relpoint_csv,
     read_tum,
 )
-from relpoint.errors import InputError
+from relpoint.errors import InputError, UsageError
 from relpoint.geometry import FloatArray, invert_pose
 from relpoint.types import GroundTruthLandmarks, LandmarkMap, Trajectory
 
@@ -276,7 +276,7 @@ def log_trajectory(
     """:func:`mcap_trajectory` from a log already open."""
     if parent is not None or child is not None:
         if parent is None or child is None:
-            raise InputError(f"{reader.path}: a TF chain needs both --parent and --child")
+            raise UsageError("a TF chain needs both --parent and --child")
         return tf_chain_trajectory(reader, parent, child, topic or TF_TOPIC)
     if topic is None:
         topic = next(
@@ -319,6 +319,8 @@ def load_trajectory(
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
+    if times is not None and (path.is_dir() or is_log(path)):
+        raise InputError(f"{path} is not a KITTI pose file; a times file applies only to KITTI poses")
     if path.is_dir() and not is_log(path):
         tum = path / "trajectory.tum"
         if not tum.is_file():
@@ -396,12 +398,25 @@ def load_landmark_map(path: str | os.PathLike[str]) -> LandmarkMap | None:
 
 def load_ground_truth_landmarks(path: str | os.PathLike[str], topic: str | None = None) -> GroundTruthLandmarks | None:
     """The last ground-truth landmarks message (``topic``, default ``/ground_truth/landmarks``) of a
-    relpoint log, or None for other inputs."""
+    relpoint log, or None for other inputs.
+
+    A ``topic`` named by the user must be there: :class:`InputError` when ``path`` is not a log, or the
+    log has no PointCloud2 messages on it (the default topic may be missing: not every log has landmarks).
+    """
     path = Path(path)
     if not is_log(path):
+        if topic is not None:
+            raise InputError(f"{path} is not an MCAP file; --landmarks-topic applies only to a log reference")
         return None
     topics = Topics(ground_truth_landmarks=topic) if topic is not None else Topics()
     with LogReader(path, topics) as reader:
+        if topic is not None and not reader.role_present("ground_truth_landmarks"):
+            info = reader.topic_infos.get(topic)
+            clouds = sorted(t for t, i in reader.topic_infos.items() if i.typename == ros2.POINT_CLOUD2 and i.count)
+            hint = f"PointCloud2 topics here: {', '.join(clouds)}" if clouds else "the log has no PointCloud2 topic"
+            if info is None or info.count == 0:
+                raise InputError(f"{path}: no messages on {topic}", hint)
+            raise InputError(f"{path} {topic} carries {info.typename}, not {ros2.POINT_CLOUD2}", hint)
         return ground_truth_landmarks(reader)
 
 

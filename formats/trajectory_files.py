@@ -435,9 +435,9 @@ def describe_unknown(path: str | os.PathLike[str]) -> str:
     return f"{len(fields) - (fields[-1:] == [','])} values per line"
 
 
-def _atomic_write(path: Path, lines: Iterable[str]) -> None:
+def _atomic_write(path: Path, lines: Iterable[str], *, mark: bool = False) -> None:
     """Write ``lines`` to ``path`` atomically (temporary file beside it, then rename)."""
-    write_text(path, "".join(lines))
+    write_text(path, "".join(lines), mark=mark)
 
 
 def write_tum(path: str | os.PathLike[str], trajectory: Trajectory, header: str | None = None) -> None:
@@ -462,9 +462,11 @@ def write_kitti(
     """Write ``trajectory`` as KITTI poses (3x4 row-major per line) and, if given, its times file, atomically."""
     path = Path(path)
     T = trajectory.matrices()
-    _atomic_write(path, (" ".join(map(repr, row)) + "\n" for row in T[:, :3, :].reshape(-1, 12).tolist()))
+    # Neither file has room for a header: both are marked as relpoint's outside their content.
+    rows = T[:, :3, :].reshape(-1, 12).tolist()
+    _atomic_write(path, (" ".join(map(repr, row)) + "\n" for row in rows), mark=True)
     if times_path is not None:
-        _atomic_write(Path(times_path), (format_stamp(s) + "\n" for s in trajectory.stamps_ns.tolist()))
+        _atomic_write(Path(times_path), (format_stamp(s) + "\n" for s in trajectory.stamps_ns.tolist()), mark=True)
 
 
 #: EuRoC's ground-truth header, the columns :func:`write_euroc_csv` writes.

@@ -94,7 +94,9 @@ def evaluate_files(
                 "the window counts seconds from the reference's first pose",
             )
     landmarks = load_landmark_map(estimate)
-    truth = load_ground_truth_landmarks(reference, landmarks_topic) if landmarks is not None else None
+    # A topic the user named is checked even when the estimate has no map to compare with it.
+    wanted = landmarks is not None or landmarks_topic is not None
+    truth = load_ground_truth_landmarks(reference, landmarks_topic) if wanted else None
     history = estimate / "map_history.csv"
     snapshots = read_map_history_csv(history) if landmarks is not None and history.is_file() else []
     return measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)
@@ -215,6 +217,15 @@ def run_estimator(path: Path) -> str:
 MEASURED_SOMETIMES = ("rpe_", "kitti_", "lm_", "dyn_", "dense_")
 
 
+def _apart(value: float, bound: float) -> tuple[str, str]:
+    """``value`` and ``bound`` with 6 significant digits, or as many more as it takes to tell them apart."""
+    for digits in range(6, 18):
+        shown = f"{value:.{digits}g}", f"{bound:.{digits}g}"
+        if shown[0] != shown[1]:
+            return shown
+    return repr(value), repr(bound)
+
+
 def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]:
     """Descriptions of the exceeded bounds (NaN values, and keys of :data:`MEASURED_SOMETIMES` this
     evaluation did not measure, fail); raises :class:`UsageError` for unknown keys."""
@@ -225,7 +236,9 @@ def check_gates(summary: dict[str, float], gates: dict[str, float]) -> list[str]
             f"known keys: {', '.join(sorted(summary))}",
         )
     return [
-        f"{key}={summary[key]:.6g} > {bound:g}" if key in summary else f"{key} not measured (bound {bound:g})"
+        "{}={} > {}".format(key, *_apart(summary[key], bound))
+        if key in summary
+        else f"{key} not measured (bound {bound:g})"
         for key, bound in gates.items()
         if key not in summary or math.isnan(summary[key]) or summary[key] > bound
     ]

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from formats.atomic import write_text
+from formats.outputs import shown_path
 from formats.ply import landmark_vertices, read_ply, write_ply
 from formats.reference_trajectories import load_ground_truth_landmarks, load_landmark_map, load_trajectory
 from formats.signatures import is_log
@@ -222,7 +223,9 @@ def export_file(
     """
     check_combination(what, fmt)
     if what is not What.TRAJECTORY and (topic or parent or child or times or (window and not window.is_open)):
-        raise UsageError(f"--topic, --parent, --child, --times and --t-start/--t-end select a trajectory, not {what.value}")
+        raise UsageError(
+            f"--topic, --parent, --child, --times and --t-start/--t-end select a trajectory, not {what.value}"
+        )
     if out_times is not None and fmt is not Format.KITTI:
         raise UsageError("--out-times applies only to KITTI output")
     if what is What.TRAJECTORY:
@@ -230,8 +233,10 @@ def export_file(
         if window is not None and not window.is_open:
             trajectory = trajectory.cropped(window)
             if len(trajectory) == 0:
-                raise InputError(f"{source}: --t-start/--t-end leave no pose", "the window counts seconds from its first pose")
-        origin = f"{source}" + (f" {topic}" if topic else "") + (f" TF {parent} -> {child}" if parent else "")
+                raise InputError(
+                    f"{source}: --t-start/--t-end leave no pose", "the window counts seconds from its first pose"
+                )
+        origin = shown_path(source) + (f" {topic}" if topic else "") + (f" TF {parent} -> {child}" if parent else "")
         for path in (out, out_times):
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)

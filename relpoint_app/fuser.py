@@ -23,7 +23,7 @@ import numpy as np
 import relpoint
 from formats.atomic import atomic_directory
 from formats.log import LogReader
-from formats.outputs import check_output_directory, unreadable_input
+from formats.outputs import check_output_directory, shown_path, unreadable_input
 from formats.ply import read_ply
 from formats.run_output import write_run_directory
 from formats.tables import read_map_csv, write_map_csv
@@ -129,7 +129,7 @@ def fuse_run(
         "estimator": f"fuse({previous.get('estimator', 'unknown')})",
         "fusion": fusion_settings,
         "segments": segments,
-        "source_run": {"path": os.path.abspath(run_dir), "estimator": previous.get("estimator"),
+        "source_run": {"path": shown_path(os.path.abspath(run_dir)), "estimator": previous.get("estimator"),
                        "parameters": previous.get("parameters"), "seed": previous.get("seed")},
         "relpoint_version": relpoint.__version__,
         "input": {**log_record(log_path), "roles": sorted(roles),

@@ -14,13 +14,19 @@ from pathlib import Path
 from typing import Any
 
 from formats.layouts import Layout, log_sha256, log_stamp
+from formats.outputs import shown_path
 from relpoint.errors import InputError
 
 
 def log_record(path: Path, layout: Layout | None = None) -> dict[str, Any]:
     """The ``input`` entries of run.json that identify the log at ``path``."""
     size, mtime_ns = log_stamp(path, layout)
-    return {"path": os.path.abspath(path), "sha256": log_sha256(path, layout), "size": size, "mtime_ns": mtime_ns}
+    return {
+        "path": shown_path(os.path.abspath(path)),
+        "sha256": log_sha256(path, layout),
+        "size": size,
+        "mtime_ns": mtime_ns,
+    }
 
 
 def recorded_input(run_dir: Path) -> dict[str, Any]:

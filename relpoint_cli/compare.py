@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 
 from formats.atomic import output_set, write_text
-from formats.outputs import check_output_file
+from formats.outputs import check_output_file, shown_path
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationSettings
 from relpoint.evaluation.comparison import ComparedRun, table_keys, unique_labels
@@ -20,7 +20,7 @@ from relpoint_app.compare_table import SUFFIX_FORMATS, TABLE_FORMATS, render_tab
 from relpoint_app.comparer import load_compared
 from relpoint_app.plots import PLOT_FORMATS, comparison_plot
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import input_path, overwrite_option, read_paths
+from relpoint_cli.options import check_tf_chain, input_path, overwrite_option, read_paths
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
     """
     if labels and len(labels) != len(results):
         raise UsageError(f"{len(labels)} --label for {len(results)} results", "give one --label per RESULT, or none")
+    check_tf_chain(parent, child)
     wanted = _parse_keys(keys)
     file_format = _table_format(table_format, output)
     read = read_paths(*results, reference, reference_times)
@@ -119,7 +120,7 @@ def compare(results: tuple[Path, ...], reference: Path | None, reference_topic: 
         raise UsageError(f"-o and --plot both name {output}", "give them different files")
     figure_format = _plot_format(plot_format, plot) if plot is not None else None
     settings = EvaluationSettings(align=align)
-    names = list(labels) or [str(path).rstrip("/") or str(path) for path in results]
+    names = list(labels) or [shown_path(path).rstrip("/") or shown_path(path) for path in results]
     runs = [
         load_compared(label, path, reference, settings, reference_options=chosen)
         for label, path in zip(unique_labels(names), results, strict=True)

@@ -18,7 +18,7 @@ import click
 
 from formats.atomic import output_set, write_text
 from formats.evo_results import write_evo_result
-from formats.outputs import check_output_file
+from formats.outputs import check_output_file, resolve_output, shown_path
 from relpoint.errors import GateExceeded, InputError, UsageError
 from relpoint.evaluation import (
     STATISTICS,
@@ -44,6 +44,7 @@ from relpoint_app.plots import EVALUATION_PLOTS, PLOT_FORMATS, evaluation_plots
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import (
     FiniteFloatRange,
+    check_tf_chain,
     input_path,
     overwrite_option,
     read_paths,
@@ -126,6 +127,18 @@ def format_table(summary: dict[str, float], relation: PoseRelation = PoseRelatio
 
 def _is_stdout(path: Path | None) -> bool:
     return path is not None and str(path) == "-"
+
+
+def _refuse_shared_outputs(named: list[tuple[str, Path | None]]) -> None:
+    """A usage error when two output options name one file (the second would replace the first)."""
+    seen: dict[Path, str] = {}
+    for option, path in named:
+        if path is None or _is_stdout(path):
+            continue
+        resolved = resolve_output(path)
+        if resolved in seen:
+            raise UsageError(f"{seen[resolved]} and {option} both name {path}", "give them different files")
+        seen[resolved] = option
 
 
 @click.command(epilog=EXAMPLES)
@@ -247,6 +260,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     and completeness (dense_*) are added, after the trajectory alignment. --t-start/--t-end crop both
     trajectories to seconds after the reference's first pose.
     """
+    check_tf_chain(parent, child)
     window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
     settings = EvaluationSettings.from_mapping(options)
@@ -257,7 +271,10 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             raise UsageError(f"{option} {path}: evo's result files are zip files", "name it FILE.zip")
     if _is_stdout(json_path) and _is_stdout(csv_path):
         raise UsageError("--json - and --csv - both name stdout", "write one of them to a file")
-    for path in [json_path, csv_path, save_results, save_rpe_results, *plot_files]:
+    named = [("--json", json_path), ("--csv", csv_path), ("--save-results", save_results),
+             ("--save-rpe-results", save_rpe_results), *(("--plot", path) for path in plot_files)]  # fmt: skip
+    _refuse_shared_outputs(named)
+    for _, path in named:
         if path is not None and not _is_stdout(path):
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
@@ -266,7 +283,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         landmarks_topic=landmarks_topic,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
-    if not ctx.find_root().obj.get("quiet"):
+    quiet = bool(ctx.find_root().obj.get("quiet"))
+    if not quiet:
         for note in result.notes:
             click.echo(f"relpoint: warning: {note}", err=True)
     if save_rpe_results is not None and result.rpe is None:  # before any output is written
@@ -283,20 +301,23 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     exceeded = check_gates(summary, gates)  # unknown keys are a usage error before anything is written
     # Absolute, and with everything that chose the poses: `relpoint compare` evaluates it again from these.
     inputs = {
-        "estimate": os.path.abspath(estimate),
-        "reference": os.path.abspath(reference),
+        "estimate": shown_path(os.path.abspath(estimate)),
+        "reference": shown_path(os.path.abspath(reference)),
         "reference_topic": reference_topic,
         "estimate_topic": estimate_topic,
         "landmarks_topic": landmarks_topic,
         "parent": parent,
         "child": child,
-        "times": None if times is None else os.path.abspath(times),
-        "reference_times": None if reference_times is None else os.path.abspath(reference_times),
+        "times": None if times is None else shown_path(os.path.abspath(times)),
+        "reference_times": None if reference_times is None else shown_path(os.path.abspath(reference_times)),
         "t_start": t_start,
         "t_end": t_end,
     }
     estimator = run_estimator(estimate)
-    names = {"reference_name": reference.name or "reference", "estimate_name": estimate.name or "estimate"}
+    names = {
+        "reference_name": shown_path(reference.name or "reference"),
+        "estimate_name": shown_path(estimate.name or "estimate"),
+    }
     if names["reference_name"] == names["estimate_name"]:
         names["estimate_name"] += " (estimate)"
     with output_set():  # every output file appears, or none does (an interrupt while they are written)
@@ -310,7 +331,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
                                               **names))  # fmt: skip
         if plot_dir is not None:
             evaluation_plots(
-                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (str(estimate), estimate_topic))),
+                plot_dir, evaluation.reference, result, run=" ".join(filter(None, (shown_path(estimate), estimate_topic))),
                 estimator=estimator,
                 landmarks=evaluation.landmarks, truth=evaluation.truth, plot_format=plot_format,
             )  # fmt: skip
@@ -318,6 +339,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         click.echo(evaluation_json(summary, settings, inputs), nl=False)
     if _is_stdout(csv_path):
         click.echo(errors_csv_text(result, evaluation.landmark_error_over_time), nl=False)
-    click.echo(format_table(summary, settings.pose_relation), err=_is_stdout(json_path) or _is_stdout(csv_path))
+    to_stderr = _is_stdout(json_path) or _is_stdout(csv_path)
+    if not (to_stderr and quiet):  # on stderr the table is a message, which -q silences
+        click.echo(format_table(summary, settings.pose_relation), err=to_stderr)
     if exceeded:
         raise GateExceeded(f"evaluation gate exceeded: {'; '.join(exceeded)}")

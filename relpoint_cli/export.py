@@ -15,7 +15,14 @@ from formats.outputs import check_output_file, resolve_output
 from relpoint.errors import InputError, UsageError
 from relpoint_app.exporter import Format, What, default_what, export_file, output_format
 from relpoint_cli.errors import handle_errors
-from relpoint_cli.options import input_path, overwrite_option, read_paths, time_window, time_window_options
+from relpoint_cli.options import (
+    check_tf_chain,
+    input_path,
+    overwrite_option,
+    read_paths,
+    time_window,
+    time_window_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +72,7 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     (--topic, or --parent/--child for a TF chain). Trajectory files are recognised by content, as by
     `relpoint evaluate`.
     """
+    check_tf_chain(parent, child)
     window = time_window(t_start, t_end)
     if not source.exists():
         raise InputError(f"{source}: no such file or directory")

@@ -68,6 +68,13 @@ def _utc(stamp_ns: int) -> str:
     return datetime.fromtimestamp(seconds, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S") + f".{nanoseconds:09d}Z"
 
 
+def _duration(document: dict[str, Any]) -> str:
+    """End minus start, exact to the nanosecond like the two (the JSON's ``duration_s`` is rounded to us)."""
+    if document["start_ns"] is None or document["end_ns"] is None:
+        return f"{document['duration_s']:.6f}"
+    return _seconds(document["end_ns"] - document["start_ns"])
+
+
 def _seconds(stamp_ns: int) -> str:
     return f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}"
 
@@ -149,7 +156,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         ("storage id", document["storage_id"]),
         ("files", ", ".join(f["name"] for f in document["files"])),
         ("size", _size(document["size_bytes"])),
-        ("duration", f"{document['duration_s']:.9f} s"),
+        ("duration", f"{_duration(document)} s"),
         ("start", "-" if document["start_ns"] is None else f"{document['start_utc']} ({_seconds(document['start_ns'])})"),
         ("end", "-" if document["end_ns"] is None else f"{document['end_utc']} ({_seconds(document['end_ns'])})"),
         ("messages", str(document["message_count"])),

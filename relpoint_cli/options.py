@@ -102,6 +102,15 @@ def read_paths(*paths: Any) -> list[Any]:
     return found
 
 
+def check_tf_chain(parent: str | None, child: str | None) -> None:
+    """``--parent`` and ``--child`` come together (exit 2 before any input is read)."""
+    from relpoint.errors import UsageError
+
+    if (parent is None) != (child is None):
+        given, missing = ("--parent", "--child") if child is None else ("--child", "--parent")
+        raise UsageError(f"{given} without {missing}: a TF chain needs both", f"add {missing} FRAME")
+
+
 def time_window_options(command: Any) -> Any:
     """``--t-start`` and ``--t-end``: seconds after the first stamp (of the log, or of the reference)."""
     command = click.option("--t-end", type=float, help="Use nothing after this many seconds from the first stamp.")(

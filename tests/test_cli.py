@@ -143,7 +143,12 @@ def test_top_level_help_lists_every_command_without_importing_them() -> None:
 def test_estimator_names_complete_in_the_shell(tmp_path: Path) -> None:
     import os
 
-    env = {**os.environ, "COMP_WORDS": "relpoint run x.mcap -e fa", "COMP_CWORD": "4", "_RELPOINT_COMPLETE": "bash_complete"}
+    env = {
+        **os.environ,
+        "COMP_WORDS": "relpoint run x.mcap -e fa",
+        "COMP_CWORD": "4",
+        "_RELPOINT_COMPLETE": "bash_complete",
+    }
     out = subprocess.run([sys.executable, "-m", "relpoint_cli.main"], env=env, capture_output=True, text=True)
     assert out.stdout.split() == ["plain,fastslam"]
 
@@ -155,3 +160,15 @@ def test_config_describes_each_setting(runner: CliRunner) -> None:
     assert "Standard deviation of a point measurement, per axis (m)." in line and "[1e-06 .. 1000]" in line
     settings = [text for text in out.splitlines()[1:] if " = " in text]
     assert sum("  # " in text for text in settings) == len(settings)
+
+
+def test_info_prints_the_duration_as_exactly_as_start_and_end(runner: CliRunner, tmp_path: Path) -> None:
+    log = tmp_path / "thirds.mcap"  # 3 Hz: stamps 333333333 ns apart, off the microsecond grid
+    code, _, err = invoke(runner, "simulate", "-o", str(log), "--iterations", "4", "--rate", "3")
+    assert code == 0, err
+    code, out, _ = invoke(runner, "info", str(log))
+    assert code == 0
+    rows = {line.split(":", 1)[0].strip(): line.split(":", 1)[1].strip() for line in out.splitlines()[1:9]}
+    start, end = (int(rows[key].rsplit("(", 1)[1].rstrip(")").replace(".", "")) for key in ("start", "end"))
+    assert end - start == 999_999_999
+    assert rows["duration"] == "0.999999999 s"

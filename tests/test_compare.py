@@ -454,3 +454,36 @@ def test_landmark_error_over_time_is_aligned_with_the_trajectory(tmp_path: Path,
 def test_plot_title_names_run_estimator_and_alignment() -> None:
     assert plot_title("out/fig8", "ekf", "se3") == "out/fig8 - ekf - SE(3) Umeyama alignment"
     assert plot_title("est.txt", "", "none") == "est.txt - not aligned"
+
+
+def _zip_of_zeros(path: Path, n: int) -> Path:
+    """An evo-style result zip whose error array is ``n`` zeros: a few KB that inflate to ``8 n`` bytes."""
+    import zipfile
+
+    buffer = io.BytesIO()
+    np.save(buffer, np.zeros(n))
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("info.json", json.dumps({"title": "APE w.r.t. translation part (m)", "ref_name": "a",
+                                                  "est_name": "b", "label": "APE (m)"}))  # fmt: skip
+        archive.writestr("stats.json", json.dumps(dict.fromkeys(("rmse", "mean", "median", "std", "min", "max"), 0)))
+        archive.writestr("error_array.npy", buffer.getvalue())
+        archive.writestr("seconds_from_start.npy", buffer.getvalue())
+    return path
+
+
+def test_a_result_zip_that_inflates_beyond_the_limit_is_refused_before_it_is_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    small = _zip_of_zeros(tmp_path / "small.zip", 1000)
+    assert len(read_evo_result(small).arrays["error_array"]) == 1000
+    monkeypatch.setattr("formats.evo_results.MAX_RESULT_BYTES", 1 << 20)
+    bomb = _zip_of_zeros(tmp_path / "bomb.zip", 100_000)  # 2 x 800 kB inflated, 2 kB on disk
+    assert bomb.stat().st_size < 10_000
+
+    def no_load(*args: object, **kwargs: object) -> None:
+        raise AssertionError("an array was inflated")
+
+    monkeypatch.setattr("formats.evo_results.np.load", no_load)
+    code, out, err = invoke("compare", bomb)
+    assert code == 3 and out == ""
+    assert "inflate to 2 MiB, more than the 1 MiB" in err and len(err.strip().splitlines()) == 1

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +18,7 @@ from formats.reference_trajectories import load_trajectory
 from formats.tables import write_map_csv
 from formats.trajectory_files import write_tum
 from relpoint.types import LandmarkMap, Trajectory
+from relpoint_app.evaluator import check_gates
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
 
@@ -99,6 +103,14 @@ def test_csv_dash_writes_the_errors_to_stdout_and_the_table_to_stderr(tmp_path: 
     code, out, err = invoke(*args, "--csv", "-", "--json", "-")
     assert code == 2 and out == ""
     assert_one_error_line(err, "--json - and --csv - both name stdout")
+
+
+def test_quiet_silences_the_table_on_stderr() -> None:
+    data = shared_data(*FR1)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    for output in ("--json", "--csv"):
+        result = CliRunner().invoke(cli, ["-q", *map(str, args), output, "-"])
+        assert result.exit_code == 0 and result.stdout and result.stderr == ""
 
 
 def test_a_small_overlap_is_an_error_naming_both_time_ranges(tmp_path: Path) -> None:
@@ -222,8 +234,28 @@ def test_an_interrupt_while_the_outputs_are_written_leaves_none_of_them(
 def test_the_ground_truth_landmarks_topic_can_be_named(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
     named = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/ground_truth/landmarks")
     assert named["lm_matched"] > 20
-    elsewhere = summary_of(tmp_path, run_dir, "--reference", small_log, "--landmarks-topic", "/mocap/landmarks")
-    assert "lm_matched" not in elsewhere and elsewhere["ate_rmse"] == named["ate_rmse"]
+    for topic, fragment in (("/mocap/landmarks", "no messages on /mocap/landmarks"),
+                            ("/ground_truth/pose", "carries geometry_msgs/msg/PoseStamped")):  # fmt: skip
+        code, _, err = invoke("evaluate", run_dir, "--reference", small_log, "--landmarks-topic", topic)
+        assert code == 3
+        assert_one_error_line(err, fragment)
+    data = shared_data(*FR1)
+    code, _, err = invoke("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt",
+                          "--landmarks-topic", "/ground_truth/landmarks")  # fmt: skip
+    assert code == 3
+    assert_one_error_line(err, "--landmarks-topic applies only to a log reference")
+
+
+def test_a_times_file_for_a_run_directory_or_a_log_is_refused(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
+    missing = tmp_path / "no-such-times.txt"
+    for args in (("--times", missing), ("--reference-times", missing)):
+        code, _, err = invoke("evaluate", run_dir, "--reference", small_log, *args)
+        assert code == 3
+        assert_one_error_line(err, "a times file applies only to KITTI poses")
+    code, _, err = invoke("export", run_dir, "-o", tmp_path / "e.tum", "--times", missing)
+    assert code == 3
+    assert_one_error_line(err, "a times file applies only to KITTI poses")
+    assert not (tmp_path / "e.tum").exists()
 
 
 def test_fail_above_gates(tmp_path: Path, small_log: Path, run_dir: Path) -> None:
@@ -319,3 +351,57 @@ def test_an_estimate_too_short_for_the_rpe_still_gets_its_ape(tmp_path: Path, sm
     assert code == 5 and "rpe_trans_rmse not measured" in err, err
     code, _, err = invoke("evaluate", one, "-r", small_log, "--fail-above", "ate_rmsee=1")
     assert code == 2, err
+
+
+def test_one_path_for_two_outputs_is_a_usage_error(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    args = ("evaluate", data / "freiburg1_xyz-rgbdslam.txt", "-r", data / "freiburg1_xyz-groundtruth.txt")
+    plots = tmp_path / "plots"
+    for outputs in (
+        ("--json", tmp_path / "same.json", "--csv", tmp_path / "same.json"),
+        ("--save-results", tmp_path / "s.zip", "--save-rpe-results", tmp_path / "s.zip"),
+        ("--json", plots / "errors.png", "--plot", plots),
+    ):
+        code, _, err = invoke(*args, *outputs)
+        assert code == 2
+        assert_one_error_line(err, "both name")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_name_that_is_not_utf8_is_written_as_escapes(tmp_path: Path) -> None:
+    data = shared_data(*FR1)
+    estimate = tmp_path / os.fsdecode(b"est\xff.txt")
+    estimate.write_bytes((data / "freiburg1_xyz-rgbdslam.txt").read_bytes())
+    reference = data / "freiburg1_xyz-groundtruth.txt"
+    exported = tmp_path / "e.tum"
+    code, _, err = invoke("export", estimate, "-o", exported)
+    assert code == 0, err
+    assert exported.read_text(encoding="utf-8").startswith("# relpoint export of " + str(tmp_path) + "/est\\xff.txt\n")
+    out = tmp_path / "out"
+    code, _, err = invoke("evaluate", estimate, "-r", reference, "--json", out / "e.json",
+                          "--save-results", out / "e.zip", "--plot", out / "plots")  # fmt: skip
+    assert code == 0, err
+    assert json.loads((out / "e.json").read_bytes())["inputs"]["estimate"].endswith("/est\\xff.txt")
+    with zipfile.ZipFile(out / "e.zip") as archive:
+        assert json.loads(archive.read("info.json"))["est_name"] == "est\\xff.txt"
+    assert len(list((out / "plots").iterdir())) == 3
+
+
+def test_a_gate_message_shows_the_value_and_bound_apart() -> None:
+    bound = 0.01347008884973369
+    for value in (math.nextafter(bound, 1.0), bound * (1 + 1e-9), 0.1):
+        (message,) = check_gates({"ate_rmse": value}, {"ate_rmse": bound})
+        shown_value, shown_bound = message.removeprefix("ate_rmse=").split(" > ")
+        assert float(shown_value) > float(shown_bound), message
+    assert check_gates({"ate_rmse": 0.1}, {"ate_rmse": 0.05}) == ["ate_rmse=0.1 > 0.05"]
+
+
+def test_half_a_tf_chain_is_a_usage_error(tmp_path: Path) -> None:
+    bag = shared_data(*BAG)
+    for frames in (("--parent", "map"), ("--child", "base_footprint")):
+        for args in (("evaluate", bag, "-r", bag), ("export", bag, "-o", tmp_path / "t.tum"),
+                     ("compare", tmp_path, "--reference", bag)):  # fmt: skip
+            code, _, err = invoke(*args, *frames)
+            assert code == 2, args
+            assert_one_error_line(err, "a TF chain needs both")
+    assert list(tmp_path.iterdir()) == []

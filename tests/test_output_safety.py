@@ -292,3 +292,76 @@ def test_an_unreadable_log_is_an_input_error_naming_the_way_out(tmp_path: Path, 
     for command, code, err in json.loads(done.stdout):
         assert code == 3, (command, err)
         assert err == f"relpoint: error: {locked}: cannot read (permission denied); check its permissions\n", command
+
+
+@pytest.fixture()
+def tum_pair(tmp_path: Path, log: Path) -> tuple[Path, Path]:
+    """A reference TUM file (the log's ground truth) and a TUM estimate (the same, as relpoint writes both)."""
+    reference = tmp_path / "reference.tum"
+    assert invoke("export", str(log), "-o", str(reference))[0] == 0
+    estimate = tmp_path / "inputs" / "estimate.txt"
+    estimate.parent.mkdir()
+    estimate.write_bytes(reference.read_bytes())
+    return estimate, reference
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("export", "{est}", "-o", "e.kitti"),
+        ("export", "{est}", "-o", "e.kitti", "--out-times", "times.txt"),
+        ("export", "{est}", "-o", "e2.tum", "--format", "kitti"),
+        ("export", "{est}", "-o", "e.dat", "--format", "tum"),
+        ("export", "{est}", "-o", "e.tum", "--format", "csv"),
+        ("evaluate", "{est}", "-r", "{ref}", "--json", "ev.txt"),
+        ("evaluate", "{est}", "-r", "{ref}", "--csv", "ev.tsv"),
+        ("compare", "{summary}", "-o", "table"),
+        ("compare", "{summary}", "-o", "t.md", "--format", "json"),
+        ("compare", "{summary}", "-o", "t.md", "--format", "text"),
+        ("compare", "{summary}", "-o", "t.txt", "--format", "csv"),
+        ("simulate", "-o", "simlog", "--iterations", "5"),
+    ],
+)
+def test_a_rerun_replaces_its_own_output_whatever_its_name(
+    tmp_path: Path, tum_pair: tuple[Path, Path], args: tuple[str, ...], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    estimate, reference = tum_pair
+    summary = tmp_path / "inputs" / "summary.json"
+    assert invoke("evaluate", str(estimate), "-r", str(reference), "--json", str(summary))[0] == 0
+    monkeypatch.chdir(tmp_path)
+    command = [arg.format(est=estimate, ref=reference, summary=summary) for arg in args]
+    assert invoke(*command) == (0, "")
+    code, err = invoke(*command)
+    assert code == 0, err
+
+
+def test_a_comment_that_merely_names_relpoint_does_not_make_a_file_relpoints(
+    tmp_path: Path, tum_pair: tuple[Path, Path]
+) -> None:
+    estimate, _ = tum_pair
+    for name, text in (
+        ("mine.tum", "# converted from relpoint output by hand\n0.0 0 0 0 0 0 0 1\n"),
+        ("notes.txt", "# relpoint is what I used\n"),
+        ("other.tum", "# relpoint 1.0\n# my columns\n0.0 0 0 0 0 0 0 1\n"),  # the version line, not the legend
+    ):
+        mine = tmp_path / name
+        mine.write_text(text)
+        code, err = invoke("export", str(estimate), "-o", str(mine), "--format", "tum")
+        assert code == 2 and "relpoint did not write it" in err
+        assert mine.read_text() == text
+
+
+def test_a_kitti_file_counts_as_relpoints_only_as_written(tmp_path: Path, tum_pair: tuple[Path, Path]) -> None:
+    estimate, _ = tum_pair
+    kitti, times = tmp_path / "e.kitti", tmp_path / "times.txt"
+    assert invoke("export", str(estimate), "-o", str(kitti), "--out-times", str(times))[0] == 0
+    copy = tmp_path / "copy.kitti"
+    copy.write_bytes(kitti.read_bytes())  # a copy carries no record of who wrote it
+    code, err = invoke("export", str(estimate), "-o", str(copy))
+    assert code == 2 and "relpoint did not write it" in err
+    with times.open("a") as stream:  # an edited file is no longer what relpoint wrote
+        stream.write("99.0\n")
+    edited = times.read_bytes()
+    code, err = invoke("export", str(estimate), "-o", str(kitti), "--out-times", str(times))
+    assert code == 2 and "times.txt exists and relpoint did not write it" in err
+    assert times.read_bytes() == edited

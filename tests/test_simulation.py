@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
 from relpoint.errors import UsageError
 from relpoint.geometry import integrate_twist, transform_points
 from relpoint.simulation import SimulationConfig, paths, simulate
+from relpoint_cli.main import cli
 
 
 def test_observations_land_on_their_landmarks_with_the_configured_noise() -> None:
@@ -148,3 +152,22 @@ def test_invalid_settings_are_usage_errors(bad: dict) -> None:
         SimulationConfig(**bad)
     with pytest.raises(UsageError, match="unknown simulation setting"):
         SimulationConfig.from_mapping({"nosie": 0.1})
+
+
+def test_the_last_stamp_must_fit_a_ros_stamp() -> None:
+    last_second = 2**31 - 1
+    fits = simulate(SimulationConfig(iterations=20, rate=10.0, start_time=last_second - 1.9))
+    assert fits.stamps_ns[-1] // 1_000_000_000 == last_second
+    for start_time in (last_second, last_second - 0.8):  # the last stamp 1.9 s later
+        with pytest.raises(UsageError, match="beyond the 2147483647 s a ROS stamp holds"):
+            simulate(SimulationConfig(iterations=20, rate=10.0, start_time=start_time))
+    with pytest.raises(UsageError, match="start_time"):
+        SimulationConfig(start_time=3e9)
+
+
+def test_simulate_refuses_a_start_time_past_ros_stamps(tmp_path: Path) -> None:
+    out = tmp_path / "late.mcap"
+    result = CliRunner().invoke(
+        cli, ["-q", "simulate", "-o", str(out), "--iterations", "20", "--start-time", "2147483647"]
+    )
+    assert result.exit_code == 2 and "a ROS stamp holds" in result.stderr and not out.exists()

@@ -11,6 +11,8 @@ from relpoint.settings import Settings, setting
 SCENARIOS = ("figure8", "stationary", "corridor", "figure8-gaps", "spiral")
 #: How moving landmarks move (see :mod:`relpoint.simulation.movers`).
 MOVER_MOTIONS = ("oscillate", "line", "random-walk", "stop-and-go", "static-then-moving")
+#: The latest stamp a log can hold: ROS 2 stamps count seconds in an int32.
+MAX_STAMP_S = 2**31 - 1
 #: Settings added after logs were first written: a log records them only when they differ from
 #: their defaults, so the same older settings still give a byte-identical file.
 _LATER_SETTINGS = ("mover_motion", "mover_speed", "scale")
@@ -43,7 +45,9 @@ class SimulationConfig(Settings):
         None, low=1, high=1_000_000, help="Total iterations; default: the whole path (``stationary``: 900)."
     )
     rate: float = setting(10.0, low=1e-3, high=1e4, help="Iterations per second (sets the stamps and velocities).")
-    start_time: float = setting(0.0, low=0, high=4e9, help="Stamp of the first iteration, seconds.")
+    start_time: float = setting(
+        0.0, low=0, high=MAX_STAMP_S, help="Stamp of the first iteration, seconds (the last must fit ROS's int32)."
+    )
     density: float = setting(
         25.0, low=1e-3, high=1e4, help="Landmarks per 100 m of path, scattered around it (paper: 25 to 550)."
     )

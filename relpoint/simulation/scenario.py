@@ -15,9 +15,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from relpoint.errors import UsageError
 from relpoint.geometry import FloatArray, body_twist
 from relpoint.simulation import movers, paths
-from relpoint.simulation.config import SceneView, SimulationConfig
+from relpoint.simulation.config import MAX_STAMP_S, SceneView, SimulationConfig
 from relpoint.types import (
     GroundTruthLandmarks,
     OdometryMeasurement,
@@ -158,6 +159,14 @@ def _random_streams(seed: int) -> dict[str, np.random.Generator]:
 def _stamps_ns(config: SimulationConfig, n: int) -> np.ndarray:
     start_ns = int(round(config.start_time * 1e9))
     period_ns = int(round(1e9 / config.rate))
+    last_s = (start_ns + period_ns * (n - 1)) // 1_000_000_000
+    if last_s > MAX_STAMP_S:
+        latest = MAX_STAMP_S - period_ns * (n - 1) // 1_000_000_000
+        raise UsageError(
+            f"simulation setting start_time {config.start_time!r} puts the last of {n} iterations at {last_s} s, "
+            f"beyond the {MAX_STAMP_S} s a ROS stamp holds",
+            f"give a start_time of at most {max(latest, 0)}",
+        )
     return start_ns + period_ns * np.arange(n, dtype=np.int64)
 
 
