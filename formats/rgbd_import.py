@@ -25,6 +25,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import logging
+import math
 import os
 import re
 from collections import Counter
@@ -37,6 +38,7 @@ from PIL import Image
 
 from formats.log import LogWriter, Topics, metadata_json
 from relpoint.errors import InputError, UsageError
+from relpoint.geometry import FloatArray
 from relpoint.types import Intrinsics, Pose
 
 log = logging.getLogger(__name__)
@@ -103,6 +105,36 @@ def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[float, lis
         except (ValueError, IndexError):
             raise InputError(f"{path}:{number}: cannot read {line!r}") from None
     return rows
+
+
+def _read_groundtruth(path: Path) -> FloatArray:
+    """A TUM ``groundtruth.txt``: (N, 8) ``timestamp tx ty tz qx qy qz qw`` rows. A line without eight numbers
+    is an :class:`InputError` naming it; rows holding a NaN or a quaternion of zero length are left out and
+    warned of (their frames have no ground truth), as 7-Scenes' invalid poses are."""
+    rows = []
+    invalid = 0
+    first_invalid = ""
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        try:
+            row = [float(field) for field in fields]
+        except ValueError:
+            row = []
+        if len(row) != 8:
+            raise InputError(f"{path}:{number}: cannot read {line!r}",
+                             "a ground-truth line holds eight numbers: timestamp tx ty tz qx qy qz qw")  # fmt: skip
+        if not all(math.isfinite(v) for v in row) or math.hypot(*row[4:8]) < 1e-6:
+            invalid += 1
+            first_invalid = first_invalid or f"{path}:{number}"
+            continue
+        rows.append(row)
+    if invalid:
+        log.warning("%s holds %d invalid poses (a NaN, or a quaternion of zero length), the first at line %s; "
+                    "their frames have no ground truth", path.name, invalid, first_invalid.rsplit(":", 1)[1])  # fmt: skip
+    return np.array(rows, dtype=np.float64).reshape(-1, 8)
 
 
 def associate_stamps(first: list[float], second: list[float], tolerance: float) -> list[int | None]:
@@ -225,8 +257,7 @@ def tum_frames(
     colour_match = associate_stamps([t for t, _ in depth_rows], [t for t, _ in rgb_rows], tolerance)
     truth = None
     if (folder / "groundtruth.txt").is_file():
-        gt_rows = _read_list(folder / "groundtruth.txt")
-        values = np.array([[t, *map(float, f[:7])] for t, f in gt_rows], dtype=np.float64).reshape(-1, 8)
+        values = _read_groundtruth(folder / "groundtruth.txt")
         order = np.argsort(values[:, 0])
         truth = values[order]
     base = intrinsics or TUM_DEFAULT_INTRINSICS

@@ -685,3 +685,33 @@ def test_undistortion_moves_a_distorted_pixel_to_its_pinhole_place() -> None:
     pinhole = (k.fx * point[0, 0] / point[0, 2] + k.cx, k.fy * point[0, 1] / point[0, 2] + k.cy)
     assert abs(cols.mean() - pinhole[0]) < 1.0 and abs(rows.mean() - pinhole[1]) < 1.0
     assert set(np.unique(undo.depth(depth))) == {0.0, 2.0}  # nearest pixel: no depth is blended
+
+
+def _tum_folder(folder: Path, groundtruth: str) -> None:
+    _write_png16(folder / "d0.png", np.full((6, 8), 7500))
+    (folder / "depth.txt").write_text("100.0 d0.png\n")
+    (folder / "groundtruth.txt").write_text("# tx ty tz qx qy qz qw\n" + groundtruth)
+
+
+def test_tum_groundtruth_with_a_short_line_is_an_input_error_naming_it(tmp_path: Path) -> None:
+    # It stopped the import with an internal error (exit 1): the row had fewer than seven fields.
+    from click.testing import CliRunner
+
+    from relpoint_cli.main import cli
+
+    _tum_folder(tmp_path, "100.0 1 2 3 0 0 0 1\n100.1 1 2 3\n")
+    result = CliRunner().invoke(cli, ["import", "tum", str(tmp_path), "-o", str(tmp_path / "t.mcap")])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert "groundtruth.txt:3" in result.output
+
+
+def test_tum_groundtruth_rows_without_a_valid_pose_are_left_out_and_warned(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    _tum_folder(tmp_path, "99.9 1 2 3 0 0 0 0\n100.0 nan 2 3 0 0 0 1\n100.01 1 2 3 0 0 0 1\n")
+    with caplog.at_level("WARNING"):
+        counts = import_tum(tmp_path, tmp_path / "t.mcap")
+    assert counts.ground_truth_pose == 1
+    (pose,) = [r.value for r in LogReader(tmp_path / "t.mcap").records(["ground_truth_pose"])]
+    assert pose.position == pytest.approx((1.0, 2.0, 3.0))
+    assert any("2 invalid poses" in r.getMessage() and "line 2" in r.getMessage() for r in caplog.records)
