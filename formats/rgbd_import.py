@@ -355,7 +355,7 @@ def seven_scenes_frames(
     frames = frames[first : None if count is None else first + count]
     intrinsics = SEVEN_SCENES_INTRINSICS
     if (folder / "camera-intrinsics.txt").is_file():
-        K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
+        K = _read_camera_matrix(folder / "camera-intrinsics.txt")
         intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     camera = None
     invalid_poses = missing_poses = yielded = 0
@@ -400,6 +400,23 @@ def seven_scenes_frames(
         log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
     if missing_poses > 1:
         log.warning("%d frames have no pose file and no ground truth", missing_poses)
+
+
+def _read_camera_matrix(path: Path) -> FloatArray:
+    """A 7-Scenes ``camera-intrinsics.txt``: the 3x3 camera matrix K, nine numbers; :class:`InputError`
+    naming the file when it holds anything else or focal lengths that are not positive."""
+    hint = "camera-intrinsics.txt holds the 3x3 camera matrix: fx 0 cx / 0 fy cy / 0 0 1"
+    try:
+        K = np.array(path.read_text().split(), dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{path}: not a 3x3 matrix of numbers", hint) from None
+    if K.size != 9:
+        raise InputError(f"{path}: holds {K.size} numbers, not the nine of a 3x3 camera matrix", hint)
+    K = K.reshape(3, 3)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"{path}: the focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g} are not positive numbers",
+                         hint)  # fmt: skip
+    return K
 
 
 def write_rgbd_log(

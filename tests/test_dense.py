@@ -715,3 +715,16 @@ def test_tum_groundtruth_rows_without_a_valid_pose_are_left_out_and_warned(
     (pose,) = [r.value for r in LogReader(tmp_path / "t.mcap").records(["ground_truth_pose"])]
     assert pose.position == pytest.approx((1.0, 2.0, 3.0))
     assert any("2 invalid poses" in r.getMessage() and "line 2" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("text", ["585 0 320\n0 585 240\n", "fx=585\n", "0 0 0\n0 0 0\n0 0 0\n"])
+def test_a_malformed_7scenes_camera_matrix_is_an_input_error_naming_the_file(tmp_path: Path, text: str) -> None:
+    from click.testing import CliRunner
+
+    from relpoint_cli.main import cli
+
+    _seven_scenes_folder(tmp_path)
+    (tmp_path / "camera-intrinsics.txt").write_text(text)
+    result = CliRunner().invoke(cli, ["import", "7scenes", str(tmp_path), "-o", str(tmp_path / "s.mcap")])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert "camera-intrinsics.txt" in result.output
