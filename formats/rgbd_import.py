@@ -368,8 +368,8 @@ def seven_scenes_frames(
             skips.skip("depth", error, "frame skipped")
             continue
         h, w = depth.shape
-        if camera is None:  # the dataset's calibration is for its 640x480 images
-            camera = resized(intrinsics, w, h)
+        if camera is None:
+            camera = _calibration_for(intrinsics, w, h)
         stem = depth_path.name[: -len(".depth.png")]
         pose = None
         pose_path = folder / f"{stem}.pose.txt"
@@ -417,6 +417,18 @@ def _read_camera_matrix(path: Path) -> FloatArray:
         raise InputError(f"{path}: the focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g} are not positive numbers",
                          hint)  # fmt: skip
     return K
+
+
+def _calibration_for(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """A 7-Scenes calibration (taken for 640x480) for ``width`` x ``height`` images. The file holds no size:
+    a principal point near the middle of the images (within a tenth of their size) says the calibration
+    is theirs, and it is taken as it is; else it is the dataset's 640x480 one, scaled to the images."""
+    own = Intrinsics(width, height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    if (width, height) != (intrinsics.width, intrinsics.height) and (
+        abs(intrinsics.cx - (width - 1) / 2) <= width / 10 and abs(intrinsics.cy - (height - 1) / 2) <= height / 10
+    ):
+        return own
+    return resized(intrinsics, width, height)
 
 
 def write_rgbd_log(

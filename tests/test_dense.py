@@ -755,3 +755,17 @@ def test_a_malformed_7scenes_camera_matrix_is_an_input_error_naming_the_file(tmp
     result = CliRunner().invoke(cli, ["import", "7scenes", str(tmp_path), "-o", str(tmp_path / "s.mcap")])
     assert result.exit_code == 3 and "Traceback" not in result.output
     assert "camera-intrinsics.txt" in result.output
+
+
+def test_a_7scenes_calibration_of_the_images_own_size_is_not_rescaled(tmp_path: Path) -> None:
+    # camera-intrinsics.txt of 8x6 images (principal point at their middle) was taken for 640x480 and
+    # scaled down 80 times; the dataset's own 640x480 calibration is still scaled to the images.
+    _seven_scenes_folder(tmp_path)
+    np.savetxt(tmp_path / "camera-intrinsics.txt", [[7.3, 0, 3.5], [0, 7.3, 2.5], [0, 0, 1]])
+    import_7scenes(tmp_path, tmp_path / "own.mcap")
+    (info,) = [r.value for r in LogReader(tmp_path / "own.mcap").records(["camera_info"])]
+    assert (info.fx, info.cx, info.cy) == pytest.approx((7.3, 3.5, 2.5))
+    np.savetxt(tmp_path / "camera-intrinsics.txt", [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
+    import_7scenes(tmp_path, tmp_path / "scaled.mcap")
+    (info,) = [r.value for r in LogReader(tmp_path / "scaled.mcap").records(["camera_info"])]
+    assert (info.fx, info.cx) == pytest.approx((585 / 80, 4.0))
