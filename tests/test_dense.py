@@ -769,3 +769,21 @@ def test_a_7scenes_calibration_of_the_images_own_size_is_not_rescaled(tmp_path: 
     import_7scenes(tmp_path, tmp_path / "scaled.mcap")
     (info,) = [r.value for r in LogReader(tmp_path / "scaled.mcap").records(["camera_info"])]
     assert (info.fx, info.cx) == pytest.approx((585 / 80, 4.0))
+
+
+def test_frames_without_colour_do_not_darken_the_map() -> None:
+    # Colour was averaged with the point's weight, which frames without colour raise too, and points they
+    # added took colour 0: a later coloured view blended with that black (7.8% of a kitchen map with colour
+    # on every other frame was pure black).
+    k = Intrinsics(40, 30, 35.0, 35.0, 19.5, 14.5)
+    level = make_level(np.full((30, 40), 1.5, np.float32), k)
+    grey = np.full((30, 40, 3), 200, np.uint8)
+    point_map = PointMap()
+    cos = np.float32(math.cos(math.radians(30)))
+    index = point_map.render(np.eye(4), level)
+    point_map.fuse(np.eye(4), level, None, index, 0.01, cos, 0, 100.0, 0.005, None)
+    for frame in (1, 2):
+        index = point_map.render(np.eye(4), level)
+        point_map.fuse(np.eye(4), level, grey if frame == 1 else None, index, 0.01, cos, frame, 100.0, 0.005, None)
+    assert point_map.weights.min() == 3
+    np.testing.assert_allclose(point_map.colors, 200.0, atol=1e-3)
