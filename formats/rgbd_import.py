@@ -25,6 +25,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import logging
+import math
 import os
 import re
 from collections import Counter
@@ -37,6 +38,7 @@ from PIL import Image
 
 from formats.log import LogWriter, Topics, metadata_json
 from relpoint.errors import InputError, UsageError
+from relpoint.geometry import FloatArray
 from relpoint.types import Intrinsics, Pose
 
 log = logging.getLogger(__name__)
@@ -103,6 +105,36 @@ def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[float, lis
         except (ValueError, IndexError):
             raise InputError(f"{path}:{number}: cannot read {line!r}") from None
     return rows
+
+
+def _read_groundtruth(path: Path) -> FloatArray:
+    """A TUM ``groundtruth.txt``: (N, 8) ``timestamp tx ty tz qx qy qz qw`` rows. A line without eight numbers
+    is an :class:`InputError` naming it; rows holding a NaN or a quaternion of zero length are left out and
+    warned of (their frames have no ground truth), as 7-Scenes' invalid poses are."""
+    rows = []
+    invalid = 0
+    first_invalid = ""
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        try:
+            row = [float(field) for field in fields]
+        except ValueError:
+            row = []
+        if len(row) != 8:
+            raise InputError(f"{path}:{number}: cannot read {line!r}",
+                             "a ground-truth line holds eight numbers: timestamp tx ty tz qx qy qz qw")  # fmt: skip
+        if not all(math.isfinite(v) for v in row) or math.hypot(*row[4:8]) < 1e-6:
+            invalid += 1
+            first_invalid = first_invalid or f"{path}:{number}"
+            continue
+        rows.append(row)
+    if invalid:
+        log.warning("%s holds %d invalid poses (a NaN, or a quaternion of zero length), the first at line %s; "
+                    "their frames have no ground truth", path.name, invalid, first_invalid.rsplit(":", 1)[1])  # fmt: skip
+    return np.array(rows, dtype=np.float64).reshape(-1, 8)
 
 
 def associate_stamps(first: list[float], second: list[float], tolerance: float) -> list[int | None]:
@@ -225,8 +257,7 @@ def tum_frames(
     colour_match = associate_stamps([t for t, _ in depth_rows], [t for t, _ in rgb_rows], tolerance)
     truth = None
     if (folder / "groundtruth.txt").is_file():
-        gt_rows = _read_list(folder / "groundtruth.txt")
-        values = np.array([[t, *map(float, f[:7])] for t, f in gt_rows], dtype=np.float64).reshape(-1, 8)
+        values = _read_groundtruth(folder / "groundtruth.txt")
         order = np.argsort(values[:, 0])
         truth = values[order]
     base = intrinsics or TUM_DEFAULT_INTRINSICS
@@ -324,7 +355,7 @@ def seven_scenes_frames(
     frames = frames[first : None if count is None else first + count]
     intrinsics = SEVEN_SCENES_INTRINSICS
     if (folder / "camera-intrinsics.txt").is_file():
-        K = np.loadtxt(folder / "camera-intrinsics.txt").reshape(3, 3)
+        K = _read_camera_matrix(folder / "camera-intrinsics.txt")
         intrinsics = Intrinsics(640, 480, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     camera = None
     invalid_poses = missing_poses = yielded = 0
@@ -337,8 +368,8 @@ def seven_scenes_frames(
             skips.skip("depth", error, "frame skipped")
             continue
         h, w = depth.shape
-        if camera is None:  # the dataset's calibration is for its 640x480 images
-            camera = resized(intrinsics, w, h)
+        if camera is None:
+            camera = _calibration_for(intrinsics, w, h)
         stem = depth_path.name[: -len(".depth.png")]
         pose = None
         pose_path = folder / f"{stem}.pose.txt"
@@ -369,6 +400,35 @@ def seven_scenes_frames(
         log.warning("%d frames hold an invalid pose and have no ground truth", invalid_poses)
     if missing_poses > 1:
         log.warning("%d frames have no pose file and no ground truth", missing_poses)
+
+
+def _read_camera_matrix(path: Path) -> FloatArray:
+    """A 7-Scenes ``camera-intrinsics.txt``: the 3x3 camera matrix K, nine numbers; :class:`InputError`
+    naming the file when it holds anything else or focal lengths that are not positive."""
+    hint = "camera-intrinsics.txt holds the 3x3 camera matrix: fx 0 cx / 0 fy cy / 0 0 1"
+    try:
+        K = np.array(path.read_text().split(), dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{path}: not a 3x3 matrix of numbers", hint) from None
+    if K.size != 9:
+        raise InputError(f"{path}: holds {K.size} numbers, not the nine of a 3x3 camera matrix", hint)
+    K = K.reshape(3, 3)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"{path}: the focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g} are not positive numbers",
+                         hint)  # fmt: skip
+    return K
+
+
+def _calibration_for(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """A 7-Scenes calibration (taken for 640x480) for ``width`` x ``height`` images. The file holds no size:
+    a principal point near the middle of the images (within a tenth of their size) says the calibration
+    is theirs, and it is taken as it is; else it is the dataset's 640x480 one, scaled to the images."""
+    own = Intrinsics(width, height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    if (width, height) != (intrinsics.width, intrinsics.height) and (
+        abs(intrinsics.cx - (width - 1) / 2) <= width / 10 and abs(intrinsics.cy - (height - 1) / 2) <= height / 10
+    ):
+        return own
+    return resized(intrinsics, width, height)
 
 
 def write_rgbd_log(

@@ -206,7 +206,9 @@ def run(
             raise InputError(f"the log holds no usable message ({counts})",
                              "check the topics' message types and the log format's limits")  # fmt: skip
         raise EstimatorError("the log holds no observation to run on")
-    if not any(observed):  # every iteration ran on nothing: no usable point (or depth pixel) in the whole log
+    # Every iteration ran on nothing: no usable point in the whole log. A depth estimator says so itself
+    # when it finishes, naming the depths it saw (EstimatorError, exit 4).
+    if not any(observed) and not isinstance(item, DepthFrame):
         dropped = Counter(skipped_before or {}) + screen.skipped
         counts = ", ".join(f"{n} {kind}" for kind, n in sorted(dropped.items())) or "every observation is empty"
         raise InputError(f"the log holds no usable point in its {len(stamps)} observations ({counts})",

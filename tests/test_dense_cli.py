@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from formats.log import LogReader
@@ -160,3 +161,17 @@ def test_seven_scenes_frames_resized_take_scaled_intrinsics(tmp_path: Path) -> N
     camera = frames[0].intrinsics
     assert (camera.width, camera.height) == (320, 240)
     assert (camera.fx, camera.fy, camera.cx, camera.cy) == (292.5, 292.5, 160.0, 120.0)
+
+
+def test_a_dense_log_without_any_depth_fails_naming_depth(tmp_path: Path) -> None:
+    # Every depth pixel 0: the run failed with the points topic's message (exit 3), not the depth's.
+    from relpoint import pipeline
+    from relpoint.errors import EstimatorError
+    from relpoint.estimators.dense import DenseConfig, DenseFusion
+    from relpoint.types import DepthFrame, Intrinsics
+
+    k = Intrinsics(40, 30, 35.0, 35.0, 19.5, 14.5)
+    frames = [DepthFrame(i * 33_333_333, np.zeros((30, 40), np.float32), k) for i in range(3)]
+    with pytest.raises(EstimatorError, match="no depth at all") as error:
+        pipeline.run(iter(frames), DenseFusion(DenseConfig()))
+    assert error.value.exit_code == 4

@@ -383,9 +383,10 @@ class DenseFusion(Estimator[DepthFrame]):
         """Count a frame whose pairs left ``unobserved`` directions of motion unconstrained; warn once."""
         if self.degenerate_frames == 0:
             logger.warning(
-                "frame %d: degenerate geometry (e.g. one plane in view): the depth leaves %d of 6 directions of "
-                "motion unobserved, the pose keeps ICP's start along them; further frames are counted in "
-                "run.json (degenerate_frames)", self._frames, unobserved,
+                "frame %d: degenerate geometry (e.g. one plane in view): %d of 6 directions of motion hold no "
+                "more information than the noise of the normals gives them, and the pose keeps ICP's start (the "
+                "last pose) along them; further frames are counted in run.json (degenerate_frames)",
+                self._frames, unobserved,
             )  # fmt: skip
         self.degenerate_frames += 1
         self._unobserved[unobserved] += 1

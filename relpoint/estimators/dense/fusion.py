@@ -50,6 +50,8 @@ class PointMap:
         self._normals = np.zeros((3, capacity), dtype=np.float32)
         self._colors = np.zeros((3, capacity), dtype=np.float32)
         self._weights = np.zeros(capacity, dtype=np.float32)
+        # Colour has its own weight: a frame without colour adds to the point's weight but not to its colour.
+        self._color_weights = np.zeros(capacity, dtype=np.float32)
         self._created = np.zeros(capacity, dtype=np.int32)
         self.size = 0
 
@@ -92,7 +94,7 @@ class PointMap:
             grown = np.zeros((3, capacity), dtype=np.float32)
             grown[:, : self.size] = getattr(self, name)[:, : self.size]
             setattr(self, name, grown)
-        for name in ("_weights", "_created"):
+        for name in ("_weights", "_color_weights", "_created"):
             old = getattr(self, name)
             grown1 = np.zeros(capacity, dtype=old.dtype)
             grown1[: self.size] = old[: self.size]
@@ -107,6 +109,7 @@ class PointMap:
         self._normals[:, s] = normals
         self._colors[:, s] = colors
         self._weights[s] = 1.0
+        self._color_weights[s] = 0.0
         self._created[s] = frame_index
         ids = np.arange(self.size, self.size + n, dtype=np.int64)
         self.size += n
@@ -216,7 +219,12 @@ class PointMap:
         self._normals[:, j] = n
         rgb = None if colors is None else colors.reshape(-1, 3).T.astype(np.float32)  # (3, H*W)
         if rgb is not None:
-            self._colors[:, j] = np.take(self._colors, j, axis=1) * b + np.take(rgb, merged_pixels, axis=1) * a
+            cw = self._color_weights[j]
+            cw1 = cw + alpha
+            self._colors[:, j] = (
+                np.take(self._colors, j, axis=1) * cw + np.take(rgb, merged_pixels, axis=1) * alpha
+            ) / cw1
+            self._color_weights[j] = np.minimum(cw1, np.float32(max_weight))
         self._weights[j] = np.minimum(w1, np.float32(max_weight))
 
         # Add: valid pixels neither merged nor covered by a point rendered next to them.
@@ -233,6 +241,8 @@ class PointMap:
         new_ids = self.append(np.take(q, keep, axis=1), np.take(n_q, keep, axis=1), rgb_new, frame_index)
         if confidence is not None:
             self._weights[new_ids] = confidence[added_pixels]
+        if rgb is not None:
+            self._color_weights[new_ids] = self._weights[new_ids]
         after = ids.copy()
         after[added_pixels] = new_ids
         return after.reshape(h, w_img), FusionStats(int(len(j)), int(len(new_ids)))
@@ -281,7 +291,7 @@ class PointMap:
         for name in ("_positions", "_normals", "_colors"):
             array = getattr(self, name)
             array[:, :n] = array[:, : self.size][:, keep]
-        for name in ("_weights", "_created"):
+        for name in ("_weights", "_color_weights", "_created"):
             array = getattr(self, name)
             array[:n] = array[: self.size][keep]
         self.size = n
