@@ -347,6 +347,8 @@ class Intrinsics:
 
     def __post_init__(self) -> None:
         distortion = tuple(float(c) for c in self.distortion)
+        if not np.isfinite(distortion).all():  # NaN != 0 would take it for a distortion, and blank every image
+            raise ValueError(f"distortion coefficients must be finite, got {list(distortion)}; zeros mean none")
         if not any(c != 0.0 for c in distortion):  # all zero is an ideal pinhole, whatever the model's name
             distortion = ()
             object.__setattr__(self, "distortion_model", "")

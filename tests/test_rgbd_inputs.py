@@ -80,3 +80,19 @@ def test_an_unread_colour_encoding_is_named_as_unsupported() -> None:
     message, _ = _image("yuv422", 2)
     with pytest.raises(UnsupportedEncoding, match="yuv422"):
         msg_to_rgb(message)
+
+
+def test_a_camera_info_with_non_finite_distortion_is_refused_naming_it() -> None:
+    from formats.ros2 import msg_to_intrinsics
+    from relpoint.errors import InputError
+
+    with pytest.raises(ValueError, match="distortion coefficients must be finite"):
+        Intrinsics(320, 240, 290.0, 290.0, 160.0, 120.0, "plumb_bob", (float("nan"), 0.0, 0.0, 0.0, 0.0))
+    message = SimpleNamespace(
+        width=320, height=240, k=[290.0, 0.0, 160.0, 0.0, 290.0, 120.0, 0.0, 0.0, 1.0],
+        distortion_model="plumb_bob", d=[0.1, float("inf"), 0.0, 0.0, 0.0],
+    )  # fmt: skip
+    with pytest.raises(InputError, match="unusable camera_info: distortion coefficients must be finite"):
+        msg_to_intrinsics(message)
+    # all zeros is an ideal pinhole, whatever the model's name
+    assert not Intrinsics(320, 240, 290.0, 290.0, 160.0, 120.0, "plumb_bob", (0.0,) * 5).distorted
