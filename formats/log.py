@@ -432,7 +432,9 @@ class LogReader:
         counts: Counter[str] = Counter()  # this pass's
         roles = [r for r in roles if self.role_present(r)]
         topic_roles = {self.topics.roles()[r]: r for r in roles}
-        horizon = self._merge_horizon(list(topic_roles))
+        # Calibration is not a time series: a static publisher stamps its CameraInfo 0, or repeats one
+        # stamp. It neither sets the merge's horizon nor has to increase; each message holds until the next.
+        horizon = self._merge_horizon([t for t, r in topic_roles.items() if r != "camera_info"])
         held: list[tuple[int, int, Record]] = []  # (stamp, arrival, record), a heap
         arrival = itertools.count()
         previous: dict[str, int] = {}
@@ -463,7 +465,7 @@ class LogReader:
                     self._skip(counts, f"{topic}: malformed messages", f"{type(error).__name__}: {error}")
                     continue
                 before = previous.get(topic)
-                if before is not None and record.stamp_ns <= before:
+                if before is not None and record.stamp_ns <= before and role != "camera_info":
                     raise self._not_increasing(topic, record.stamp_ns, before)
                 previous[topic] = record.stamp_ns
                 if horizon is None:  # one topic: its stamps increase in log order
@@ -530,7 +532,8 @@ class LogReader:
             return
         self._offsets_told = True
         far = {}
-        for topic in dict.fromkeys(self.topics.roles().values()):
+        roles = self.topics.roles()
+        for topic in dict.fromkeys(t for r, t in roles.items() if r != "camera_info"):
             low, high = self._offsets.get(topic, (0, 0))
             offset = high if abs(high) >= abs(low) else low
             if abs(offset) > STAMP_OFFSET_WARNING_NS:

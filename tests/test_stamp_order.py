@@ -137,3 +137,30 @@ def test_estimators_on_a_log_with_receive_times_match_the_log_in_stamp_order(
     # odometry alone lagging keeps every tie in its log order: the same run exactly
     odom_lag = relogged(small_log, tmp_path / "odom-lag.mcap", {"/odom": lambda s: s + 150 * MS})
     np.testing.assert_array_equal(run(odom_lag, name, seed=1).trajectory.positions, expected.positions)
+
+
+@pytest.mark.parametrize("every_frame", [False, True])
+def test_a_camera_info_stamped_zero_by_a_static_publisher_is_read_with_the_depth(
+    tmp_path: Path, every_frame: bool
+) -> None:
+    """A static publisher stamps its CameraInfo 0 (or repeats one stamp), logged at wall-clock time:
+    calibration is not a time series, so it neither breaks the clock check nor has to increase."""
+    from relpoint.types import Intrinsics
+
+    intrinsics = Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0)
+    path = tmp_path / "static-info.mcap"
+    with LogWriter(path) as writer:
+        for k in range(5):
+            stamp = EPOCH_NS + k * 100 * MS
+            if k == 0 or every_frame:
+                writer.write(
+                    "/camera/depth/camera_info", ros2.CAMERA_INFO, ros2.camera_info_to_msg(0, intrinsics), stamp
+                )
+            writer.write_depth(stamp, np.full((6, 8), 1.5, dtype=np.float32))
+    reader = LogReader(path)
+    records = list(reader.records(["depth", "camera_info"]))
+    roles = [r.role for r in records]
+    assert roles[0] == "camera_info" and roles.count("depth") == 5
+    assert roles.count("camera_info") == (5 if every_frame else 1)
+    assert [r.stamp_ns for r in records if r.role == "depth"] == [EPOCH_NS + k * 100 * MS for k in range(5)]
+    assert not reader.warnings  # the depth's stamps are its log times: nothing to warn of
