@@ -787,3 +787,22 @@ def test_frames_without_colour_do_not_darken_the_map() -> None:
         point_map.fuse(np.eye(4), level, grey if frame == 1 else None, index, 0.01, cos, frame, 100.0, 0.005, None)
     assert point_map.weights.min() == 3
     np.testing.assert_allclose(point_map.colors, 200.0, atol=1e-3)
+
+
+def test_a_first_frame_too_sparse_to_track_from_does_not_start_the_map() -> None:
+    # A first frame whose depth is a 12 x 12 px patch has 144 pixels, over min_correspondences 100, but
+    # only 36 at the ICP's source stride 2: a map started from it could never track a frame, nor grow
+    # (every later frame was lost and the poses stayed at the identity).
+    sim = simulate_rgbd(RgbdConfig(frames=8, seed=2))
+    frames = list(sim.frames())
+    patch = np.zeros_like(frames[0].depth)
+    patch[100:112, 150:162] = frames[0].depth[100:112, 150:162]
+    frames[0] = dataclasses.replace(frames[0], depth=patch)
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    poses = [estimator.step(frame) for frame in frames]
+    summary = estimator.summary()
+    assert estimator.frames_before_map == 1 and summary["lost_frames"] == 0
+    # the map starts at the second frame: the path from there is the simulation's, relative to it
+    truth = np.linalg.inv(sim.poses[1]) @ sim.poses[2:]
+    estimated = np.stack([pose.as_matrix() for pose in poses[2:]])
+    assert np.abs(estimated[:, :3, 3] - truth[:, :3, 3]).max() < 0.01

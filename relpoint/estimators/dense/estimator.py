@@ -287,8 +287,12 @@ class DenseFusion(Estimator[DepthFrame]):
         self._input_points += int(level0.valid.sum())
 
         if self._T_world_camera is None:
-            if int(level0.valid.sum()) < self.config.min_correspondences:
-                return self._before_map(frame, int(level0.valid.sum()))
+            # The next frame is tracked against this one's points at every source_stride-th pixel: a map
+            # started from fewer than min_correspondences of them could never track a frame, nor grow.
+            stride = self.config.source_stride
+            usable = int(level0.valid[::stride, ::stride].sum())
+            if usable < self.config.min_correspondences:
+                return self._before_map(frame, usable)
             T_world_camera = np.eye(4)
         else:
             sources = self._source_levels()
@@ -399,9 +403,9 @@ class DenseFusion(Estimator[DepthFrame]):
             self._unused_depths.append(float(np.median(depth)))
         if self.frames_before_map == 0:
             logger.warning(
-                "frame %d: %d pixels with depth in %g-%g m, fewer than min_correspondences %d: the map starts "
-                "at the first frame that has enough", self._frames, usable, self.config.min_depth,
-                self.config.max_depth, self.config.min_correspondences,
+                "frame %d: %d pixels with depth in %g-%g m at the ICP's source stride %d, fewer than "
+                "min_correspondences %d: the map starts at the first frame that has enough", self._frames, usable,
+                self.config.min_depth, self.config.max_depth, self.config.source_stride, self.config.min_correspondences,
             )  # fmt: skip
         self.frames_before_map += 1
         self._frames += 1
@@ -425,7 +429,8 @@ class DenseFusion(Estimator[DepthFrame]):
                 seen = "they hold no depth at all (every pixel 0 or NaN)"
             raise EstimatorError(
                 f"no depth frame of {self.frames_before_map} had {self.config.min_correspondences} pixels with depth "
-                f"in {self.config.min_depth:g}-{self.config.max_depth:g} m to start the map; {seen}"
+                f"in {self.config.min_depth:g}-{self.config.max_depth:g} m at the ICP's source stride "
+                f"{self.config.source_stride} to start the map; {seen}"
             )
         return trajectory
 
