@@ -806,3 +806,12 @@ def test_a_first_frame_too_sparse_to_track_from_does_not_start_the_map() -> None
     truth = np.linalg.inv(sim.poses[1]) @ sim.poses[2:]
     estimated = np.stack([pose.as_matrix() for pose in poses[2:]])
     assert np.abs(estimated[:, :3, 3] - truth[:, :3, 3]).max() < 0.01
+
+
+def test_a_frame_without_depth_is_lost_for_that_reason() -> None:
+    frames = list(simulate_rgbd(RgbdConfig(frames=4, seed=2)).frames())
+    frames[2] = dataclasses.replace(frames[2], depth=np.zeros_like(frames[2].depth))
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    for frame in frames:
+        estimator.step(frame)
+    assert estimator.summary()["lost_reasons"] == {"the frame holds no depth in range": 1}

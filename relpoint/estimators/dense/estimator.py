@@ -308,7 +308,10 @@ class DenseFusion(Estimator[DepthFrame]):
             else:
                 # Held, and not fused: a frame placed at a pose it was not tracked to would corrupt the map.
                 self.lost_frames += 1
-                if step is not None:
+                if not level0.valid.any():
+                    self.lost_reasons["the frame holds no depth in range"] += 1
+                    reason = f"no pixel with depth in {self.config.min_depth:g}-{self.config.max_depth:g} m"
+                elif step is not None:
                     self.lost_reasons["ICP moved the camera beyond max_step"] += 1
                     reason = f"ICP moved it {float(np.linalg.norm(step[:3, 3])):.2f} m, beyond max_step {self.config.max_step:g} m"
                 elif result.correspondences < self.config.min_correspondences:
