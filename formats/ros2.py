@@ -445,11 +445,29 @@ def msg_to_fix(message: Any) -> PositionFix:
 
 
 def msg_to_intrinsics(message: Any) -> Intrinsics:
-    """Pinhole intrinsics from a CameraInfo's ``k``, with its distortion model and coefficients ``d``."""
+    """Pinhole intrinsics of the images a CameraInfo describes: its ``k``, with its distortion model and
+    coefficients ``d``.
+
+    ``k``, ``width`` and ``height`` are the full sensor's; a driver that bins pixels (``binning_x``,
+    ``binning_y`` above 1) or crops a region (``roi``) publishes smaller images, whose intrinsics are
+    taken as ``image_geometry``'s ``PinholeCameraModel`` takes them: the principal point less the
+    region's offset, then both focal lengths and the principal point divided by the binning.
+    """
     k = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
-    _check_image_size("camera_info", int(message.width), int(message.height))
+    width, height = int(message.width), int(message.height)
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    roi = getattr(message, "roi", None)
+    region = (int(roi.width), int(roi.height)) if roi is not None else (0, 0)
+    if region[0] > 0 and region[1] > 0 and region != (width, height):  # 0 x 0: the full image
+        width, height = region
+        cx, cy = cx - int(roi.x_offset), cy - int(roi.y_offset)
+    binning = (max(int(getattr(message, "binning_x", 0)), 1), max(int(getattr(message, "binning_y", 0)), 1))
+    if binning != (1, 1):
+        width, height = width // binning[0], height // binning[1]
+        fx, cx, fy, cy = fx / binning[0], cx / binning[0], fy / binning[1], cy / binning[1]
+    _check_image_size("camera_info", width, height)
     try:
-        return Intrinsics(int(message.width), int(message.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+        return Intrinsics(width, height, fx, fy, cx, cy,
                           str(message.distortion_model), tuple(np.asarray(message.d, dtype=np.float64).tolist()))  # fmt: skip
     except ValueError as error:
         raise InputError(f"unusable camera_info: {error}") from None

@@ -96,3 +96,24 @@ def test_a_camera_info_with_non_finite_distortion_is_refused_naming_it() -> None
         msg_to_intrinsics(message)
     # all zeros is an ideal pinhole, whatever the model's name
     assert not Intrinsics(320, 240, 290.0, 290.0, 160.0, 120.0, "plumb_bob", (0.0,) * 5).distorted
+
+
+def _camera_info(binning: int = 0, roi: tuple[int, int, int, int] = (0, 0, 0, 0)) -> SimpleNamespace:
+    """A 640x480 CameraInfo (fx 525, centre 319.5, 239.5) with ``binning`` and ``roi`` (x, y, width, height)."""
+    return SimpleNamespace(
+        width=640, height=480, k=[525.0, 0.0, 319.5, 0.0, 525.0, 239.5, 0.0, 0.0, 1.0],
+        distortion_model="plumb_bob", d=[0.0] * 5, binning_x=binning, binning_y=binning,
+        roi=SimpleNamespace(x_offset=roi[0], y_offset=roi[1], width=roi[2], height=roi[3]),
+    )  # fmt: skip
+
+
+def test_a_binned_or_cropped_camera_info_describes_the_images_it_comes_with() -> None:
+    from formats.ros2 import msg_to_intrinsics
+
+    # binning and roi 0 (unset) or 1, or a region of the full image: the full sensor's intrinsics
+    for message in (_camera_info(0), _camera_info(1), _camera_info(1, (0, 0, 640, 480))):
+        assert msg_to_intrinsics(message) == Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
+    # a driver binning 2 x 2 publishes 320x240 images with the full sensor's k (image_geometry's model)
+    assert msg_to_intrinsics(_camera_info(2)) == Intrinsics(320, 240, 262.5, 262.5, 159.75, 119.75)
+    # a region of 200x100 px from (100, 50): the principal point moves by the offset
+    assert msg_to_intrinsics(_camera_info(0, (100, 50, 200, 100))) == Intrinsics(200, 100, 525.0, 525.0, 219.5, 189.5)
