@@ -527,17 +527,19 @@ def test_import_options_of_another_layout_and_a_first_frame_past_the_end_are_usa
     assert not (tmp_path / "x.mcap").exists()
 
 
-def test_short_real_7scenes_run_stays_accurate() -> None:
+def _kitchen_run(frames: range, rate_hz: float) -> tuple[DenseFusion, dict]:
+    """The dense estimator (320x240) over the real kitchen ``frames`` stamped at ``rate_hz``, and its se3
+    ATE summary against the reference poses."""
     folder = shared_data("7scenes-redkitchen-0000-0399")
     K = np.loadtxt(folder / "camera-intrinsics.txt")
     intrinsics = Intrinsics(640, 480, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     estimator = DenseFusion(DenseConfig(downsample=2))
     stamps, truth, poses = [], [], []
-    for i in range(30):
+    for k, i in enumerate(frames):
         with Image.open(folder / f"frame-{i:06d}.depth.png") as image:
             raw = np.asarray(image).astype(np.float32)
         raw[raw >= 65535] = 0
-        stamp = round(i * 1e9 / 30)
+        stamp = round(k * 1e9 / rate_hz)
         poses.append(estimator.step(DepthFrame(stamp, raw * 1e-3, intrinsics)).as_matrix())
         truth.append(np.loadtxt(folder / f"frame-{i:06d}.pose.txt"))
         stamps.append(stamp)
@@ -546,9 +548,14 @@ def test_short_real_7scenes_run_stays_accurate() -> None:
         Trajectory.from_matrices(stamps, poses),
         EvaluationSettings(align="se3", rpe=False, kitti=False),
     )
+    return estimator, result.summary
+
+
+def test_short_real_7scenes_run_stays_accurate() -> None:
+    estimator, summary = _kitchen_run(range(30), 30.0)
     assert estimator.lost_frames == 0
-    assert result.summary["ate_rmse"] < 0.01
-    assert result.summary["path_length_m"] > 0.05  # the camera moved: the bound is not vacuous
+    assert summary["ate_rmse"] < 0.01
+    assert summary["path_length_m"] > 0.05  # the camera moved: the bound is not vacuous
 
 
 def test_fast_kitchen_motion_is_not_taken_for_degenerate_geometry() -> None:
@@ -556,26 +563,9 @@ def test_fast_kitchen_motion_is_not_taken_for_degenerate_geometry() -> None:
     # of motion holds 5e-4 to 1.3e-3 of the strongest's information, as little as a plane's noise-filled
     # ones; judged by that share alone 5 of 33 frames were held along it (6.2 cm ATE). Its information is
     # well above what the normals' noise explains.
-    folder = shared_data("7scenes-redkitchen-0000-0399")
-    K = np.loadtxt(folder / "camera-intrinsics.txt")
-    intrinsics = Intrinsics(640, 480, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    estimator = DenseFusion(DenseConfig(downsample=2))
-    stamps, truth, poses = [], [], []
-    for k, i in enumerate(range(0, 396, 12)):
-        with Image.open(folder / f"frame-{i:06d}.depth.png") as image:
-            raw = np.asarray(image).astype(np.float32)
-        raw[raw >= 65535] = 0
-        stamp = round(k * 1e9 / 2.5)
-        poses.append(estimator.step(DepthFrame(stamp, raw * 1e-3, intrinsics)).as_matrix())
-        truth.append(np.loadtxt(folder / f"frame-{i:06d}.pose.txt"))
-        stamps.append(stamp)
-    result = evaluate_trajectory(
-        Trajectory.from_matrices(stamps, truth),
-        Trajectory.from_matrices(stamps, poses),
-        EvaluationSettings(align="se3", rpe=False, kitti=False),
-    )
+    estimator, summary = _kitchen_run(range(0, 396, 12), 2.5)
     assert estimator.lost_frames == 0 and estimator.degenerate_frames == 0
-    assert result.summary["ate_rmse"] < 0.035
+    assert summary["ate_rmse"] < 0.035
 
 
 def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> None:
