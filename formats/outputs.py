@@ -279,14 +279,21 @@ def written_by_relpoint(path: Path) -> bool:
     return _marked(path)
 
 
-def _relpoint_json(path: Path) -> bool:
+def json_object(path: Path, max_bytes: int) -> dict | None:
+    """The JSON object in ``path``, or None: unreadable, over ``max_bytes``, not JSON or not an object
+    (for telling whether relpoint wrote a file, without trusting it)."""
     try:
-        if path.stat().st_size > 50_000_000:
-            return False
+        if path.stat().st_size > max_bytes:
+            return None
         document = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return False
-    return isinstance(document, dict) and "relpoint_version" in document
+        return None
+    return document if isinstance(document, dict) else None
+
+
+def _relpoint_json(path: Path) -> bool:
+    document = json_object(path, 50_000_000)
+    return document is not None and "relpoint_version" in document
 
 
 def _tail(path: Path) -> bytes:

@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 
 from formats.atomic import write_text
 from formats.config_files import read_document
-from formats.outputs import MARKER, OutputError, check_output_file, probe_writable, register_csv_header
+from formats.outputs import MARKER, OutputError, check_output_file, json_object, probe_writable, register_csv_header
 from formats.signatures import is_log
 from formats.topics import Topics
 from relpoint.errors import UsageError
@@ -591,13 +591,8 @@ register_csv_header(RESULT_COLUMNS)
 
 def _results_json_of_a_batch(path: Path) -> bool:
     """Whether ``path`` is a ``results.json`` that :func:`write_results` wrote."""
-    try:
-        if path.stat().st_size > 200_000_000:
-            return False
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(document, dict) and {"plan", "results", "counts", "jobs"} <= set(document)
+    document = json_object(path, 200_000_000)
+    return document is not None and {"plan", "results", "counts", "jobs"} <= set(document)
 
 
 def check_outputs(plan: BatchPlan) -> None:
