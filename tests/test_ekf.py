@@ -138,6 +138,7 @@ def test_single_landmark_update_matches_hand_derivation() -> None:
             observation_sigma=sigma,
             position_noise=sigma_p,
             quaternion_noise=sigma_theta / 2,
+            min_observations=1,  # the map shows the landmark seen once
         )
     )
     ekf.step(_observe(0, (10.0, 0.0, 0.0)))

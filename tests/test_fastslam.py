@@ -119,7 +119,10 @@ def test_runs_are_deterministic_by_seed() -> None:
 
 @pytest.mark.parametrize("variant", ["1.0", "2.0"])
 def test_points_pair_with_their_landmark_or_start_new_ones(variant: str) -> None:
-    slam = FastSlam(FastSlamConfig(variant=variant, particles=5, pose_noise=0.0), np.random.default_rng(0))
+    config = FastSlamConfig(
+        variant=variant, particles=5, pose_noise=0.0, min_observations=1
+    )  # landmarks seen once shown
+    slam = FastSlam(config, np.random.default_rng(0))
     slam.step(PointObservation(0, [[10.0, 0.0, 0.0], [0.0, 10.0, 0.0]], [0, 1]))
     assert slam.counts.tolist() == [2] * 5
     # Same stamp (no motion): one point near landmark 0, one far from everything.

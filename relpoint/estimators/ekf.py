@@ -279,7 +279,8 @@ class EkfSlam(Estimator[PointObservation]):
         self._stats["fixes"] += 1
 
     def landmark_map(self) -> LandmarkMap:
-        """The landmarks, then the moving points followed outside the map (flagged dynamic, last position)."""
+        """The landmarks seen at least ``min_observations`` times, then the moving points followed outside
+        the map (flagged dynamic, last position)."""
         n = len(self._landmarks)
         votes = self._id_votes + (self._movers.votes if self._movers is not None else [])
         observations = self._observations + (self._movers.observations if self._movers is not None else [])
@@ -292,7 +293,12 @@ class EkfSlam(Estimator[PointObservation]):
             positions = apply_transform(T, positions)
         dynamic = np.concatenate([self._moving, np.ones(len(positions) - n, dtype=bool)])
         first = np.concatenate([self._first_seen, np.full(len(positions) - n, -1, dtype=np.int64)])
-        return LandmarkMap(positions, np.array(observations, dtype=np.int64), dynamic, gt_id, first_iteration=first)
+        observations = np.array(observations, dtype=np.int64)
+        shown = np.ones(len(positions), dtype=bool)
+        shown[:n] = observations[:n] >= self.config.min_observations
+        return LandmarkMap(
+            positions[shown], observations[shown], dynamic[shown], gt_id[shown], first_iteration=first[shown]
+        )
 
     @property
     def map_size(self) -> int:
@@ -301,6 +307,7 @@ class EkfSlam(Estimator[PointObservation]):
     def summary(self) -> dict[str, Any]:
         return {
             "landmarks": self.map_size,
+            "landmarks_not_mapped": int(np.count_nonzero(np.array(self._observations) < self.config.min_observations)),
             "moving_landmarks": int(self._moving.sum()),
             "association": self.config.association,
             "motion": self.config.motion,
@@ -330,7 +337,9 @@ class EkfSlam(Estimator[PointObservation]):
         if self._pairs is None:
             return trajectory
         static = ~self._moving
-        positions = self.landmark_map().positions[: len(self._landmarks)]
+        positions = (
+            self._landmarks if self._frame is None else apply_transform(self._frame.provisional, self._landmarks)
+        )
         iterations = self._stats["iterations"]
         smoothed, self._smoothing = smoothed_trajectory(
             trajectory, iterations, self._pairs, self._uid[static], positions[static],

@@ -61,6 +61,12 @@ class EkfConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSettings):
     """A point starts a landmark only if it lies outside every landmark's gate of this probability;
     points between the two gates are discarded (a true landmark's point falls outside the 0.99 gate
     one time in a hundred, and would otherwise start a duplicate)."""
+    min_observations: int = setting(2, low=1, high=1_000_000)
+    """The map (``map.ply``, ``map.csv``, the result's landmarks) holds the landmarks seen at least this
+    many times; the filter keeps the others in its state. A landmark seen once has told the filter
+    nothing, and a front-end's wild points are seen once: on a log with 5 % of its points 5 m off,
+    2,329 of the 2,732 landmarks were such points (landmark RMSE 8.2 m against 0.020 m for the rest).
+    1: every landmark."""
     rigid_consensus: bool = True
     """After association, the pairs that the rigid motion shared by most of them does not explain
     (RANSAC, :func:`relpoint.geometry.rigid_consensus`; the tolerance is the validation gate's radius

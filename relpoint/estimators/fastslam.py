@@ -548,24 +548,31 @@ class FastSlam(Estimator[PointObservation]):
         self._hold.hold(odometry)
 
     def landmark_map(self) -> LandmarkMap:
-        """The map of the particle with the largest weight (before the fixes pin the frame: provisionally placed)."""
+        """The map of the particle with the largest weight (before the fixes pin the frame: provisionally
+        placed): its landmarks seen at least ``min_observations`` times."""
         best = int(np.argmax(self.log_weights))
         n = int(self.counts[best])
-        positions = self.means[best, :n].copy()
+        shown = self._seen[best, :n] >= self.config.min_observations
+        positions = self.means[best, :n][shown]
         if self._frame is not None:
             T = self._frame.provisional
             positions = apply_transform(T, positions)
         return LandmarkMap(
             positions,
-            self._seen[best, :n].copy(),
-            self._moving[best, :n].copy(),
-            self._vote_id[best, :n].copy(),
-            first_iteration=self._born[best, :n].copy(),
+            self._seen[best, :n][shown],
+            self._moving[best, :n][shown],
+            self._vote_id[best, :n][shown],
+            first_iteration=self._born[best, :n][shown],
         )
 
     @property
     def map_size(self) -> int:
         return int(self.counts[int(np.argmax(self.log_weights))])
+
+    def _not_mapped(self) -> int:
+        """The best particle's landmarks seen fewer than ``min_observations`` times (left out of the map)."""
+        best = int(np.argmax(self.log_weights))
+        return int(np.count_nonzero(self._seen[best, : int(self.counts[best])] < self.config.min_observations))
 
     def summary(self) -> dict[str, Any]:
         w = self.weights
@@ -574,6 +581,7 @@ class FastSlam(Estimator[PointObservation]):
             "particles": self.config.particles,
             "linear_acceleration_noise": self.config.acceleration_noise,
             "landmarks": self.map_size,
+            "landmarks_not_mapped": self._not_mapped(),
             "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             "time_gaps_bridged": self._gaps.bridged,

@@ -77,6 +77,11 @@ class FastSlamConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSetti
     keeps the proposal full rank when odometry is perfect."""
     resample_threshold: float = setting(0.5, low=0, high=1)
     """Resample when the effective sample size falls below this fraction of the particles."""
+    min_observations: int = setting(2, low=1, high=1_000_000)
+    """The map (``map.ply``, ``map.csv``, the result's landmarks) holds the best particle's landmarks
+    seen at least this many times; the particles keep the others. A front-end's wild points are seen
+    once: on a log with 5 % of its points 5 m off, 2,391 of the best particle's 2,810 landmarks were
+    such points (landmark RMSE 8.2 m against 0.045 m for the rest). 1: every landmark."""
     search_radius: float | None = setting(None, low=1e-6, high=1e6)
     """Landmarks farther than this from a point (in every particle) are not considered for it (m).
     Unset (the default): ``SEARCH_RADIUS_SIGMAS`` (16.7) times ``observation_sigma``, which is 5 m at
