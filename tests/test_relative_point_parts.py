@@ -6,14 +6,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy import sparse
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.adjustment import (
-    _solve_positive_definite,
     adjust_network,
     carry_corrections,
     inconsistent_relocations,
@@ -476,29 +473,6 @@ def test_adjustment_recovers_a_perturbed_network_of_relative_maps(shape: tuple[i
     )
     start_error = np.linalg.norm(X - points, axis=1).max()
     assert np.linalg.norm(held.positions - points, axis=1).max() < 0.15 * start_error
-
-
-class _NeverDense(sparse.csr_matrix):
-    """A sparse matrix that refuses to be made dense."""
-
-    def toarray(self, order: object = None, out: object = None) -> np.ndarray:
-        raise AssertionError("the sparse system was made dense")
-
-
-def test_a_wide_band_system_is_solved_sparse() -> None:
-    # A bundle adjustment's points seen from many keyframes couple far apart in any order: the
-    # band is wide. It was made dense and Cholesky-factorised (n^3 / 3; 41 of 68 s of a stereo-like
-    # log's final adjustment) although its factors stay about as sparse as the system itself.
-    rng = np.random.default_rng(0)
-    n = 3000
-    coupling = sparse.random(n, n, density=2e-3, random_state=rng, format="csr")
-    system = coupling @ coupling.T + sparse.diags(np.full(n, 10.0))
-    rhs = rng.standard_normal(n)
-    order = reverse_cuthill_mckee(system.tocsr(), symmetric_mode=True)
-    permuted = system.tocsr()[order][:, order].tocoo()
-    assert np.max(np.abs(permuted.col - permuted.row)) >= n // 3  # the wide-band case
-    solution = _solve_positive_definite(_NeverDense(system), rhs, order)
-    np.testing.assert_allclose(system @ solution, rhs, atol=1e-9)
 
 
 def test_adjustment_with_the_poses_eliminated_survives_a_pose_seen_along_a_line() -> None:

@@ -97,20 +97,20 @@ def _block_diagonal(blocks: FloatArray) -> sparse.csr_matrix:
     return sparse.csr_matrix((blocks.ravel(), (rows, cols.ravel())), shape=(n, n))
 
 
+#: Largest reduced system solved densely when its band is wide (about 0.3 s to factorise at this size).
+DENSE_SOLVE_LIMIT = 6000
+
+
 def _solve_positive_definite(S: sparse.csr_matrix, rhs: FloatArray, order: IntArray) -> FloatArray:
     """Solve the symmetric positive definite ``S x = rhs``.
 
     Groups couple mostly to groups of nearby time, so in reverse Cuthill-McKee ``order`` the
     reduced system is banded: a banded Cholesky factorisation (LAPACK) costs n b^2 for bandwidth b,
-    several times less than a general sparse LU here. A wide band (long loops, a bundle
-    adjustment's points seen from many keyframes) is factorised by SuperLU in symmetric mode: a
-    minimum-degree order of ``S`` and pivots taken from its diagonal, as a sparse Cholesky
-    factorisation would, so the factors stay about as sparse as ``S`` itself. It replaced a dense
-    Cholesky factorisation up to 6,000 unknowns, which took 41 of the 68 s of a stereo-like log's
-    final adjustment (79 factorisations; 1,008 unknowns: 0.20 s dense, 0.03 s this way).
+    several times less than a general sparse LU here. A wide band (long loops) is factorised densely
+    up to ``DENSE_SOLVE_LIMIT`` unknowns, and beyond that by SuperLU.
     """
-    from scipy.linalg import solveh_banded  # here, not at import: scipy costs start-up time
-    from scipy.sparse.linalg import splu, spsolve
+    from scipy.linalg import cho_factor, cho_solve, solveh_banded  # here, not at import: scipy costs start-up time
+    from scipy.sparse.linalg import spsolve
 
     n = S.shape[0]
     permuted = S[order][:, order].tocoo()
@@ -125,11 +125,12 @@ def _solve_positive_definite(S: sparse.csr_matrix, rhs: FloatArray, order: IntAr
             return solution
         except np.linalg.LinAlgError:
             pass
-    else:
+    elif n <= DENSE_SOLVE_LIMIT:
+        # A wide band (a bundle adjustment's points seen from every keyframe, long loops): a dense
+        # Cholesky factorisation, n^3 / 3, is far cheaper than sparse LU's fill-in at this size.
         try:
-            factor = splu(S.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-            return np.asarray(factor.solve(rhs))
-        except RuntimeError:  # a zero pivot on the diagonal: general pivoting below
+            return cho_solve(cho_factor(S.toarray(), check_finite=False), rhs, check_finite=False)
+        except np.linalg.LinAlgError:
             pass
     return np.asarray(spsolve(S.tocsc(), rhs))
 
