@@ -15,7 +15,7 @@ from formats.log import LogReader
 from formats.rgbd_import import associate_stamps, import_7scenes, import_tum
 from relpoint.errors import UsageError
 from relpoint.estimators.dense import SPEC, DenseConfig, DenseFusion
-from relpoint.estimators.dense.fusion import PointMap, _fill_from_neighbours
+from relpoint.estimators.dense.fusion import PointMap, _fill_from_neighbours, colors_filled
 from relpoint.estimators.dense.icp import (
     IcpSettings,
     alignment_cost,
@@ -777,6 +777,20 @@ def test_frames_without_colour_do_not_darken_the_map() -> None:
         point_map.fuse(np.eye(4), level, grey if frame == 1 else None, index, 0.01, cos, frame, 100.0, 0.005, None)
     assert point_map.weights.min() == 3
     np.testing.assert_allclose(point_map.colors, 200.0, atol=1e-3)
+
+
+def test_points_no_coloured_frame_saw_take_their_nearest_coloured_neighbours_colour() -> None:
+    # With colour at half rate, points only the uncoloured frames added were written black: 7.8 % of a
+    # kitchen map.
+    positions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.9, 0.1, 1.0]])
+    colors = np.array([[200, 10, 10], [10, 10, 200], [0, 0, 0], [0, 0, 0]], np.uint8)
+    colored = np.array([True, True, False, False])
+    filled = colors_filled(positions, colors, colored)
+    np.testing.assert_array_equal(filled, [[200, 10, 10], [10, 10, 200], [200, 10, 10], [10, 10, 200]])
+    np.testing.assert_array_equal(colors[2:], 0)  # the input is left as it was
+    # nothing coloured (a depth-only log) or everything coloured: unchanged
+    assert colors_filled(positions, colors, np.zeros(4, bool)) is colors
+    assert colors_filled(positions, colors, np.ones(4, bool)) is colors
 
 
 def test_a_first_frame_too_sparse_to_track_from_does_not_start_the_map() -> None:

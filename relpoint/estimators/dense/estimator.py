@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators.base import DEPTH, Estimator
-from relpoint.estimators.dense.fusion import PointMap
+from relpoint.estimators.dense.fusion import PointMap, colors_filled
 from relpoint.estimators.dense.icp import SIGMA_1M, IcpSettings, alignment_cost, depth_sigma, track
 from relpoint.estimators.dense.maps import Level, build_pyramid
 from relpoint.estimators.spec import EstimatorSpec
@@ -448,11 +448,15 @@ class DenseFusion(Estimator[DepthFrame]):
 
     def dense_map(self) -> tuple[FloatArray, FloatArray, npt.NDArray[np.uint8], FloatArray]:
         """The fused map: positions (M, 3) metres and unit normals (M, 3) in ``world``, colours (M, 3) uint8 RGB,
-        weights (M,) (measurements fused per point); float64 copies."""
+        weights (M,) (measurements fused per point); float64 copies. A point that no frame with colour has
+        seen takes the colour of the nearest point that one has (:func:`colors_filled`)."""
+        positions = self.map.positions.T.astype(np.float64)
         return (
-            self.map.positions.T.astype(np.float64),
+            positions,
             self.map.normals.T.astype(np.float64),
-            np.clip(np.rint(self.map.colors.T), 0, 255).astype(np.uint8),
+            colors_filled(
+                positions, np.clip(np.rint(self.map.colors.T), 0, 255).astype(np.uint8), self.map.color_weights > 0
+            ),
             self.map.weights.astype(np.float64),
         )
 
