@@ -72,16 +72,20 @@ class _HeldDepth:
 COLOUR_PAIRING_NS = 20_000_000
 
 
-def estimator_inputs(records: Iterator[Record], skipped: Counter[str] | None = None) -> Iterator[Any]:
+def estimator_inputs(
+    records: Iterator[Record], skipped: Counter[str] | None = None, warnings: list[str] | None = None
+) -> Iterator[Any]:
     """Core-type inputs for the pipeline from decoded log records, in the records' order.
 
     Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
     colour image nearest in stamp within :data:`COLOUR_PAIRING_NS` (before or after the depth image in
     the log: a depth image waits until the log has passed that window); depth images that arrive
     before any camera_info, or that do not match its size, are skipped, counted in ``skipped`` and
-    reported once, as are colour images of another size than their depth image.
+    reported once, as are colour images of another size than their depth image. A distortion that
+    cannot be taken out is warned of, and the warning appended to ``warnings`` (run.json's).
     """
     skipped = Counter() if skipped is None else skipped
+    warnings = [] if warnings is None else warnings
     intrinsics: Intrinsics | None = None
     colours: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
     held: deque[Any] = deque()  # depth images (_HeldDepth) waiting for their colour, and the inputs after them
@@ -113,8 +117,10 @@ def estimator_inputs(records: Iterator[Record], skipped: Counter[str] | None = N
                          frame.intrinsics.distortion_model)  # fmt: skip
             except ValueError as error:
                 maps[frame.intrinsics] = None
-                log.warning("the camera_info's %s is not a distortion relpoint can take out: the images are used "
-                            "as if from an ideal pinhole", error)  # fmt: skip
+                message = (f"the camera_info's {error} is not a distortion relpoint can take out: the images are "
+                           "used as if from an ideal pinhole")  # fmt: skip
+                log.warning("%s", message)
+                warnings.append(message)
         undo = maps[frame.intrinsics]
         if undo is None:
             return frame
@@ -288,7 +294,7 @@ def drive(
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             return pipeline.run(
-                estimator_inputs(records, reader.skipped), estimator, on_iteration=on_iteration, on_finish=on_finish,
+                estimator_inputs(records, reader.skipped, reader.warnings), estimator, on_iteration=on_iteration, on_finish=on_finish,
                 map_every=map_every, skipped_before=reader.skipped,
             )  # fmt: skip
     except (EstimatorError, InputError):

@@ -117,3 +117,13 @@ def test_a_binned_or_cropped_camera_info_describes_the_images_it_comes_with() ->
     assert msg_to_intrinsics(_camera_info(2)) == Intrinsics(320, 240, 262.5, 262.5, 159.75, 119.75)
     # a region of 200x100 px from (100, 50): the principal point moves by the offset
     assert msg_to_intrinsics(_camera_info(0, (100, 50, 200, 100))) == Intrinsics(200, 100, 525.0, 525.0, 219.5, 189.5)
+
+
+def test_a_distortion_relpoint_cannot_take_out_is_warned_of_in_run_json_too() -> None:
+    # The warning went to the terminal only; run.json's warnings (what a CI job reads) did not have it.
+    fisheye = Intrinsics(4, 3, 2.0, 2.0, 1.5, 1.0, "fisheye62", (0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    warnings: list[str] = []
+    records = [Record("camera_info", 0, fisheye), _depth(10), _depth(20)]
+    frames = list(estimator_inputs(iter(records), Counter(), warnings))
+    assert len(frames) == 2 and frames[0].intrinsics == fisheye  # used as an ideal pinhole
+    assert len(warnings) == 1 and "fisheye62" in warnings[0] and "ideal pinhole" in warnings[0]
