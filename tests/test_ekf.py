@@ -239,7 +239,7 @@ def test_removing_landmarks_keeps_the_covariance_of_the_rest() -> None:
     ],
 )
 def test_gate_accepts_inlier_and_rejects_outlier(offset: float, paired: int, started: int, discarded: int) -> None:
-    ekf = EkfSlam(EkfConfig(motion="constant_position"))
+    ekf = EkfSlam(EkfConfig(motion="constant_position", min_observations=1))  # map_size counts landmarks seen once
     ekf.step(_observe(0, (10.0, 0.0, 0.0)))
     # S_xx = 0.10^2 (position noise) + 2 * 0.3^2 = 0.19: the 0.99 gate is |dx| < 1.47 m, the 0.9999 one 2.0 m.
     assert np.sqrt(chi2_gate(0.99, 3) * 0.19) == pytest.approx(1.468, abs=1e-3)

@@ -65,3 +65,7 @@ def test_points_seen_once_stay_out_of_the_map(name: str) -> None:
     # The map leaves out only landmarks seen once; the filter's estimate is the same.
     assert len(shown.landmarks) == np.count_nonzero(every.landmarks.observations >= 2)
     np.testing.assert_array_equal(shown.trajectory.positions, every.trajectory.positions)
+    # run.json counts what the map holds, and what it leaves out
+    assert shown.summary["landmarks"] == len(shown.landmarks)
+    assert shown.summary["landmarks_not_mapped"] == len(every.landmarks) - len(shown.landmarks)
+    assert every.summary["landmarks_not_mapped"] == 0

@@ -302,12 +302,20 @@ class EkfSlam(Estimator[PointObservation]):
 
     @property
     def map_size(self) -> int:
-        return len(self._landmarks) + (len(self._movers) if self._movers is not None else 0)
+        """Landmarks in :meth:`landmark_map` (seen ``min_observations`` times, and followed movers)."""
+        mapped = len(self._landmarks) - self._not_mapped()
+        return mapped + (len(self._movers) if self._movers is not None else 0)
+
+    def _not_mapped(self) -> int:
+        """Landmarks in the state seen fewer than ``min_observations`` times (left out of the map)."""
+        if self.config.min_observations <= 1:
+            return 0
+        return int(np.count_nonzero(np.array(self._observations, dtype=np.int64) < self.config.min_observations))
 
     def summary(self) -> dict[str, Any]:
         return {
             "landmarks": self.map_size,
-            "landmarks_not_mapped": int(np.count_nonzero(np.array(self._observations) < self.config.min_observations)),
+            "landmarks_not_mapped": self._not_mapped(),
             "moving_landmarks": int(self._moving.sum()),
             "association": self.config.association,
             "motion": self.config.motion,

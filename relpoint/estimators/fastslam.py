@@ -567,7 +567,8 @@ class FastSlam(Estimator[PointObservation]):
 
     @property
     def map_size(self) -> int:
-        return int(self.counts[int(np.argmax(self.log_weights))])
+        """Landmarks in :meth:`landmark_map` (the best particle's, seen ``min_observations`` times)."""
+        return int(self.counts[int(np.argmax(self.log_weights))]) - self._not_mapped()
 
     def _not_mapped(self) -> int:
         """The best particle's landmarks seen fewer than ``min_observations`` times (left out of the map)."""
