@@ -77,6 +77,13 @@ class DenseConfig(Settings):
     """Association gate on the angle between map and frame normals, degrees."""
     huber_delta: float = setting(0.02, low=0)
     """Huber threshold on point-to-plane residuals, metres (0 = plain least squares as in the paper)."""
+    rotation_iterations: int = setting(3, low=0, high=100)
+    """Before the joint ICP, turn the camera about its centre by up to this many rotation-only iterations at
+    the coarsest level, and start from there when that explains the level at least as well as the last
+    pose (0 = start from the last pose, as KinectFusion). A fast turn otherwise leaks into a translation
+    along a blank wall: turned at 80 degrees a second in an empty simulated room, the camera slid 0.89 m
+    with 3 (0.05 m RMS); the 7-Scenes kitchen's ATE is unchanged at 320x240 (2.24 cm), better on every 12th
+    frame at 640x480 (3.93 -> 3.38 cm)."""
     constant_velocity: bool = False
     """Start ICP from the previous pose moved by the last frame-to-frame motion when that start explains
     the frame at the coarsest level at least as well as the previous pose does (else from the previous
@@ -146,6 +153,7 @@ class DenseConfig(Settings):
             huber_delta=self.huber_delta,
             depth_weighting=self.depth_weighting,
             map_normals=self.map_normals,
+            rotation_iterations=self.rotation_iterations,
         )
 
 
@@ -180,6 +188,7 @@ class DenseFusion(Estimator[DepthFrame]):
         self._T_world_camera: FloatArray | None = None
         self._motion: FloatArray | None = None  # T_previous_current of the last tracked frame
         self.predicted_frames = 0
+        self.rotation_start_frames = 0
         self._icp_iterations = 0
         self._model_index: npt.NDArray[np.int64] | None = None
         self._last_stamp: int | None = None
@@ -299,6 +308,7 @@ class DenseFusion(Estimator[DepthFrame]):
             prediction = self._predict(sources, pyramid)
             result = track(sources, pyramid, invert_pose(prediction), self._gap_settings(frame.stamp_ns))
             self._icp_iterations += result.iterations
+            self.rotation_start_frames += result.rotation_start
             self.last_track = result
             step = invert_pose(self._T_world_camera) @ invert_pose(result.T_camera_world) if result.ok else None
             if step is not None and float(np.linalg.norm(step[:3, 3])) <= self.config.max_step:
@@ -473,6 +483,7 @@ class DenseFusion(Estimator[DepthFrame]):
             "gap_frames": self.gap_frames,
             "frames_before_map": self.frames_before_map,
             "predicted_frames": self.predicted_frames,
+            "rotation_start_frames": self.rotation_start_frames,
             "icp_iterations_per_frame": self._icp_iterations / max(self._frames - 1, 1),
             "removed_unstable_points": self.removed_points,
         }
