@@ -58,6 +58,7 @@ from formats.layouts import (
 )
 from formats.outputs import unreadable_input
 from formats.topics import Topics
+from formats.trajectory_files import format_stamp
 from relpoint.errors import InputError, UsageError
 from relpoint.types import GroundTruthLandmarks, Intrinsics, OdometryMeasurement, PointObservation, Pose, PositionFix
 
@@ -491,8 +492,8 @@ class LogReader:
 
     def _not_increasing(self, topic: str, stamp_ns: int, before_ns: int) -> InputError:
         return InputError(
-            f"{self.path}: {topic} stamp {stamp_ns * 1e-9:.9f} s is not after the previous "
-            f"{before_ns * 1e-9:.9f} s (stamps must strictly increase per topic)",
+            f"{self.path}: {topic} stamp {format_stamp(stamp_ns)} s is not after the previous "
+            f"{format_stamp(before_ns)} s (stamps must strictly increase per topic)",
             "fix the recording's stamps, or cut the log before that point with `mcap filter`",
         )
 

@@ -117,6 +117,22 @@ def test_topics_stamped_on_different_clocks_are_an_error(tmp_path: Path) -> None
         list(LogReader(zero).records(["points", "odometry"]))
 
 
+def test_a_stamp_that_goes_back_is_named_to_the_nanosecond(tmp_path: Path) -> None:
+    # In float seconds a stamp of 1.7e9 s keeps 7 digits after the point (666666746 for 666666660): the
+    # message named a stamp that is nowhere in the log.
+    path = tmp_path / "back.mcap"
+    stamps = [EPOCH_NS + 633_333_330, EPOCH_NS + 699_999_993, EPOCH_NS + 666_666_660]
+    with LogWriter(path) as writer:
+        for k, stamp in enumerate(stamps):  # logged in order, the last stamped before the one before it
+            message = ros2.observation_to_msg(PointObservation(stamp, np.ones((3, 3))))
+            writer.write("/points", ros2.POINT_CLOUD2, message, EPOCH_NS + k * 100 * MS)
+    seconds = EPOCH_NS // 1_000_000_000
+    with pytest.raises(
+        InputError, match=rf"stamp {seconds}\.666666660 s is not after the previous {seconds}\.699999993 s"
+    ):
+        list(LogReader(path).records(["points"]))
+
+
 @pytest.mark.parametrize("name", ["ekf", "fastslam"])
 def test_estimators_on_a_log_with_receive_times_match_the_log_in_stamp_order(
     tmp_path: Path, small_log: Path, name: str
