@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
-from formats.log import LogReader, Record, Topics
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, Record, Topics
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
@@ -60,11 +60,11 @@ def build_config(
 
 @dataclasses.dataclass(frozen=True)
 class _HeldDepth:
-    """A depth image waiting for the colour image of its stamp."""
+    """A depth image waiting for the colour image of its stamp (and, when none came before it, its camera_info)."""
 
     stamp_ns: int
     depth: np.ndarray
-    intrinsics: Intrinsics
+    intrinsics: Intrinsics | None
 
 
 #: Largest stamp difference (ns) between a depth image and the colour image paired with it: the
@@ -79,9 +79,9 @@ def estimator_inputs(
 
     Depth images become :class:`DepthFrame` objects with the latest camera_info's intrinsics and the
     colour image nearest in stamp within :data:`COLOUR_PAIRING_NS` (before or after the depth image in
-    the log: a depth image waits until the log has passed that window); depth images that arrive
-    before any camera_info, or that do not match its size, are skipped, counted in ``skipped`` and
-    reported once, as are colour images of another size than their depth image. A distortion that
+    the log: a depth image waits until the log has passed that window); depth images without a
+    camera_info before them or within that window after them, or that do not match its size, are
+    skipped, counted in ``skipped`` and reported once, as are colour images of another size than their depth image. A distortion that
     cannot be taken out is warned of, and the warning appended to ``warnings`` (run.json's).
     """
     skipped = Counter() if skipped is None else skipped
@@ -106,6 +106,7 @@ def estimator_inputs(
         return rgb
 
     maps: dict[Intrinsics, Undistortion | None] = {}
+    counts: Counter[str] = Counter()  # colour images read, and depth images that got one
 
     def undistorted(frame: DepthFrame) -> DepthFrame:
         if not frame.intrinsics.distorted:
@@ -127,14 +128,35 @@ def estimator_inputs(
         color = None if frame.color is None else undo.color(frame.color)
         return DepthFrame(frame.stamp_ns, undo.depth(frame.depth), undo.pinhole, color)
 
+    def matching(item: _HeldDepth) -> Intrinsics | None:
+        """The camera_info of a depth image: the latest one read before it, or, when there was none, one
+        read within the pairing window after it (drivers publish an image before its camera_info); None,
+        counted and reported once, when there is none or it describes another image size."""
+        k = item.intrinsics if item.intrinsics is not None else intrinsics
+        if k is not None and item.depth.shape == (k.height, k.width):
+            return k
+        kind = "depth: images without a matching camera_info"
+        if kind not in skipped:
+            if k is None:
+                detail = "no camera_info before it"
+            else:
+                detail = f"it is {item.depth.shape[1]}x{item.depth.shape[0]}, the camera_info {k.width}x{k.height}"
+            log.warning("skipping a depth image at %d ns: %s; further ones are counted in run.json",
+                        item.stamp_ns, detail)  # fmt: skip
+        skipped[kind] += 1
+        return None
+
     def release(now_ns: int | None) -> Iterator[Any]:
         while held:
             item = held[0]
             if isinstance(item, _HeldDepth):
                 if now_ns is not None and now_ns <= item.stamp_ns + COLOUR_PAIRING_NS:
                     return
-                yield undistorted(DepthFrame(item.stamp_ns, item.depth, item.intrinsics,
-                                             colour_for(item.stamp_ns, item.depth.shape)))  # fmt: skip
+                k = matching(item)
+                if k is not None:
+                    rgb = colour_for(item.stamp_ns, item.depth.shape)
+                    counts["coloured"] += rgb is not None
+                    yield undistorted(DepthFrame(item.stamp_ns, item.depth, k, rgb))
             else:
                 yield item
             held.popleft()
@@ -150,21 +172,15 @@ def estimator_inputs(
             intrinsics = record.value
         elif record.role == "color":
             colours.append((record.stamp_ns, record.value))
+            counts["colour images"] += 1
         elif record.role == "depth":
-            if intrinsics is None or record.value.shape != (intrinsics.height, intrinsics.width):
-                kind = "depth: images without a matching camera_info"
-                if kind not in skipped:
-                    if intrinsics is None:
-                        detail = "no camera_info before it"
-                    else:
-                        detail = (f"it is {record.value.shape[1]}x{record.value.shape[0]}, the camera_info "
-                                  f"{intrinsics.width}x{intrinsics.height}")  # fmt: skip
-                    log.warning("skipping a depth image at %d ns: %s; further ones are counted in run.json",
-                                record.stamp_ns, detail)  # fmt: skip
-                skipped[kind] += 1
-                continue
             held.append(_HeldDepth(record.stamp_ns, record.value, intrinsics))
     yield from release(None)
+    if counts["colour images"] and not counts["coloured"]:
+        message = (f"none of the log's {counts['colour images']} colour images could colour a depth image (see "
+                   "skipped for why): the map's points are black")  # fmt: skip
+        log.warning("%s", message)
+        warnings.append(message)
 
 
 def input_roles(
@@ -176,7 +192,20 @@ def input_roles(
     wanted = [
         need for need in sorted(spec.uses) if (need != "odometry" or use_odometry) and (need != "fix" or use_fixes)
     ]
-    return needed + [role for need in wanted for role in NEED_ROLES.get(need, (need,)) if reader.role_present(role)]
+    optional = [role for need in wanted for role in NEED_ROLES.get(need, (need,))]
+    defaults = Topics().roles()
+    for role in optional:
+        topic = reader.topics.roles()[role]
+        if topic != defaults[role]:
+            reader.require(role)  # a topic the user named must be there, of the right type
+            continue
+        info = reader.topic_infos.get(topic)
+        if info is not None and info.count and not reader.role_present(role):
+            message = (f"{topic} carries {info.typename or 'schemaless data'}, not {ROLE_TYPES[role]}: not read as "
+                       f"{role.replace('_', ' ')} (name another topic with {ROLE_OPTIONS[role]})")  # fmt: skip
+            log.warning("%s", message)
+            reader.warnings.append(message)
+    return needed + [role for role in optional if reader.role_present(role)]
 
 
 #: Roles a time window crops; the others (camera_info) describe the sensor and are always read.

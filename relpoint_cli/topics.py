@@ -7,7 +7,8 @@ from typing import Any
 
 import click
 
-from formats.log import ROLE_OPTIONS, Topics
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, Topics
+from relpoint.errors import UsageError
 
 
 def topic_options(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -22,5 +23,20 @@ def topic_options(command: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def topics_from(params: dict[str, Any]) -> Topics:
-    """Build :class:`Topics` from the ``topic_*`` parameters of :func:`topic_options`."""
-    return Topics(**{key.removeprefix("topic_"): value for key, value in params.items() if key.startswith("topic_")})
+    """Build :class:`Topics` from the ``topic_*`` parameters of :func:`topic_options`.
+
+    Raises :class:`UsageError` when two roles of one message type are given one topic: its messages can
+    serve only one of them (depth and colour images share a type, so such a log read as colour failed on
+    the depth). Roles of other types on one topic are told apart by the type check of the log reader.
+    """
+    topics = Topics(**{key.removeprefix("topic_"): value for key, value in params.items() if key.startswith("topic_")})
+    roles_of: dict[tuple[str, str], list[str]] = {}
+    for role, topic in topics.roles().items():
+        roles_of.setdefault((topic, ROLE_TYPES[role]), []).append(role)
+    for (topic, _), roles in roles_of.items():
+        if len(roles) > 1:
+            options = " and ".join(ROLE_OPTIONS[role] for role in roles)
+            raise UsageError(
+                f"{options} both name {topic}: each role needs a topic of its own", "name the right topics"
+            )
+    return topics

@@ -175,3 +175,44 @@ def test_a_dense_log_without_any_depth_fails_naming_depth(tmp_path: Path) -> Non
     with pytest.raises(EstimatorError, match="no depth at all") as error:
         pipeline.run(iter(frames), DenseFusion(DenseConfig()))
     assert error.value.exit_code == 4
+
+
+def _depth_log(path: Path, colour_topic_type: str | None = None) -> Path:
+    """A 4-frame depth log of a tilted wall; with ``colour_topic_type``, the colour role's default topic
+    carries ground-truth poses (``"pose"``) instead of images."""
+    from formats import ros2
+    from formats.log import LogWriter
+    from relpoint.types import Intrinsics, Pose
+
+    k = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    u = np.arange(64, dtype=np.float32)[None, :].repeat(48, axis=0)
+    with LogWriter(path) as writer:
+        for i in range(4):
+            stamp = i * 33_333_333
+            writer.write("/camera/depth/camera_info", ros2.CAMERA_INFO, ros2.camera_info_to_msg(stamp, k), stamp)
+            depth = 1.5 + 0.01 * u + 0.002 * i
+            writer.write("/camera/depth/image", ros2.IMAGE, ros2.depth_image_to_msg(stamp, depth), stamp)
+            if colour_topic_type == "pose":
+                message = ros2.pose_to_msg(Pose(stamp, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+                writer.write("/camera/color/image", ros2.POSE_STAMPED, message, stamp)
+    return path
+
+
+def test_a_colour_topic_that_cannot_be_read_is_an_error_when_named_and_a_warning_when_not(tmp_path: Path) -> None:
+    # A --color-topic with a typo, or naming a topic of another type, was ignored without a word and the
+    # map written black.
+    log = _depth_log(tmp_path / "wall.mcap", colour_topic_type="pose")
+    code, _, err = invoke("run", str(log), "-e", "dense", "-o", str(tmp_path / "a"), "--color-topic", "/camera/colour")
+    assert code == 3 and "no messages on /camera/colour" in err and "--color-topic" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "a").exists()
+    code, _, err = invoke(
+        "run", str(log), "-e", "dense", "-o", str(tmp_path / "b"), "--color-topic", "/camera/depth/image"
+    )
+    assert code == 2 and "--depth-topic and --color-topic both name /camera/depth/image" in err
+    # The colour role's default topic of another type: the run goes on without colour, and says why.
+    code, _, err = invoke("run", str(log), "-e", "dense", "-o", str(tmp_path / "c"))
+    assert code == 0, err
+    warnings = json.loads((tmp_path / "c" / "run.json").read_text())["warnings"]
+    assert any(
+        "/camera/color/image carries geometry_msgs/msg/PoseStamped, not sensor_msgs/msg/Image" in w for w in warnings
+    )

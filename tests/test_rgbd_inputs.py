@@ -53,6 +53,36 @@ def test_colour_of_another_size_is_left_out_and_counted() -> None:
     assert frames[0].color is None and skipped["color: images of another size than the depth image"] == 1
 
 
+def test_a_log_whose_colour_images_colour_no_depth_image_says_so_in_run_json() -> None:
+    # Every colour image of another size: the map came out black, which looks like black surfaces.
+    skipped: Counter[str] = Counter()
+    warnings: list[str] = []
+    records = [Record("camera_info", 0, INTRINSICS), _depth(0), _colour(0, 5, shape=(6, 8)), _depth(40_000_000)]
+    frames = list(estimator_inputs(iter(records), skipped, warnings))
+    assert len(frames) == 2 and all(f.color is None for f in frames)
+    assert warnings == [
+        "none of the log's 1 colour images could colour a depth image (see skipped for why): the map's points are black"
+    ]
+    warnings.clear()
+    list(estimator_inputs(iter([Record("camera_info", 0, INTRINSICS), _depth(0), _colour(0, 5)]), None, warnings))
+    assert warnings == []
+
+
+def test_a_camera_info_logged_just_after_its_depth_image_is_its_camera_info() -> None:
+    # Drivers publish an image, then its camera_info of the same stamp: the first frame was dropped.
+    ms = 1_000_000
+    skipped: Counter[str] = Counter()
+    records = [_depth(10 * ms), Record("camera_info", 10 * ms, INTRINSICS), _depth(43 * ms), _depth(76 * ms)]
+    frames = list(estimator_inputs(iter(records), skipped))
+    assert [f.stamp_ns for f in frames] == [10 * ms, 43 * ms, 76 * ms] and not skipped
+    assert all(f.intrinsics == INTRINSICS for f in frames)
+    # One that comes later than the pairing window is not its camera_info: that image is skipped, counted.
+    late = [_depth(10 * ms), _depth(43 * ms), Record("camera_info", 43 * ms, INTRINSICS), _depth(76 * ms)]
+    frames = list(estimator_inputs(iter(late), skipped))
+    assert [f.stamp_ns for f in frames] == [43 * ms, 76 * ms]
+    assert skipped["depth: images without a matching camera_info"] == 1
+
+
 def _image(encoding: str, channels: int, padding: int = 0) -> SimpleNamespace:
     rng = np.random.default_rng(0)
     pixels = rng.integers(0, 256, (3, 4, channels), dtype=np.uint8)
