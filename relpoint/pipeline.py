@@ -193,6 +193,11 @@ def run(
                     timeline, timeline_every = timeline[1::2], 2 * timeline_every
             if on_iteration is not None:
                 on_iteration(len(stamps) - 1, pose)
+    replayed = int(getattr(estimator, "replayed_steps", 0) or 0)
+    if 1 < replayed <= len(seconds) and not failed:
+        # An estimator that held its first iterations back (to learn the noise) did their work at the last
+        # of them: each is given its share, so that the median per iteration is not that of idle calls.
+        seconds[:replayed] = array("d", [sum(seconds[:replayed]) / replayed] * replayed)
     skipped = dict(screen.skipped)
     if failed:
         skipped["iterations: numerics failed (skipped)"] = failed
