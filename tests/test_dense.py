@@ -618,6 +618,16 @@ def test_fast_kitchen_motion_is_not_taken_for_degenerate_geometry() -> None:
     estimator, summary = _kitchen_run(range(0, 396, 12), 2.5)
     assert estimator.lost_frames == 0 and estimator.degenerate_frames == 0
     assert summary["ate_rmse"] < 0.035
+    assert estimator.suspect_frames == 0
+
+
+def test_a_frame_icp_could_not_follow_is_counted_and_warned() -> None:
+    # Every 16th kitchen frame (7-18 cm and up to 11 degrees between frames): two frames jumped 13 and 33 cm
+    # off their true motion, under max_step, and the run (27 cm ATE) said nothing of it.
+    estimator, summary = _kitchen_run(range(0, 400, 16), 1.875)
+    assert summary["ate_rmse"] > 0.1  # the failure this test is about
+    assert estimator.suspect_frames >= 1
+    assert any("far more residual on far fewer pairs" in warning for warning in estimator.run_warnings())
 
 
 def test_simulated_room_log_round_trip(room: RgbdSimulation, tmp_path: Path) -> None:
