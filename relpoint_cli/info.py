@@ -12,7 +12,7 @@ import numpy as np
 
 from formats import ros2
 from formats.layouts import Storage
-from formats.log import ROLE_TYPES, LogReader, TopicInfo
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -146,6 +146,13 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         "reference_topics": reference_topics,
         "tf_topics": tf_topics,
     }
+    missing = sorted({role for cap in document["estimators"].values() for role in cap["missing"]})
+    named = set(reader.topics.roles().values())
+    document["candidate_topics"] = {
+        role: [topic for topic, item in reader.topic_infos.items()
+               if item.typename == ROLE_TYPES[role] and item.count and topic not in named]
+        for role in missing
+    }  # fmt: skip
     if as_json:
         click.echo(json.dumps(document, indent=2))
         return
@@ -191,6 +198,10 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         state = "can run" if cap["can_run"] else f"cannot run ({'; '.join(reasons)})"
         extra = f"; uses {', '.join(cap['also_uses'])}" if cap["also_uses"] and cap["can_run"] else ""
         click.echo(f"  {name:<10} {state}{extra}")
+    for role, candidates in document["candidate_topics"].items():
+        if candidates:
+            click.echo(f"  {role.replace('_', ' ')} ({ROLE_TYPES[role]}) may be on {', '.join(candidates)}: "
+                       f"name it with {ROLE_OPTIONS[role]}")  # fmt: skip
     trajectory = (
         "yes" if document["evaluate_trajectory"]
         else "with --reference-topic or --parent/--child (below)" if reference_topics or tf_topics

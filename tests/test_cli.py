@@ -80,6 +80,17 @@ def test_info_lists_topics_rates_and_capabilities(runner: CliRunner, small_log: 
     assert code == 0 and "/ground_truth/pose" in out and "10.00" in out
 
 
+def test_info_names_the_topics_that_could_serve_a_missing_role(runner: CliRunner, small_log: Path) -> None:
+    # A driver's topic names: info said "cannot run (missing points)" and left the user to guess the option.
+    code, out, _ = invoke(runner, "info", str(small_log), "--points-topic", "/lidar", "--json")
+    assert code == 0
+    document = json.loads(out)
+    assert document["candidate_topics"]["points"] == ["/points"]
+    assert "ground_truth_pose" not in document["candidate_topics"]  # nothing missing there
+    code, out, _ = invoke(runner, "info", str(small_log), "--points-topic", "/lidar")
+    assert "points (sensor_msgs/msg/PointCloud2) may be on /points: name it with --points-topic" in out
+
+
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "relpoint_cli.main", *args], capture_output=True, text=True, cwd=cwd, timeout=120
