@@ -83,6 +83,19 @@ ROLE_TYPES: dict[str, str] = {
     "color": ros2.IMAGE,
 }
 
+#: Other message types a role takes: image_transport's compressed images (``compressed`` colour,
+#: ``compressedDepth`` depth), as real bags usually store them.
+ROLE_ALSO_TYPES: dict[str, tuple[str, ...]] = {
+    "depth": (ros2.COMPRESSED_IMAGE,),
+    "color": (ros2.COMPRESSED_IMAGE,),
+}
+
+
+def role_accepts(role: str, typename: str | None) -> bool:
+    """Whether a topic of ``typename`` can serve ``role`` (its type, or one of :data:`ROLE_ALSO_TYPES`)."""
+    return typename == ROLE_TYPES[role] or typename in ROLE_ALSO_TYPES.get(role, ())
+
+
 #: The command-line option that renames each role's topic.
 ROLE_OPTIONS: dict[str, str] = {
     "points": "--points-topic",
@@ -356,7 +369,7 @@ class LogReader:
     def role_present(self, role: str) -> bool:
         """Whether the log has messages of the right type on ``role``'s topic."""
         info = self._channels.get(self.topics.roles()[role])
-        return info is not None and info.count > 0 and info.typename == ROLE_TYPES[role]
+        return info is not None and info.count > 0 and role_accepts(role, info.typename)
 
     def available_roles(self) -> set[str]:
         """Roles the log can provide."""
@@ -370,13 +383,13 @@ class LogReader:
             option = ROLE_OPTIONS[role]
             if info is None or info.count == 0:
                 present = ", ".join(
-                    f"{t} ({i.typename})" for t, i in self._channels.items() if i.typename == ROLE_TYPES[role]
+                    f"{t} ({i.typename})" for t, i in self._channels.items() if role_accepts(role, i.typename)
                 )
                 hint = f"name the right topic with {option}" + (
                     f"; {ROLE_TYPES[role]} topics here: {present}" if present else ""
                 )
                 raise InputError(f"{self.path}: no messages on {topic} (needed: {ROLE_TYPES[role]})", hint)
-            if info.typename != ROLE_TYPES[role]:
+            if not role_accepts(role, info.typename):
                 raise InputError(
                     f"{self.path}: {topic} carries {info.typename or 'schemaless data'}, not {ROLE_TYPES[role]}",
                     f"name a {ROLE_TYPES[role]} topic with {option}",
@@ -444,7 +457,7 @@ class LogReader:
             decode = _Decoder(reader)
             connections = [
                 c for c in reader.connections
-                if c.topic in topic_roles and ros2.normalise_typename(c.msgtype) == ROLE_TYPES[topic_roles[c.topic]]
+                if c.topic in topic_roles and role_accepts(topic_roles[c.topic], ros2.normalise_typename(c.msgtype))
             ]  # fmt: skip
             for connection, log_time, raw in reader.messages(connections=connections):
                 # every message from here on is stamped at or after log_time - horizon
@@ -457,7 +470,7 @@ class LogReader:
                                f"{len(raw)} bytes, over the limit of {ros2.MAX_MESSAGE_BYTES} bytes")  # fmt: skip
                     continue
                 try:
-                    record = self._convert(role, decode(raw, ROLE_TYPES[role]), counts)
+                    record = self._convert(role, decode(raw, ros2.normalise_typename(connection.msgtype)), counts)
                 except InputError as error:
                     self._skip(counts, f"{topic}: {getattr(error, 'kind', 'malformed messages')}", str(error))
                     continue

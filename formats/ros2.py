@@ -39,6 +39,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 #: Message types that carry a pose a trajectory can be read from (a reference or an estimate).
 POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, ODOMETRY)
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 PATH = "nav_msgs/msg/Path"
@@ -473,8 +474,62 @@ def msg_to_intrinsics(message: Any) -> Intrinsics:
         raise InputError(f"unusable camera_info: {error}") from None
 
 
+def _decoded_image(data: np.ndarray, what: str, flags: int) -> np.ndarray:
+    """The pixels of a PNG or JPEG byte string (OpenCV's ``imdecode`` with ``flags``)."""
+    import cv2  # here, not at import: OpenCV costs start-up time
+
+    if data.size == 0:
+        raise InputError(f"{what} holds no data")
+    pixels = cv2.imdecode(data, flags)
+    if pixels is None:
+        raise InputError(f"{what} is neither PNG nor JPEG data OpenCV can decode")
+    _check_image_size(what, pixels.shape[1], pixels.shape[0])
+    return pixels
+
+
+#: image_transport's ``compressedDepth`` messages start with this header before the PNG: the source
+#: format (int32) and, for 32FC1, the two parameters of its inverse-depth quantisation (float32).
+_COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def compressed_to_depth(message: Any) -> np.ndarray:
+    """Depth in metres (H, W) float32 from a CompressedImage: image_transport's ``compressedDepth``
+    (``"16UC1; compressedDepth png"``: millimetres; ``"32FC1; compressedDepth png"``: inverse depth
+    quantised to 16 bits, ``depth = a / (q - b)``) or a plain 16-bit PNG; 0 where there is no measurement."""
+    import cv2
+
+    data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
+    fmt = str(message.format)
+    source = fmt.split(";", 1)[0].strip().upper()
+    header = None
+    if data[:8].tobytes() != _PNG_SIGNATURE and data[12:20].tobytes() == _PNG_SIGNATURE:
+        header, data = _COMPRESSED_DEPTH_HEADER.unpack(data[:12].tobytes()), data[12:]
+    if "PNG" not in fmt.upper() and data[:8].tobytes() != _PNG_SIGNATURE:
+        raise UnsupportedEncoding(f"compressed depth format {fmt!r} is not PNG (compressedDepth)")
+    pixels = _decoded_image(data, "compressed depth image", cv2.IMREAD_UNCHANGED)
+    if pixels.ndim != 2 or pixels.dtype != np.uint16:
+        raise UnsupportedEncoding(f"compressed depth image ({fmt!r}) does not decode to one 16-bit channel")
+    if source == "32FC1":
+        if header is None:
+            raise InputError(f"compressed depth format {fmt!r} lacks the quantisation header of 32FC1 data")
+        _, a, b = header
+        q = pixels.astype(np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.where(q > 0, np.float32(a) / (q - np.float32(b)), np.float32(0.0)).astype(np.float32)
+    elif source in ("16UC1", "MONO16", ""):
+        depth = pixels.astype(np.float32) * np.float32(0.001)
+    else:
+        raise UnsupportedEncoding(f"compressed depth of {source} data is not 16UC1 or 32FC1")
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth
+
+
 def msg_to_depth(message: Any) -> np.ndarray:
-    """Depth in metres (H, W) float32 from a ``32FC1`` or ``16UC1`` Image; 0 where there is no measurement."""
+    """Depth in metres (H, W) float32 from a ``32FC1`` or ``16UC1`` Image (or a compressed one,
+    :func:`compressed_to_depth`); 0 where there is no measurement."""
+    if hasattr(message, "format"):
+        return compressed_to_depth(message)
     height, width, step = int(message.height), int(message.width), int(message.step)
     encoding = str(message.encoding).upper()
     dtypes = {"32FC1": np.dtype(np.float32), "16UC1": np.dtype(np.uint16), "MONO16": np.dtype(np.uint16)}
@@ -505,7 +560,16 @@ COLOUR_ENCODINGS = {
 
 def msg_to_rgb(message: Any) -> np.ndarray:
     """An (H, W, 3) uint8 RGB array from an ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8`` (alpha dropped) or
-    ``mono8`` (grey repeated) Image."""
+    ``mono8`` (grey repeated) Image, or from a JPEG or PNG CompressedImage (image_transport's
+    ``compressed``)."""
+    if hasattr(message, "format"):
+        import cv2
+
+        data = np.asarray(message.data, dtype=np.uint8).reshape(-1)
+        bgr = _decoded_image(data, "compressed colour image", cv2.IMREAD_COLOR)
+        if bgr.dtype != np.uint8:
+            raise UnsupportedEncoding(f"compressed colour image ({message.format!r}) is not 8 bits a channel")
+        return np.ascontiguousarray(bgr[..., ::-1])
     height, width, step = int(message.height), int(message.width), int(message.step)
     encoding = str(message.encoding).lower()
     if encoding not in COLOUR_ENCODINGS:

@@ -12,7 +12,7 @@ import numpy as np
 
 from formats import ros2
 from formats.layouts import Storage
-from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, role_accepts
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -114,7 +114,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
             "topic": topic, "type": item.typename, "count": item.count, "duration_s": round(item.duration_s, 6),
             "serialization_format": item.message_encoding,
             "rate_hz": None if item.rate_hz is None else round(item.rate_hz, 3),
-            "role": role if role and item.typename == ROLE_TYPES[role] else None,
+            "role": role if role and role_accepts(role, item.typename) else None,
         })  # fmt: skip
     observations = None
     if "points" in available:
@@ -150,7 +150,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     named = set(reader.topics.roles().values())
     document["candidate_topics"] = {
         role: [topic for topic, item in reader.topic_infos.items()
-               if item.typename == ROLE_TYPES[role] and item.count and topic not in named]
+               if role_accepts(role, item.typename) and item.count and topic not in named]
         for role in missing
     }  # fmt: skip
     if as_json:
