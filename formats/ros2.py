@@ -14,6 +14,7 @@ classes over five distributions, a tenth of a second at the first message of eve
 from __future__ import annotations
 
 import functools
+import os
 import struct
 from typing import Any
 
@@ -476,10 +477,15 @@ def msg_to_intrinsics(message: Any) -> Intrinsics:
 
 def _decoded_image(data: np.ndarray, what: str, flags: int) -> np.ndarray:
     """The pixels of a PNG or JPEG byte string (OpenCV's ``imdecode`` with ``flags``)."""
-    import cv2  # here, not at import: OpenCV costs start-up time
-
     if data.size == 0:
         raise InputError(f"{what} holds no data")
+    if data[:8].tobytes() == _PNG_SIGNATURE and data.size >= 24:  # the size, before a byte is decompressed
+        width, height = struct.unpack(">II", data[16:24].tobytes())
+        _check_image_size(what, width, height)
+    # OpenCV refuses larger images itself (a small JPEG can claim a huge size), if it reads this first
+    os.environ.setdefault("CV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+    import cv2  # here, not at import: OpenCV costs start-up time
+
     pixels = cv2.imdecode(data, flags)
     if pixels is None:
         raise InputError(f"{what} is neither PNG nor JPEG data OpenCV can decode")

@@ -107,3 +107,15 @@ def test_a_bag_with_compressed_images_runs_dense_with_colour(tmp_path: Path) -> 
     assert run["summary"]["frames"] == 6 and run["summary"]["lost_frames"] == 0
     assert not run["skipped"] and not any("colour" in w for w in run["warnings"])
     assert "depth" in run["input"]["roles"] and "color" in run["input"]["roles"]
+
+
+def test_a_png_that_claims_a_huge_image_is_skipped_before_it_is_decompressed(tmp_path: Path) -> None:
+    png = bytearray(cv2.imencode(".png", _depth_mm(0))[1].tobytes())
+    png[16:24] = struct.pack(">II", 100_000, 100_000)  # IHDR: 10^10 pixels
+    path = tmp_path / "bomb.mcap"
+    with LogWriter(path) as writer:
+        data = struct.pack("<iff", 0, 0.0, 0.0) + bytes(png)
+        writer.write(DEPTH_TOPIC, ros2.COMPRESSED_IMAGE, _compressed(0, "16UC1; compressedDepth png", data), 0)
+    reader = LogReader(path, Topics(depth=DEPTH_TOPIC))
+    assert list(reader.records(["depth"])) == []
+    assert reader.skipped == {f"{DEPTH_TOPIC}: oversized messages": 1}
