@@ -347,6 +347,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
         measure_acceleration: bool = False,
         check_odometry: bool = False,
         finishing: str = Estimator.finishing,
+        reports_unlocated: bool = False,
     ) -> None:
         self._build = build
         self._known_sigma = sigma
@@ -370,6 +371,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
         self.replayed_steps = 0
         self.name = name  # type: ignore[misc]  # the wrapped estimator's name
         self.finishing = finishing  # type: ignore[misc]  # and what its finish() does
+        self.reports_unlocated = reports_unlocated  # type: ignore[misc]  # and whether it warns of unlocated steps
 
     def _start(self) -> None:
         observations = [item for kind, item in self._held if kind == "step"]

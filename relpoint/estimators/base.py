@@ -40,6 +40,9 @@ class Estimator(abc.ABC, Generic[InputT]):
     name: ClassVar[str]
     #: What :meth:`finish` does, in a few words, for a progress display while it runs.
     finishing: ClassVar[str] = "finishing"
+    #: Whether the estimator itself warns of iterations whose points could not fix its pose (else the
+    #: pipeline warns of clouds of fewer than three points with no odometry or fix to carry the pose).
+    reports_unlocated: ClassVar[bool] = False
 
     @abc.abstractmethod
     def step(self, observation: InputT) -> Pose:

@@ -62,7 +62,8 @@ class EstimatorSpec:
         compile_code = getattr(self.estimator_class, "compile", None)
         return NoiseAdaptive(build, SIMULATOR_SIGMA, self.name, prepare=compile_code, sigma=config.observation_sigma,
                              measure_acceleration=measure_acceleration, check_odometry=check_odometry,
-                             finishing=getattr(self.estimator_class, "finishing", Estimator.finishing))  # fmt: skip
+                             finishing=getattr(self.estimator_class, "finishing", Estimator.finishing),
+                             reports_unlocated=getattr(self.estimator_class, "reports_unlocated", False))  # fmt: skip
 
     def build_config(self, values: Mapping[str, Any], params: Iterable[str] = ()) -> Any:
         """The config dataclass from parameter values and ``KEY=VALUE`` items (``--param``) over them:

@@ -134,6 +134,7 @@ class RelativePointEstimator(
 
     name: ClassVar[str] = "relpoint"
     finishing: ClassVar[str] = "final adjustment"
+    reports_unlocated: ClassVar[bool] = True
 
     def __init__(self, config: RelativePointConfig | None = None, rng: np.random.Generator | None = None) -> None:
         del rng  # the algorithm draws no random numbers
