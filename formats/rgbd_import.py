@@ -7,7 +7,8 @@ TUM RGB-D (Sturm et al. 2012)
     (``timestamp tx ty tz qx qy qz qw``, camera pose in the mocap world), depth PNGs (uint16, depth x 5000,
     0 = none), colour PNGs. Each depth image is paired with the colour image nearest in time within a
     tolerance (as ``associate.py`` of the benchmark does); unpaired depth frames are written without colour.
-    The camera intrinsics are not in the folder: the Freiburg defaults are used unless given.
+    The camera intrinsics are not in the folder: unless given, those of the Freiburg camera (1, 2 or 3) the
+    folder's name gives are used (``rgbd_dataset_freiburg3_...``), else Freiburg 1's.
 
 7-Scenes (Shotton et al. 2013)
     ``frame-NNNNNN.depth.png`` (uint16 millimetres, 0 and 65535 = none), ``frame-NNNNNN.color.jpg``,
@@ -44,8 +45,17 @@ from relpoint.types import Intrinsics, Pose
 log = logging.getLogger(__name__)
 
 TUM_DEPTH_SCALE = 5000.0
-#: Freiburg 1 (fr1) intrinsics of the TUM RGB-D benchmark; fr2 and fr3 differ slightly.
-TUM_DEFAULT_INTRINSICS = Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3)
+#: The TUM RGB-D benchmark's published colour-camera intrinsics (its depth images are registered to the
+#: colour camera) of its three Kinects, by the Freiburg number its sequences are named after.
+TUM_CAMERAS = {
+    1: Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3),
+    2: Intrinsics(640, 480, 520.9, 521.0, 325.1, 249.7),
+    3: Intrinsics(640, 480, 535.4, 539.2, 320.1, 247.6),
+}
+#: The camera of a TUM folder whose name does not say which one recorded it: Freiburg 1's.
+TUM_DEFAULT_INTRINSICS = TUM_CAMERAS[1]
+#: "freiburg3" in ``rgbd_dataset_freiburg3_long_office_household``, or "fr3" in a shortened name.
+_FREIBURG_NAME = re.compile(r"(?:freiburg|(?<![a-z])fr)[_-]?([123])(?![0-9])")
 SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)
 SEVEN_SCENES_RATE = 30.0
 
@@ -201,18 +211,44 @@ def _stamp_ns(seconds: float) -> int:
     return int(round(seconds * 1e9))
 
 
-def _nearest_pose(
-    stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, t: float, tolerance: float
-) -> Pose | None:
-    """The ground-truth sample nearest to ``t`` (s) if it lies within ``tolerance``, else None."""
+def tum_camera_number(folder: str | os.PathLike[str]) -> int | None:
+    """The Freiburg camera (1, 2 or 3) a TUM RGB-D folder's name says recorded it (``rgbd_dataset_freiburg2_desk``,
+    ``fr3_office``), or None. Only the folder's own name is read: the folders holding it name other things."""
+    match = _FREIBURG_NAME.search(Path(folder).absolute().name.lower())
+    return int(match.group(1)) if match else None
+
+
+def _pose_at(stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, t: float, tolerance: float) -> Pose | None:
+    """The ground-truth pose at ``t`` (s): interpolated (positions linearly, orientations along the shorter
+    great arc) between the samples either side of ``t`` when both lie within ``tolerance`` of it, else the
+    nearest sample within ``tolerance``, else None. ``stamps`` ascending (s), ``quats`` ``(x, y, z, w)``."""
     k = int(np.searchsorted(stamps, t))
-    candidates = [i for i in (k - 1, k) if 0 <= i < len(stamps)]
+    candidates = [i for i in (k - 1, k) if 0 <= i < len(stamps) and abs(stamps[i] - t) <= tolerance]
     if not candidates:
         return None
-    nearest = min(candidates, key=lambda i: abs(stamps[i] - t))
-    if abs(stamps[nearest] - t) > tolerance:
-        return None
-    return Pose(_stamp_ns(t), tuple(positions[nearest]), tuple(quats[nearest]))  # type: ignore[arg-type]
+    if len(candidates) == 2 and stamps[k] > stamps[k - 1]:
+        before, after = candidates
+        fraction = (t - stamps[before]) / (stamps[after] - stamps[before])
+        position = positions[before] + fraction * (positions[after] - positions[before])
+        quat = _slerp(quats[before], quats[after], fraction)
+    else:
+        nearest = min(candidates, key=lambda i: abs(stamps[i] - t))
+        position, quat = positions[nearest], quats[nearest]
+    return Pose(_stamp_ns(t), tuple(float(v) for v in position), tuple(float(v) for v in quat))  # type: ignore[arg-type]
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
+    """Unit quaternion ``fraction`` of the way from ``q0`` to ``q1`` along the shorter great arc."""
+    q0 = q0 / np.linalg.norm(q0)
+    q1 = q1 / np.linalg.norm(q1)
+    cos = float(np.dot(q0, q1))
+    if cos < 0.0:
+        q1, cos = -q1, -cos
+    if cos > 0.9995:  # nearly equal: the chord is the arc
+        q = q0 + fraction * (q1 - q0)
+        return q / np.linalg.norm(q)
+    angle = math.acos(cos)
+    return (math.sin((1.0 - fraction) * angle) * q0 + math.sin(fraction * angle) * q1) / math.sin(angle)
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,7 +279,8 @@ def tum_frames(
     Parameters
     ----------
     folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional).
-    intrinsics: the depth camera's intrinsics (default: Freiburg 1); the size is taken from the images.
+    intrinsics: the depth camera's intrinsics (default: those of the Freiburg camera the folder's name gives,
+        else Freiburg 1's; see :func:`tum_camera_number`); the size is taken from the images.
     tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
     skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one
         or they cannot be read, and colour images that cannot be read (``color`` key; the frame is kept
@@ -260,7 +297,7 @@ def tum_frames(
         values = _read_groundtruth(folder / "groundtruth.txt")
         order = np.argsort(values[:, 0])
         truth = values[order]
-    base = intrinsics or TUM_DEFAULT_INTRINSICS
+    base = intrinsics or TUM_CAMERAS.get(tum_camera_number(folder) or 1, TUM_DEFAULT_INTRINSICS)
     camera = None
     previous = None
     out_of_order = yielded = 0
@@ -286,9 +323,7 @@ def tum_frames(
             camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy) if intrinsics else resized(base, w, h)
         pose = None
         if truth is not None:
-            nearest = _nearest_pose(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
-            if nearest is not None:
-                pose = Pose(stamp, nearest.position, nearest.quat_xyzw)
+            pose = _pose_at(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
         colour = None
         if colour_index is not None:
             colour = _colour_or_none(folder / rgb_rows[colour_index][1][0], (w, h), skips)
@@ -474,8 +509,11 @@ def import_tum(
     skipped: Counter[str] = Counter()
     frames = tum_frames(folder, intrinsics=intrinsics, tolerance=tolerance, skipped=skipped)
     metadata = {
-        "relpoint.import": metadata_json({"layout": "tum", "source": Path(folder).name, "tolerance": tolerance})
-    }
+        "relpoint.import": metadata_json({
+            "layout": "tum", "source": Path(folder).name, "tolerance": tolerance,
+            "camera": "given" if intrinsics else f"freiburg{tum_camera_number(folder) or 1}",
+        })
+    }  # fmt: skip
     counts = write_rgbd_log(
         frames, output, metadata=metadata, compression=compression, topics=topics, on_frame=on_frame
     )

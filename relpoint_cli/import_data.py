@@ -19,7 +19,7 @@ from relpoint_cli.topics import topic_options, topics_from
 EXAMPLES = """\b
 Examples:
   relpoint import tum rgbd_dataset_freiburg1_xyz -o fr1_xyz.mcap
-  relpoint import tum fr3_office -o office.mcap --intrinsics 535.4,539.2,320.1,247.6
+  relpoint import tum office_scan -o office.mcap --intrinsics 535.4,539.2,320.1,247.6
   relpoint import 7scenes redkitchen/seq-01 -o kitchen.mcap --count 400
   relpoint import 7scenes redkitchen/seq-01 -o kitchen_points.mcap --points
   relpoint import log kitchen.mcap -o kitchen_points.mcap --points --param max_corners=500
@@ -37,13 +37,29 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
         raise UsageError(f"--intrinsics {text!r} is not fx,fy,cx,cy in pixels") from None
 
 
+def _tum_camera_note(folder: Path) -> str:
+    """What the user is told of the camera a TUM import without ``--intrinsics`` assumes."""
+    from formats.rgbd_import import TUM_CAMERAS, tum_camera_number
+
+    number = tum_camera_number(folder)
+    if number is None:
+        return ("relpoint: warning: no --intrinsics, and the folder's name does not say which TUM camera (freiburg1, "
+                "2 or 3) recorded it: Freiburg 1's are used (wrong intrinsics bend every frame's points)")  # fmt: skip
+    camera = TUM_CAMERAS[number]
+    return (f"relpoint: the folder's name says Freiburg {number}: its camera's intrinsics are used "
+            f"({camera.fx:g},{camera.fy:g},{camera.cx:g},{camera.cy:g}; --intrinsics sets others)")  # fmt: skip
+
+
 @click.command("import", epilog=EXAMPLES)
 @click.argument("layout", type=click.Choice(["tum", "7scenes", "log"]))
 @click.argument("source", type=input_path())
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The .mcap log to write."
 )
-@click.option("--intrinsics", help="TUM: camera fx,fy,cx,cy in pixels (default: Freiburg 1).")
+@click.option(
+    "--intrinsics",
+    help="TUM: camera fx,fy,cx,cy in pixels (default: the Freiburg camera the folder is named after, else Freiburg 1).",
+)
 @click.option(
     "--tolerance",
     type=click.FloatRange(min=0.0, max=1e6),
@@ -114,11 +130,7 @@ def import_command(
         raise UsageError(f"{names} {'does' if len(ignored) == 1 else 'do'} not apply to the {layout} layout",
                          "see relpoint import --help: each option names the layouts it applies to")  # fmt: skip
     if layout == "tum" and intrinsics is None and not ctx.find_root().obj.get("quiet"):
-        click.echo(
-            "relpoint: warning: no --intrinsics: the TUM Freiburg 1 camera's are used (fr2 and fr3 differ; "
-            "wrong intrinsics bend every frame's points)",
-            err=True,
-        )
+        click.echo(_tum_camera_note(source), err=True)
     if points:
         _import_points(ctx, layout, source, output, intrinsics, tolerance, rate, first, count, params, compression,
                        topics_from(topic_params))  # fmt: skip
