@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import itertools
 import logging
 import math
 import os
@@ -38,6 +39,7 @@ import numpy as np
 from PIL import Image
 
 from formats.log import LogWriter, Topics, metadata_json
+from formats.trajectory_files import format_stamp, parse_stamp_ns, text_lines
 from relpoint.errors import InputError, UsageError
 from relpoint.geometry import FloatArray
 from relpoint.types import Intrinsics, Pose
@@ -99,21 +101,41 @@ class _Skips:
                 log.warning("%d %s", self.seen[kind], what)
 
 
-def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[float, list[str]]]:
-    """A TUM list file: ``(timestamp, [fields...])`` per non-comment line; with ``file_names`` the one
-    field is the rest of the line (a file name may hold spaces)."""
+#: The last stamp a ROS 2 time holds (``builtin_interfaces/Time``: int32 seconds), ns.
+_LAST_STAMP_NS = (2**31 - 1) * 1_000_000_000
+
+
+def _stamp_in_range(path: Path, number: int, text: str) -> int:
+    """The exact stamp (ns) of a list's seconds ``text``; InputError naming the line when it is not a number
+    or lies outside what a log's stamps hold (TUM lists hold Unix seconds: milliseconds or nanoseconds
+    given by mistake land centuries ahead)."""
+    try:
+        stamp = parse_stamp_ns(text)
+    except ValueError:
+        raise InputError(
+            f"{path}:{number}: bad timestamp {text!r}", "each line starts with a time in seconds"
+        ) from None
+    if not 0 <= stamp <= _LAST_STAMP_NS:
+        raise InputError(f"{path}:{number}: timestamp {text} s is outside 0 to 2^31 s (1970 to 2038), what a log "
+                         "holds; TUM lists hold seconds",
+                         "are the stamps milliseconds or nanoseconds? divide them to seconds")  # fmt: skip
+    return stamp
+
+
+def _read_list(path: Path, *, file_names: bool = False) -> list[tuple[int, list[str]]]:
+    """A TUM list file: ``(stamp ns, [fields...])`` per non-comment line, the stamp exact from its decimal
+    text; with ``file_names`` the one field is the rest of the line (a file name may hold spaces)."""
     if not path.is_file():
         raise InputError(f"{path}: no such file", "a TUM RGB-D folder holds rgb.txt, depth.txt and groundtruth.txt")
     rows = []
-    for number, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.strip()
+    for number, line in text_lines(path):
         if not line or line.startswith("#"):
             continue
         parts = re.split(r"[\s,]+", line, maxsplit=1) if file_names else line.replace(",", " ").split()
-        try:
-            rows.append((float(parts[0]), [parts[1].strip()] if file_names else parts[1:]))
-        except (ValueError, IndexError):
-            raise InputError(f"{path}:{number}: cannot read {line!r}") from None
+        if len(parts) < 2:
+            raise InputError(f"{path}:{number}: cannot read {line!r}",
+                             "a list line holds a time in seconds and a file name")  # fmt: skip
+        rows.append((_stamp_in_range(path, number, parts[0]), [parts[1].strip()] if file_names else parts[1:]))
     return rows
 
 
@@ -124,8 +146,7 @@ def _read_groundtruth(path: Path) -> FloatArray:
     rows = []
     invalid = 0
     first_invalid = ""
-    for number, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.strip()
+    for number, line in text_lines(path):
         if not line or line.startswith("#"):
             continue
         fields = line.replace(",", " ").split()
@@ -133,6 +154,8 @@ def _read_groundtruth(path: Path) -> FloatArray:
             row = [float(field) for field in fields]
         except ValueError:
             row = []
+        if row and math.isfinite(row[0]):
+            _stamp_in_range(path, number, fields[0])
         if len(row) != 8:
             raise InputError(f"{path}:{number}: cannot read {line!r}",
                              "a ground-truth line holds eight numbers: timestamp tx ty tz qx qy qz qw")  # fmt: skip
@@ -214,14 +237,19 @@ def _stamp_ns(seconds: float) -> int:
 def tum_camera_number(folder: str | os.PathLike[str]) -> int | None:
     """The Freiburg camera (1, 2 or 3) a TUM RGB-D folder's name says recorded it (``rgbd_dataset_freiburg2_desk``,
     ``fr3_office``), or None. Only the folder's own name is read: the folders holding it name other things."""
-    match = _FREIBURG_NAME.search(Path(folder).absolute().name.lower())
-    return int(match.group(1)) if match else None
+    # the name as given (".." and "." made whole), then a link's target's
+    for name in (Path(os.path.abspath(folder)).name, Path(folder).resolve().name):
+        if match := _FREIBURG_NAME.search(name.lower()):
+            return int(match.group(1))
+    return None
 
 
-def _pose_at(stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, t: float, tolerance: float) -> Pose | None:
-    """The ground-truth pose at ``t`` (s): interpolated (positions linearly, orientations along the shorter
-    great arc) between the samples either side of ``t`` when both lie within ``tolerance`` of it, else the
+def _pose_at(stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, stamp_ns: int, tolerance: float
+             ) -> Pose | None:  # fmt: skip
+    """The ground-truth pose at ``stamp_ns``: interpolated (positions linearly, orientations along the shorter
+    great arc) between the samples either side of it when both lie within ``tolerance`` (s), else the
     nearest sample within ``tolerance``, else None. ``stamps`` ascending (s), ``quats`` ``(x, y, z, w)``."""
+    t = stamp_ns * 1e-9
     k = int(np.searchsorted(stamps, t))
     candidates = [i for i in (k - 1, k) if 0 <= i < len(stamps) and abs(stamps[i] - t) <= tolerance]
     if not candidates:
@@ -234,7 +262,7 @@ def _pose_at(stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray, t: fl
     else:
         nearest = min(candidates, key=lambda i: abs(stamps[i] - t))
         position, quat = positions[nearest], quats[nearest]
-    return Pose(_stamp_ns(t), tuple(float(v) for v in position), tuple(float(v) for v in quat))  # type: ignore[arg-type]
+    return Pose(stamp_ns, tuple(float(v) for v in position), tuple(float(v) for v in quat))  # type: ignore[arg-type]
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
@@ -267,53 +295,118 @@ class RgbdFrame:
     pose: Pose | None = None
 
 
+#: ``associate.py`` outputs users keep beside (or instead of) the lists.
+_ASSOCIATION_NAMES = ("associations.txt", "association.txt", "associate.txt", "assoc.txt")
+#: Depth frames without colour (or ground truth) beyond this share are warned of: the tolerance is too small.
+_UNPAIRED_SHARE = 0.05
+#: A first frame whose median depth is nearer than this (m) is likely millimetres read as 1/5000 m.
+_NEAREST_PLAUSIBLE_MEDIAN_DEPTH = 0.4
+
+
+def _image_lists(folder: Path) -> tuple[list[tuple[int, list[str]]], list[tuple[int, list[str]]], str]:
+    """The depth and colour lists of a TUM folder, and the name of the file the depth list came from:
+    ``depth.txt`` and ``rgb.txt``, or, without ``depth.txt``, an ``associate.py`` output (``t1 file1 t2
+    file2`` per line; the pair whose file lies under ``depth/`` is the depth image)."""
+    if (folder / "depth.txt").is_file():
+        rgb = _read_list(folder / "rgb.txt", file_names=True) if (folder / "rgb.txt").is_file() else []
+        return _read_list(folder / "depth.txt", file_names=True), rgb, "depth.txt"
+    association = next((folder / name for name in _ASSOCIATION_NAMES if (folder / name).is_file()), None)
+    if association is None:
+        raise InputError(f"{folder / 'depth.txt'}: no such file",
+                         "a TUM RGB-D folder holds rgb.txt, depth.txt and groundtruth.txt (or associations.txt)")  # fmt: skip
+    depth_rows, rgb_rows = [], []
+    for number, line in text_lines(association):
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 4:
+            raise InputError(f"{association}:{number}: holds {len(parts)} fields, not the four of associate.py's "
+                             "output (time file time file)", "give depth.txt and rgb.txt instead")  # fmt: skip
+        pairs = [(_stamp_in_range(association, number, parts[i]), [parts[i + 1]]) for i in (0, 2)]
+        is_depth = [_under(name, "depth") for _, (name,) in pairs]
+        if is_depth.count(True) != 1:
+            raise InputError(f"{association}:{number}: cannot tell the depth image from the colour one",
+                             "depth images lie under depth/; or give depth.txt and rgb.txt")  # fmt: skip
+        depth_at = is_depth.index(True)
+        depth_rows.append(pairs[depth_at])
+        rgb_rows.append(pairs[1 - depth_at])
+    log.warning("no depth.txt: the depth and colour images paired in %s are read", association.name)
+    return depth_rows, rgb_rows, association.name
+
+
+def _under(name: str, folder: str) -> bool:
+    return name.replace("\\", "/").split("/")[0].lower() == folder
+
+
+def _listed_file(folder: Path, name: str) -> Path:
+    """The file a list names, its Windows separators read as ``/`` when the name as written is not there."""
+    path = folder / name
+    if "\\" in name and not path.exists():
+        path = folder / name.replace("\\", "/")
+    return path
+
+
+def _in_time_order(rows: list[tuple[int, list[str]]], name: str) -> list[tuple[int, list[str]]]:
+    """``rows`` sorted by stamp (stable), warning when the file did not list them so."""
+    if all(a[0] <= b[0] for a, b in itertools.pairwise(rows)):
+        return rows
+    log.warning("%s is not in time order: its %d images are read in time order", name, len(rows))
+    return sorted(rows, key=lambda row: row[0])
+
+
 def tum_frames(
     folder: str | os.PathLike[str],
     *,
     intrinsics: Intrinsics | None = None,
     tolerance: float = 0.02,
+    depth_scale: float = TUM_DEPTH_SCALE,
     skipped: Counter[str] | None = None,
 ) -> Iterator[RgbdFrame]:
-    """The frames of a TUM RGB-D folder, one per depth image, in ``depth.txt`` order.
+    """The frames of a TUM RGB-D folder, one per depth image, in time order.
 
     Parameters
     ----------
-    folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional).
+    folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional); without
+        ``depth.txt``, an ``associate.py`` output (``associations.txt``) gives the depth and colour images.
     intrinsics: the depth camera's intrinsics (default: those of the Freiburg camera the folder's name gives,
         else Freiburg 1's; see :func:`tum_camera_number`); the size is taken from the images.
     tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
-    skipped: counts depth images skipped (``depth`` key) because their stamp is not after the previous one
-        or they cannot be read, and colour images that cannot be read (``color`` key; the frame is kept
-        without colour).
+    depth_scale: depth PNG units per metre (the benchmark's 5000; 1000 for millimetres).
+    skipped: counts depth images skipped (``depth`` key) because their stamp repeats the previous one,
+        their size differs from the first one's, or they cannot be read, and colour images that cannot
+        be read (``color`` key; the frame is kept without colour).
     """
     folder = Path(folder)
-    depth_rows = _read_list(folder / "depth.txt", file_names=True)
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise UsageError(f"depth scale {depth_scale}", "give the depth PNGs' units per metre (TUM: 5000)")
+    depth_rows, rgb_rows, depth_list = _image_lists(folder)
     if not depth_rows:
-        raise InputError(f"{folder / 'depth.txt'} lists no depth image")
-    rgb_rows = _read_list(folder / "rgb.txt", file_names=True) if (folder / "rgb.txt").is_file() else []
-    colour_match = associate_stamps([t for t, _ in depth_rows], [t for t, _ in rgb_rows], tolerance)
+        raise InputError(f"{folder / depth_list} lists no depth image")
+    depth_rows = _in_time_order(depth_rows, depth_list)
+    seconds = 1e-9
+    colour_match = associate_stamps([t * seconds for t, _ in depth_rows], [t * seconds for t, _ in rgb_rows],
+                                    tolerance)  # fmt: skip
     truth = None
     if (folder / "groundtruth.txt").is_file():
         values = _read_groundtruth(folder / "groundtruth.txt")
-        order = np.argsort(values[:, 0])
+        order = np.argsort(values[:, 0], kind="stable")
         truth = values[order]
     base = intrinsics or TUM_CAMERAS.get(tum_camera_number(folder) or 1, TUM_DEFAULT_INTRINSICS)
     camera = None
     previous = None
-    out_of_order = yielded = 0
+    repeated = resized_away = yielded = without_colour = without_truth = 0
     skips = _Skips(skipped)
-    for (stamp_s, fields), colour_index in zip(depth_rows, colour_match, strict=True):
-        stamp = _stamp_ns(stamp_s)
-        if previous is not None and stamp <= previous:
+    for (stamp, fields), colour_index in zip(depth_rows, colour_match, strict=True):
+        if previous is not None and stamp == previous:
             if skipped is not None:
                 skipped["depth"] += 1
-            out_of_order += 1
-            if out_of_order == 1:
-                log.warning("depth frame %s at %.6f s is not after the previous one; skipped (further ones are "
-                            "counted)", fields[0], stamp_s)  # fmt: skip
+            repeated += 1
+            if repeated == 1:
+                log.warning("depth frame %s repeats the stamp %s s of the one before; skipped (further ones are "
+                            "counted)", fields[0], format_stamp(stamp))  # fmt: skip
             continue
         try:
-            depth = _read_depth_png(folder / fields[0], TUM_DEPTH_SCALE)
+            depth = _read_depth_png(_listed_file(folder, fields[0]), depth_scale)
         except UnreadableImage as error:
             skips.skip("depth", error, "frame skipped")
             continue
@@ -321,16 +414,48 @@ def tum_frames(
         if camera is None:
             # given intrinsics are the user's images'; the defaults are a 640x480 camera's
             camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy) if intrinsics else resized(base, w, h)
+            _check_depth_scale(depth, depth_scale, fields[0])
+        elif (w, h) != (camera.width, camera.height):
+            if skipped is not None:
+                skipped["depth"] += 1
+            resized_away += 1
+            if resized_away == 1:
+                log.warning("depth image %s is %dx%d, the first one %dx%d: one camera calibration cannot hold "
+                            "both; skipped (further ones are counted)", fields[0], w, h, camera.width,
+                            camera.height)  # fmt: skip
+            continue
         pose = None
         if truth is not None:
-            pose = _pose_at(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp_s, tolerance)
+            pose = _pose_at(truth[:, 0], truth[:, 1:4], truth[:, 4:8], stamp, tolerance)
+            without_truth += pose is None
         colour = None
         if colour_index is not None:
-            colour = _colour_or_none(folder / rgb_rows[colour_index][1][0], (w, h), skips)
+            colour = _colour_or_none(_listed_file(folder, rgb_rows[colour_index][1][0]), (w, h), skips)
+        else:
+            without_colour += bool(rgb_rows)
         previous = stamp
         yielded += 1
         yield RgbdFrame(stamp, depth, camera, colour, pose)
     skips.summary(folder, yielded)
+    if repeated > 1:
+        log.warning("%d depth frames repeating the stamp before them were skipped", repeated)
+    if resized_away > 1:
+        log.warning("%d depth images of another size than the first were skipped", resized_away)
+    for count, what, source in ((without_colour, "no colour image", "rgb.txt"),
+                                (without_truth, "no ground-truth pose", "groundtruth.txt")):  # fmt: skip
+        if count and count > _UNPAIRED_SHARE * yielded:
+            log.warning("%d of %d depth frames have %s within %g s in %s: they are written without one; a larger "
+                        "--tolerance pairs stamps further apart", count, yielded, what, tolerance, source)  # fmt: skip
+
+
+def _check_depth_scale(depth: np.ndarray, depth_scale: float, name: str) -> None:
+    """Warn when the first depth image's median depth is nearer than a depth camera sees: its PNG likely
+    holds millimetres (or another unit) rather than ``depth_scale`` per metre."""
+    valid = depth[depth > 0]
+    if valid.size and (median := float(np.median(valid))) < _NEAREST_PLAUSIBLE_MEDIAN_DEPTH:
+        log.warning("the first depth image (%s) has a median depth of %.2f m at %g per metre, nearer than a depth "
+                    "camera sees: if its PNGs hold millimetres, pass --depth-scale 1000", name, median,
+                    depth_scale)  # fmt: skip
 
 
 def _colour_or_none(path: Path, size: tuple[int, int], skips: _Skips) -> np.ndarray | None:
@@ -501,16 +626,17 @@ def import_tum(
     *,
     intrinsics: Intrinsics | None = None,
     tolerance: float = 0.02,
+    depth_scale: float = TUM_DEPTH_SCALE,
     compression: str = "zstd",
     topics: Topics | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> ImportCounts:
     """Convert a TUM RGB-D folder to a relpoint log (see :func:`tum_frames` for the parameters)."""
     skipped: Counter[str] = Counter()
-    frames = tum_frames(folder, intrinsics=intrinsics, tolerance=tolerance, skipped=skipped)
+    frames = tum_frames(folder, intrinsics=intrinsics, tolerance=tolerance, depth_scale=depth_scale, skipped=skipped)
     metadata = {
         "relpoint.import": metadata_json({
-            "layout": "tum", "source": Path(folder).name, "tolerance": tolerance,
+            "layout": "tum", "source": Path(folder).name, "tolerance": tolerance, "depth_scale": depth_scale,
             "camera": "given" if intrinsics else f"freiburg{tum_camera_number(folder) or 1}",
         })
     }  # fmt: skip

@@ -57,13 +57,13 @@ _INT64_MIN, _INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max
 
 def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
     """(line number, fields) of the non-comment, non-blank lines of ``path``."""
-    for number, stripped in _text_lines(path):
+    for number, stripped in text_lines(path):
         if not stripped or stripped.startswith("#"):
             continue
         yield number, [f for f in _SEPARATORS.split(stripped) if f]
 
 
-def _text_lines(path: Path) -> list[tuple[int, str]]:
+def text_lines(path: Path) -> list[tuple[int, str]]:
     """(line number, stripped text) of every line of ``path``; InputError if it cannot be read as text."""
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -103,11 +103,16 @@ def format_stamp(stamp_ns: int) -> str:
     return f"{sign}{seconds}.{nanos:09d}"
 
 
-def _floats(fields: list[str], path: Path, number: int) -> list[float]:
+def _numbers(fields: list[str], path: Path, number: int) -> list[float]:
+    """``fields`` as floats (NaN and infinity included); InputError naming the line if one is not a number."""
     try:
-        values = [float(f) for f in fields]
+        return [float(f) for f in fields]
     except ValueError:
         raise InputError(f"{path}:{number}: non-numeric value in {' '.join(fields)!r}") from None
+
+
+def _floats(fields: list[str], path: Path, number: int) -> list[float]:
+    values = _numbers(fields, path, number)
     if not all(np.isfinite(values)):
         raise InputError(f"{path}:{number}: non-finite value in {' '.join(fields)!r}")
     return values
@@ -181,7 +186,7 @@ def _read_tum_fast(path: Path) -> Trajectory | None:
     The line-by-line reader names the file and line of any problem; this path only handles files
     with exactly 8 finite values on every data line and plain decimal stamps, which is nearly all.
     """
-    lines = [(number, line) for number, line in _text_lines(path) if line and not line.startswith("#")]
+    lines = [(number, line) for number, line in text_lines(path) if line and not line.startswith("#")]
     if not lines:
         return None
     fields = " ".join(line for _, line in lines).replace(",", " ").split()
@@ -204,8 +209,9 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
     Raises
     ------
     InputError
-        Missing or unreadable file, no poses, a row without 8 values or with a non-numeric or non-finite
-        value, a zero quaternion, or stamps that do not increase - naming the file and line.
+        Missing or unreadable file, no poses, a row without 8 values or with a non-numeric value, a zero
+        quaternion, or stamps that do not increase - naming the file and line. Rows holding a NaN or an
+        infinite value are left out with a warning (an error only when no row is left).
     """
     path = Path(path)
     fast = _read_tum_fast(path)
@@ -225,12 +231,23 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
         lines.append(number)
     try:
         values = np.array(rows, dtype=np.float64).reshape(-1, 7)
-        finite = bool(np.isfinite(values).all())
-    except ValueError:
-        finite = False
-    if not finite:  # find the offending line for the message
+    except ValueError:  # find the offending line for the message
         for number, fields in zip(lines, rows, strict=True):
-            _floats(fields, path, number)
+            _numbers(fields, path, number)
+        raise
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        # A pose with a NaN or infinite value (a motion-capture dropout) says nothing: left out, as evo's
+        # alignment would be poisoned by it; the file's other poses are used.
+        dropped = np.nonzero(~finite)[0]
+        if dropped.size == len(stamps):
+            raise InputError(f"{path}: every pose holds a NaN or infinite value", "check how the file was written")
+        logger.warning("%s: %d pose%s holding a NaN or infinite value left out (the first: line %d)",
+                       path, dropped.size, "s" if dropped.size > 1 else "", lines[int(dropped[0])])  # fmt: skip
+        keep = np.nonzero(finite)[0]
+        stamps = [stamps[k] for k in keep]
+        lines = [lines[k] for k in keep]
+        values = values[keep]
     logger.debug("read %d poses from %s", len(stamps), path)
     return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
 

@@ -50,6 +50,18 @@ def _tum_camera_note(folder: Path) -> str:
             f"({camera.fx:g},{camera.fy:g},{camera.cx:g},{camera.cy:g}; --intrinsics sets others)")  # fmt: skip
 
 
+#: What an import reads from a dataset folder: lists, poses, calibration and images (a log kept there is not).
+_DATASET_SUFFIXES = frozenset({".txt", ".csv", ".png", ".jpg", ".jpeg"})
+
+
+def _dataset_files(folder: Path) -> list[Path]:
+    """The files an import may read: those of dataset kinds in ``folder`` and in its image folders (TUM keeps
+    depth/ and rgb/ beside its lists). A log written into the folder is not one: it may be replaced."""
+    image_folders = [path for path in folder.iterdir() if path.is_dir()]
+    return [Path(path) for path in read_paths(folder, *image_folders)
+            if Path(path).is_dir() or Path(path).suffix.lower() in _DATASET_SUFFIXES]  # fmt: skip
+
+
 @click.command("import", epilog=EXAMPLES)
 @click.argument("layout", type=click.Choice(["tum", "7scenes", "log"]))
 @click.argument("source", type=input_path())
@@ -66,6 +78,13 @@ def _tum_camera_note(folder: Path) -> str:
     default=0.02,
     show_default=True,
     help="TUM: timestamp association tolerance, s.",
+)
+@click.option(
+    "--depth-scale",
+    type=click.FloatRange(min=0.0, min_open=True, max=1e9),
+    default=5000.0,
+    show_default=True,
+    help="TUM: depth PNG units per metre (the benchmark's 5000; 1000 for millimetres).",
 )
 @click.option(
     "--rate", type=click.FloatRange(min=0.0, min_open=True, max=1e6), default=30.0, show_default=True,
@@ -91,8 +110,8 @@ def _tum_camera_note(folder: Path) -> str:
 @handle_errors
 def import_command(
     ctx: click.Context, layout: str, source: Path, output: Path, intrinsics: str | None, tolerance: float,
-    rate: float, first: int, count: int | None, points: bool, params: tuple[str, ...], compression: str,
-    overwrite: bool, **topic_params: str,
+    depth_scale: float, rate: float, first: int, count: int | None, points: bool, params: tuple[str, ...],
+    compression: str, overwrite: bool, **topic_params: str,
 ) -> None:  # fmt: skip
     """Convert an RGB-D SOURCE in LAYOUT to a relpoint log.
 
@@ -111,9 +130,7 @@ def import_command(
         if not source.is_dir():
             problem = "not a folder" if source.exists() else "no such folder"
             raise InputError(f"{source}: {problem}", f"give the {layout} dataset's folder")
-        # The folder's files and those of its image folders (TUM keeps depth/ and rgb/ beside its lists).
-        image_folders = [path for path in source.iterdir() if path.is_dir()]
-        check_output_file(output, inputs=read_paths(source, *image_folders), overwrite=overwrite)
+        check_output_file(output, inputs=_dataset_files(source), overwrite=overwrite)
     else:
         check_output_file(output, inputs=read_paths(source), overwrite=overwrite)
 
@@ -122,25 +139,26 @@ def import_command(
     if params and not points:
         raise UsageError("--param sets keypoint settings and needs --points")
     source_of = ctx.get_parameter_source
-    applies = {"intrinsics": "tum", "tolerance": "tum", "rate": "7scenes", "first": "7scenes", "count": "7scenes"}
+    applies = {"intrinsics": "tum", "tolerance": "tum", "depth_scale": "tum", "rate": "7scenes", "first": "7scenes",
+               "count": "7scenes"}  # fmt: skip
     ignored = [name for name, only in applies.items()
                if layout != only and source_of(name) is click.core.ParameterSource.COMMANDLINE]  # fmt: skip
     if ignored:
-        names = ", ".join(f"--{name}" for name in ignored)
+        names = ", ".join(f"--{name.replace('_', '-')}" for name in ignored)
         raise UsageError(f"{names} {'does' if len(ignored) == 1 else 'do'} not apply to the {layout} layout",
                          "see relpoint import --help: each option names the layouts it applies to")  # fmt: skip
     if layout == "tum" and intrinsics is None and not ctx.find_root().obj.get("quiet"):
         click.echo(_tum_camera_note(source), err=True)
     if points:
-        _import_points(ctx, layout, source, output, intrinsics, tolerance, rate, first, count, params, compression,
-                       topics_from(topic_params))  # fmt: skip
+        _import_points(ctx, layout, source, output, intrinsics, tolerance, depth_scale, rate, first, count, params,
+                       compression, topics_from(topic_params))  # fmt: skip
         return
     folder = source
     with progress_bar(None, f"import {layout}", unit="frame") as bar:
         if layout == "tum":
             counts = import_tum(
                 folder, output, intrinsics=parse_intrinsics(intrinsics), tolerance=tolerance,
-                compression=compression, on_frame=lambda _: bar.update(1),
+                depth_scale=depth_scale, compression=compression, on_frame=lambda _: bar.update(1),
             )  # fmt: skip
         else:
             counts = import_7scenes(
@@ -158,7 +176,8 @@ def import_command(
 
 def _import_points(
     ctx: click.Context, layout: str, source: Path, output: Path, intrinsics: str | None, tolerance: float,
-    rate: float, first: int, count: int | None, params: tuple[str, ...], compression: str, topics: Topics,
+    depth_scale: float, rate: float, first: int, count: int | None, params: tuple[str, ...], compression: str,
+    topics: Topics,
 ) -> None:  # fmt: skip
     from formats.rgbd_import import seven_scenes_frames, tum_frames
     from relpoint.frontend import KeypointSettings
@@ -166,7 +185,8 @@ def _import_points(
 
     settings = KeypointSettings.from_strings(params)
     if layout == "tum":
-        frames = tum_frames(source, intrinsics=parse_intrinsics(intrinsics), tolerance=tolerance)
+        frames = tum_frames(source, intrinsics=parse_intrinsics(intrinsics), tolerance=tolerance,
+                            depth_scale=depth_scale)  # fmt: skip
     elif layout == "7scenes":
         frames = seven_scenes_frames(source, rate=rate, first=first, count=count)
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -99,7 +100,7 @@ def test_reads_the_shared_tum_files_like_evo() -> None:
         ("# ok\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1 9\n", r":3: expected 8 values"),
         ("1 0 0 zero 0 0 0 1\n", r":1: non-numeric value"),
         ("abc 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
-        ("1 0 0 nan 0 0 0 1\n", r":1: non-finite value"),
+        ("1 0 0 nan 0 0 0 1\n", r"every pose holds a NaN"),
         ("inf 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
         ("2 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":3: timestamp goes back in time .*line 2"),
         ("1e30 0 0 0 0 0 0 1\n", r":1: timestamp out of range"),
@@ -113,6 +114,17 @@ def test_malformed_tum_names_file_and_line(tmp_path: Path, content: str, message
     with pytest.raises(InputError, match=message) as info:
         read_tum(path)
     assert str(path) in str(info.value)
+
+
+def test_tum_rows_holding_nan_are_left_out_with_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "groundtruth.txt"
+    path.write_text("# mocap\n1.0 0 0 0 0 0 0 1\n1.1 nan nan nan nan nan nan nan\n1.2 1 0 0 0 0 0 1\n"
+                    "1.3 1 inf 0 0 0 0 1\n1.4 2 0 0 0 0 0 1\n")  # fmt: skip
+    with caplog.at_level(logging.WARNING):
+        trajectory = read_tum(path)
+    assert trajectory.stamps_ns.tolist() == [1_000_000_000, 1_200_000_000, 1_400_000_000]
+    np.testing.assert_array_equal(trajectory.positions[:, 0], [0.0, 1.0, 2.0])
+    assert "2 poses holding a NaN or infinite value left out (the first: line 3)" in caplog.text
 
 
 def test_unreadable_inputs(tmp_path: Path) -> None:
@@ -270,7 +282,9 @@ def test_euroc_round_trip_and_extra_columns(tmp_path: Path) -> None:
     np.testing.assert_array_equal(again.positions, original.positions)
     np.testing.assert_allclose(again.quats_xyzw, original.quats_xyzw, rtol=0, atol=1e-15)
     wide = tmp_path / "wide.csv"
-    wide.write_text("".join(line + ",0.5,-0.5,0,0.01,0.02,0.03,0.1,0.2,0.3\n" for line in path.read_text().splitlines()))
+    wide.write_text(
+        "".join(line + ",0.5,-0.5,0,0.01,0.02,0.03,0.1,0.2,0.3\n" for line in path.read_text().splitlines())
+    )
     _assert_same(read_euroc_csv(wide), original)
 
 
@@ -477,9 +491,7 @@ def test_kitti_with_times_gives_evo_figures_of_the_tum_files(tmp_path: Path, fr1
         poses, times = tmp_path / f"{name}.kitti", tmp_path / f"{name}.times"
         write_kitti(poses, read_tum(data / name), times)
         files[name] = (poses, times)
-    ours = _relpoint_figures(
-        files[GT][0], files[RGBD][0], "se3", reference_times=files[GT][1], times=files[RGBD][1]
-    )
+    ours = _relpoint_figures(files[GT][0], files[RGBD][0], "se3", reference_times=files[GT][1], times=files[RGBD][1])
     evo = _evo_figures(
         file_interface.read_tum_trajectory_file(str(data / GT)), file_interface.read_tum_trajectory_file(str(data / RGBD)),
         "se3",
@@ -495,7 +507,8 @@ def test_kitti_without_times_pairs_by_index_as_evo(tmp_path: Path, fr1: dict[str
 
     data = shared_data(FR1)
     ref, est = sync.associate_trajectories(
-        file_interface.read_tum_trajectory_file(str(data / GT)), file_interface.read_tum_trajectory_file(str(data / RGBD))
+        file_interface.read_tum_trajectory_file(str(data / GT)),
+        file_interface.read_tum_trajectory_file(str(data / RGBD)),
     )
     paths = []
     for name, traj in (("ref", ref), ("est", est)):
@@ -602,13 +615,19 @@ def test_bag_pose_topic_with_repeated_stamps_warns_once(tmp_path: Path) -> None:
         schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
         for x, stamp in enumerate([1, 2, 2, 3, 3, 4]):
             header = {"stamp": {"sec": stamp, "nanosec": 0}, "frame_id": "map"}
-            pose = {"position": {"x": float(x), "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+            pose = {
+                "position": {"x": float(x), "y": 0.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            }
             writer.write_message("/pose", schema, {"header": header, "pose": pose}, log_time=stamp * 10**9 + x)
         writer.finish()
     code, _, err = _invoke("export", bag, "--topic", "/pose", "-o", out)
     lines = err.strip().splitlines()
     assert code == 0 and len(lines) == 1, err
-    assert lines[0] == f"relpoint: warning: {bag} /pose: 2 messages repeat the stamp of an earlier one; kept the first of each stamp"
+    assert (
+        lines[0]
+        == f"relpoint: warning: {bag} /pose: 2 messages repeat the stamp of an earlier one; kept the first of each stamp"
+    )
     assert read_tum(out).positions[:, 0].tolist() == [0, 1, 3, 5]
 
 
@@ -620,6 +639,8 @@ def test_nanosecond_stamps_in_a_seconds_format_are_named(tmp_path: Path, caplog:
     with caplog.at_level("WARNING"):
         read_tum(tmp_path / "zero.txt")
     assert "are the stamps nanoseconds?" in caplog.text
-    (tmp_path / "epoch.txt").write_text("".join(f"{1305031102175304000 + k * 33_333_333} {k} 0 0 0 0 0 1\n" for k in range(3)))
+    (tmp_path / "epoch.txt").write_text(
+        "".join(f"{1305031102175304000 + k * 33_333_333} {k} 0 0 0 0 0 1\n" for k in range(3))
+    )
     with pytest.raises(InputError, match="nanoseconds"):
         read_tum(tmp_path / "epoch.txt")

@@ -96,3 +96,131 @@ def test_ground_truth_is_interpolated_to_each_depth_stamp(tmp_path: Path) -> Non
         assert pose.position == pytest.approx((0.4 * fraction, -0.1 * fraction, 1.0), abs=1e-4)  # stamps: 0.2 us
         yaw = 2 * math.atan2(pose.quat_xyzw[2], pose.quat_xyzw[3])
         assert math.degrees(yaw) == pytest.approx(10.0 * fraction, abs=1e-3)
+
+
+def _lists(folder: Path, depth_lines: str, rgb_lines: str = "", *, size: tuple[int, int] = (64, 48),
+           raw_depth: int = 7500) -> None:  # fmt: skip
+    """A TUM folder whose lists hold the given lines; every file they name is written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for line in (depth_lines + rgb_lines).splitlines():
+        if line and not line.startswith("#"):
+            name = line.split()[1].replace("\\", "/")
+            (folder / name).parent.mkdir(exist_ok=True)
+            if name.startswith("depth"):
+                Image.fromarray(np.full(size[::-1], raw_depth, dtype=np.uint16)).save(folder / name)
+            else:
+                Image.fromarray(np.full((*size[::-1], 3), 90, dtype=np.uint8)).save(folder / name)
+    (folder / "depth.txt").write_text(depth_lines)
+    if rgb_lines:
+        (folder / "rgb.txt").write_text(rgb_lines)
+
+
+def _depth_stamps(path: Path) -> list[int]:
+    return [r.stamp_ns for r in LogReader(path).records(["depth"])]
+
+
+@pytest.mark.parametrize("factor", [1_000, 1_000_000_000])
+def test_stamps_in_milliseconds_or_nanoseconds_are_named_not_a_crash(tmp_path: Path, factor: int) -> None:
+    folder = tmp_path / "scan"
+    _lists(folder, "".join(f"{(1305031102 + k) * factor} depth/{k}.png\n" for k in range(2)))
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "x.mcap")])
+    assert result.exit_code == 3, result.output
+    assert "depth.txt:1: timestamp" in result.output and "milliseconds or nanoseconds" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "x.mcap").exists()
+
+
+def test_stamps_keep_every_nanosecond_of_their_text(tmp_path: Path) -> None:
+    # Through float64 seconds, 1305031102.175852 became ...175852032 ns.
+    folder = tmp_path / "scan"
+    _lists(folder, "1305031102.175852 depth/a.png\n1305031102.209102345 depth/b.png\n")
+    import_tum(folder, tmp_path / "x.mcap")
+    assert _depth_stamps(tmp_path / "x.mcap") == [1305031102_175852000, 1305031102_209102345]
+
+
+def test_a_depth_list_out_of_time_order_is_read_in_time_order(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # Each image not after the one before was dropped: a shuffled list lost most of its frames, silently.
+    stamps = [100.0 + 0.033 * k for k in range(8)]
+    shuffled = [stamps[k] for k in (3, 0, 6, 1, 7, 2, 5, 4)]
+    folder = tmp_path / "scan"
+    _lists(folder, "".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in shuffled) + f"{stamps[2]:.6f} depth/again.png\n")
+    counts = import_tum(folder, tmp_path / "x.mcap")
+    assert counts.depth == 8 and counts.skipped_depth == 1  # the repeated stamp
+    assert _depth_stamps(tmp_path / "x.mcap") == [round(t * 1e9) for t in stamps]
+    assert "not in time order" in caplog.text and "repeats the stamp" in caplog.text
+
+
+def test_a_tolerance_pairing_nothing_is_warned_of(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    folder = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    depth = [100.0 + 0.033 * k for k in range(6)]
+    _lists(folder, "".join(f"{t:.6f} depth/{k}.png\n" for k, t in enumerate(depth)),
+           "".join(f"{t + 0.004:.6f} rgb/{k}.png\n" for k, t in enumerate(depth)))  # fmt: skip
+    (folder / "groundtruth.txt").write_text("".join(f"{t + 0.006:.4f} 0 0 0 0 0 0 1\n" for t in depth))
+    counts = import_tum(folder, tmp_path / "paired.mcap")
+    assert (counts.color, counts.ground_truth_pose) == (6, 6) and "have no" not in caplog.text
+    counts = import_tum(folder, tmp_path / "x.mcap", tolerance=0.001)
+    assert (counts.color, counts.ground_truth_pose) == (0, 0)
+    assert "6 of 6 depth frames have no colour image within 0.001 s in rgb.txt" in caplog.text
+    assert "6 of 6 depth frames have no ground-truth pose within 0.001 s in groundtruth.txt" in caplog.text
+
+
+def test_an_output_inside_the_dataset_folder_is_replaced_by_a_second_import(tmp_path: Path) -> None:
+    folder = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    _lists(folder, "100.0 depth/a.png\n100.033 depth/b.png\n")
+    for _ in range(2):
+        result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(folder / "fr1.mcap")])
+        assert result.exit_code == 0, result.output
+    assert len(_depth_stamps(folder / "fr1.mcap")) == 2
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(folder / "depth.txt"), "--overwrite"])
+    assert result.exit_code == 2 and "100.033 depth/b.png" in (folder / "depth.txt").read_text()
+
+
+def test_the_freiburg_name_is_read_through_dot_dot(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    folder = tmp_path / "rgbd_dataset_freiburg2_desk"
+    (folder / "depth").mkdir(parents=True)
+    monkeypatch.chdir(folder / "depth")
+    assert tum_camera_number("..") == 2
+    monkeypatch.chdir(folder)
+    assert tum_camera_number(".") == 2
+    (tmp_path / "data").symlink_to(folder)
+    assert tum_camera_number(tmp_path / "data") == 2
+
+
+def test_associations_alone_backslashes_and_a_byte_order_mark_are_read(tmp_path: Path) -> None:
+    folder = tmp_path / "scan"
+    _lists(folder, "100.000000 depth\\a.png\n100.033000 depth\\b.png\n",
+           "100.001000 rgb\\a.png\n100.034000 rgb\\b.png\n")  # fmt: skip
+    (folder / "depth.txt").write_text("\ufeff# depth\n100.000000 depth\\a.png\n100.033000 depth\\b.png\n")
+    counts = import_tum(folder, tmp_path / "x.mcap")
+    assert (counts.depth, counts.color, counts.skipped_depth) == (2, 2, 0)
+
+    (folder / "associations.txt").write_text("100.001000 rgb/a.png 100.000000 depth/a.png\n"
+                                             "100.034000 rgb/b.png 100.033000 depth/b.png\n")  # fmt: skip
+    (folder / "depth.txt").unlink()
+    (folder / "rgb.txt").unlink()
+    counts = import_tum(folder, tmp_path / "y.mcap")
+    assert (counts.depth, counts.color) == (2, 2)
+    assert _depth_stamps(tmp_path / "y.mcap") == [100_000_000_000, 100_033_000_000]
+
+
+def test_depth_images_of_another_size_are_skipped_and_counted(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    folder = tmp_path / "scan"
+    _lists(folder, "100.0 depth/a.png\n100.1 depth/b.png\n100.2 depth/c.png\n")
+    Image.fromarray(np.full((24, 32), 7500, dtype=np.uint16)).save(folder / "depth" / "b.png")
+    counts = import_tum(folder, tmp_path / "x.mcap")
+    assert (counts.depth, counts.skipped_depth) == (2, 1)
+    assert "depth/b.png is 32x24, the first one 64x48" in caplog.text
+
+
+def test_millimetre_depth_is_warned_of_and_read_with_depth_scale(tmp_path: Path) -> None:
+    folder = tmp_path / "scan"
+    _lists(folder, "100.0 depth/a.png\n", raw_depth=1500)  # 1.5 m in millimetres
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "x.mcap")])
+    assert result.exit_code == 0 and "median depth of 0.30 m" in result.output and "--depth-scale 1000" in result.output
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "y.mcap"),
+                                      "--depth-scale", "1000"])  # fmt: skip
+    assert result.exit_code == 0 and "median depth" not in result.output
+    (depth,) = [r.value for r in LogReader(tmp_path / "y.mcap").records(["depth"])]
+    assert float(np.median(depth)) == pytest.approx(1.5)
+    result = CliRunner().invoke(cli, ["import", "7scenes", str(folder), "-o", str(tmp_path / "z.mcap"),
+                                      "--depth-scale", "1000"])  # fmt: skip
+    assert result.exit_code == 2 and "--depth-scale does not apply to the 7scenes layout" in result.output
