@@ -318,9 +318,10 @@ class RelativePointEstimator(
         Not located (``degenerate_iterations``): fewer than three usable non-collinear mapped points
         in view, so the pose coasted on the predicted motion. Past ``DEGENERATE_WARNING_SHARE`` of the
         iterations the path is mostly that prediction (on a sparse log, frozen poses) and the map is
-        placed by it. A map begun again: nothing mapped was in view (after a gap in the observations,
-        a jump, or a view with no point seen before), so a new part was anchored to the pose predicted
-        then, and nothing ties it to the map before it. The path and map after it may be off by the move."""
+        placed by it. A map begun again: fewer than three mapped points not flagged as moving were in view
+        where new points were grouped (after a gap in the observations, a jump, a view of new ground, or
+        points there taken for movers), so a new part was anchored to the pose predicted then, and little
+        ties it to the map before it. The path and map after it may be off by the move."""
         warnings = []
         degenerate = self.counts["degenerate_iterations"]
         if self._iteration and degenerate > DEGENERATE_WARNING_SHARE * self._iteration:
@@ -340,10 +341,11 @@ class RelativePointEstimator(
             return warnings
         where = ", ".join(str(k) for k in self._map_restarts[:5]) + (", ..." if len(self._map_restarts) > 5 else "")
         warnings.append(
-            f"relpoint: the map was begun again {len(self._map_restarts)} time(s) (iterations {where}): no point "
-            "seen before was in view, so each new part is placed only by the motion predicted across the break; "
-            "the path and map after it may be off by that move. With odometry, ekf or fastslam carry the pose "
-            "across such a break"
+            f"relpoint: the map was begun again {len(self._map_restarts)} time(s) (iterations {where}): fewer than "
+            "three mapped points not flagged as moving were in view where new points were grouped (after a gap or "
+            "a jump, a view of new ground, or when the points there were taken for movers), so each new part is "
+            "placed only by the pose predicted then; the path and map after it may be off by that move. With "
+            "odometry, ekf or fastslam carry the pose across such a break"
         )
         return warnings
 
