@@ -115,11 +115,8 @@ def test_dense_fixes_and_a_real_drift_make_a_walk_that_beats_the_filter(seed: in
 def test_fastslam_smooths_on_the_fixes_of_logs_another_tool_wrote(tmp_path: Path) -> None:
     """Spirals written by mcap-ros2-support with odometry and a fix every 5 iterations, five seeds: the
     smoothing is reported in run.json and lowers APE against the filter's own trajectory, raw and
-    SE(3)-aligned, in the median; on no seed does it make the aligned path worse.
-
-    Measured: raw 0.28-0.38 m smoothed against 0.39-0.50 m on four seeds; on the fifth (seed 4) the
-    correction's walk is refused, the constant shift leaves the map's own path turned against the
-    fixes' frame, and raw APE is 0.73 m against 0.54 m (aligned 0.24 against 0.35 m)."""
+    SE(3)-aligned, on every seed (measured: raw 0.28-0.39 m against 0.53-1.14 m, aligned 0.18-0.26 m
+    against 0.34-0.78 m)."""
     from click.testing import CliRunner
 
     from formats.trajectory_files import read_tum
@@ -147,8 +144,7 @@ def test_fastslam_smooths_on_the_fixes_of_logs_another_tool_wrote(tmp_path: Path
                 assert summary["smoothing"]["poses_with_fixes"] == 60
         ratios.append(errors["true"] / errors["false"])
     raw, aligned = np.array(ratios).T
-    assert np.median(raw) < 0.8 and np.median(aligned) < 0.9
-    assert aligned.max() < 1.0
+    assert raw.max() < 0.8 and aligned.max() < 0.8
 
 
 def _aligned_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:

@@ -25,10 +25,10 @@ explains them. A motion model's acceleration noise written in m/s^2 for a
 vehicle (2 m/s^2) lets a tabletop sensor's prediction wander over several of its landmarks' spacings,
 and the association with it; unset, the EKF's and FastSLAM's ``linear_acceleration_noise`` is
 ``ACCELERATION_MARGIN`` times what the path shows, never less than that default scaled by the noise,
-and not more than the vehicle default unless the path itself shows more: then what it shows
+and not more than the vehicle default, unless the path itself accelerates harder: then that
 (:func:`derived_acceleration_noise`). On the figure eight ten times larger (noise and all) FastSLAM's
 ATE divided by the scale was 27.5 in the median of five seeds with the vehicle default (0.78 on the
-figure eight itself); with what the path shows, 0.86 (``benchmarks/scene_scale.py``; docs/keypoints.md).
+figure eight itself); with what the path shows, 1.96 (``benchmarks/scene_scale.py``; docs/keypoints.md).
 
 :class:`NoiseAdaptive` wraps an estimator whose settings need the noise: it holds back the first
 observations, estimates the noise from them, builds the estimator with it and replays them; the poses
@@ -41,7 +41,7 @@ import dataclasses
 import itertools
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -72,6 +72,13 @@ NOISE_FRAMES = 30
 MIN_POINTS = 4
 #: ... but never more iterations than this (a log that rarely sees four points).
 MAX_HELD = 200
+#: A median point range (m) or odometry speed (m/s) beyond these says the log is likely in millimetres.
+UNIT_RANGE_M = 2000.0
+UNIT_SPEED_M_S = 300.0
+#: Noise along the line of sight beyond this many times that across it is warned of: on isotropic
+#: noise the two estimates agree within 0.9-1.1; a range error 5 and 10 times the lateral one measures
+#: 3.2 and 4.4-5.2 times (the trimmed registration cuts the widest residuals along the sight).
+ANISOTROPY_WARNING = 2.0
 #: Smallest noise relative to the median range of the points (see the module docstring).
 RANGE_FRACTION = 0.005
 #: The simulator's default noise (m), which the distance settings' defaults were chosen for; the
@@ -139,6 +146,26 @@ def pair_residuals(first: FloatArray, second: FloatArray) -> FloatArray:
     return registered[2] if registered is not None else np.empty(0)
 
 
+def _unit_warning(name: str, observations: Sequence[PointObservation], odometry: Sequence[OdometryMeasurement]) -> str:
+    """A warning when the first observations' median range or the odometry's median speed is far beyond
+    what a sensor carried about sees and moves at (``UNIT_RANGE_M``, ``UNIT_SPEED_M_S``): the log likely
+    holds millimetres where ROS messages hold metres (REP 103); else ""."""
+    ranges = [np.linalg.norm(o.points, axis=1) for o in observations if len(o)]
+    median_range = float(np.median(np.concatenate(ranges))) if ranges else 0.0
+    speeds = [float(np.linalg.norm(m.linear)) for m in odometry]
+    median_speed = float(np.median(speeds)) if speeds else 0.0
+    said = []
+    if median_range > UNIT_RANGE_M:
+        said.append(f"the points' median range is {median_range:,.0f} m")
+    if median_speed > UNIT_SPEED_M_S:
+        said.append(f"the odometry's median speed is {median_speed:,.0f} m/s")
+    if not said:
+        return ""
+    return (f"{name}: {' and '.join(said)}: are they millimetres? ROS messages hold metres (REP 103); a log "
+            "written in millimetres gives a map and path a thousand times too large, and settings in metres "
+            "(ranges, speeds, gates) that do not fit it; convert the log to metres")  # fmt: skip
+
+
 def _pair_estimate(residual: FloatArray, min_pairs: int) -> float | None:
     """Per-axis noise from the residuals of ``n`` registered pairs: a rigid fit absorbs 6 of their ``3 n``
     degrees of freedom, so they understate it by ``sqrt((3 n - 6) / (3 n))``, which is undone."""
@@ -179,10 +206,22 @@ def registration_noise(
     The median of the pairs' estimates is returned.
     """
     registrations = registrations or ConsecutiveRegistrations.of(observations)
+    estimates = [
+        estimate
+        for _, _, registered in _baseline_registrations(registrations, baseline)
+        if (estimate := _pair_estimate(registered[2], min_pairs)) is not None
+    ]
+    return float(np.median(estimates)) if estimates else None
+
+
+def _baseline_registrations(
+    registrations: ConsecutiveRegistrations, baseline: int | None = None
+) -> Iterator[tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray, FloatArray]]]:
+    """``(first, second, (R, t, residuals))`` of the observations ``baseline`` apart (default: half the
+    sequence) that register, ``second`` moved onto ``first`` from the chained consecutive motions."""
     usable = [o.points for o in registrations.observations]
     steps = registrations.steps
     baseline = max(1, len(usable) // 2 if baseline is None else baseline)
-    estimates = []
     for i in range(len(usable) - baseline):
         chain = steps[i : i + baseline]
         if any(step is None for step in chain):
@@ -192,9 +231,41 @@ def registration_noise(
             assert step is not None
             R, t = R @ step[0], R @ step[1] + t
         registered = register(usable[i], usable[i + baseline], (R, t)) if baseline > 1 else chain[0]
-        if registered is not None and (estimate := _pair_estimate(registered[2], min_pairs)) is not None:
-            estimates.append(estimate)
-    return float(np.median(estimates)) if estimates else None
+        if registered is not None:
+            yield usable[i], usable[i + baseline], registered
+
+
+def noise_along_and_across(registrations: ConsecutiveRegistrations, min_pairs: int = 6) -> tuple[float, float] | None:
+    """Per-axis noise (m) along the line of sight from the sensor and across it, from the residuals of
+    the observations registered half the sequence apart (as :func:`registration_noise`); the medians
+    over the registered pairs. None when no pair holds ``min_pairs`` matches.
+
+    A stereo camera's or a depth sensor's range error is several times its error across the view; an
+    isotropic estimate (the residual lengths' median) then understates the range error.
+    """
+    from scipy.spatial import cKDTree
+
+    along, across = [], []
+    for first, second, (R, t, _) in _baseline_registrations(registrations):
+        moved = second @ R.T + t
+        distance, nearest = cKDTree(first).query(moved)
+        mutual = cKDTree(moved).query(first[nearest])[1] == np.arange(len(moved))
+        if mutual.sum() < 3:
+            continue
+        keep = mutual & (distance <= 3.0 * np.median(distance[mutual]))
+        if keep.sum() < min_pairs:
+            continue
+        target = first[nearest[keep]]
+        residual = target - moved[keep]
+        sight = target / np.maximum(np.linalg.norm(target, axis=1, keepdims=True), 1e-12)
+        on_sight = np.sum(residual * sight, axis=1)
+        off_sight = np.linalg.norm(residual - on_sight[:, None] * sight, axis=1)
+        # two noisy points: sqrt(2) per axis; |N(0, s)| has median 0.6745 s, a 2D one's length 1.1774 s
+        along.append(float(np.median(np.abs(on_sight))) / (0.6745 * math.sqrt(2.0)))
+        across.append(float(np.median(off_sight)) / (1.1774 * math.sqrt(2.0)))
+    if not along:
+        return None
+    return float(np.median(along)), float(np.median(across))
 
 
 def _chained_positions(registrations: ConsecutiveRegistrations) -> tuple[FloatArray, FloatArray] | None:
@@ -212,18 +283,31 @@ def _chained_positions(registrations: ConsecutiveRegistrations) -> tuple[FloatAr
     return stamps, np.array(positions)
 
 
+@dataclass(frozen=True)
+class PathAcceleration:
+    """How hard the held-back path accelerates (m/s^2), two ways (:func:`estimate_acceleration`).
+
+    ``white``: the white acceleration noise over one interval that explains its velocity changes.
+    ``smoothed``: its velocity change over the span, per second: the acceleration the path itself
+    shows. A smooth turn of acceleration ``A`` gives ``smoothed`` ``A`` and ``white`` ``A sqrt(m)``.
+    """
+
+    white: float
+    smoothed: float
+
+
 def estimate_acceleration(
     observations: Sequence[PointObservation], registrations: ConsecutiveRegistrations | None = None
-) -> float | None:
-    """White acceleration noise (m/s^2, per iteration's interval) that explains how the velocity of the
-    path the observations' registrations chain into changes.
+) -> PathAcceleration | None:
+    """How hard the path the observations' registrations chain into accelerates.
 
     Velocities are differences of positions ``m`` observations apart, ``m`` spanning about
     ``ACCELERATION_SPAN_S`` (at most a third of the path); their median change between consecutive
-    spans, over the span's time ``S``, is an acceleration smoothed over ``S``. Under white acceleration
-    noise the velocity wanders as the square root of time, so the noise over one interval ``dt`` is
-    that times ``sqrt(S / dt) = sqrt(m)``: the motion models' ``(a dt)^2`` per iteration then wander the
-    velocity as much over ``S`` as the path did. None when the path cannot be chained or is too short.
+    spans, over the span's time ``S``, is an acceleration smoothed over ``S`` (``smoothed``). Under white
+    acceleration noise the velocity wanders as the square root of time, so the noise over one interval
+    ``dt`` is that times ``sqrt(S / dt) = sqrt(m)`` (``white``): the motion models' ``(a dt)^2`` per
+    iteration then wander the velocity as much over ``S`` as the path did. None when the path cannot be
+    chained or is too short.
     """
     path = _chained_positions(registrations or ConsecutiveRegistrations.of(observations))
     if path is None:
@@ -239,22 +323,23 @@ def estimate_acceleration(
     velocity = (positions[m:] - positions[:-m]) / span[:, None]
     change = np.linalg.norm(velocity[m:] - velocity[:-m], axis=1)
     between = 0.5 * (span[m:] + span[:-m])
-    return float(np.median(change / between)) * math.sqrt(m)
+    smoothed = float(np.median(change / between))
+    return PathAcceleration(white=smoothed * math.sqrt(m), smoothed=smoothed)
 
 
-def derived_acceleration_noise(acceleration: float | None, sigma: float) -> float:
+def derived_acceleration_noise(acceleration: PathAcceleration | None, sigma: float) -> float:
     """The motion models' linear acceleration noise (m/s^2) for a log whose held-back path shows
-    ``acceleration`` (m/s^2; None: unknown) and whose observation noise is ``sigma`` (m):
-    ``ACCELERATION_MARGIN`` times the acceleration, within ``VEHICLE_ACCELERATION`` scaled by the noise
-    against the simulator's and ``VEHICLE_ACCELERATION`` itself, or the acceleration itself when it is
-    more than ``VEHICLE_ACCELERATION`` (at most ``MAX_ACCELERATION_NOISE``)."""
+    ``acceleration`` (None: unknown) and whose observation noise is ``sigma`` (m):
+    ``ACCELERATION_MARGIN`` times its white noise, within ``VEHICLE_ACCELERATION`` scaled by the noise
+    against the simulator's and ``VEHICLE_ACCELERATION`` itself; but never less than the acceleration
+    the path itself shows (its ``smoothed``; at most ``MAX_ACCELERATION_NOISE``)."""
     if acceleration is None:
         return VEHICLE_ACCELERATION
     floor = VEHICLE_ACCELERATION * min(1.0, sigma / SIMULATOR_SIGMA)
-    within_vehicle = min(VEHICLE_ACCELERATION, max(ACCELERATION_MARGIN * acceleration, floor))
-    # A path accelerating beyond a vehicle (an aerial sensor, a scene ten times the simulator's) keeps at
+    within_vehicle = min(VEHICLE_ACCELERATION, max(ACCELERATION_MARGIN * acceleration.white, floor))
+    # A path turning harder than a vehicle (an aerial sensor, a scene ten times the simulator's) keeps at
     # least what it shows: capped at the vehicle's, the prediction trails it and the association breaks.
-    return float(min(MAX_ACCELERATION_NOISE, max(within_vehicle, acceleration)))
+    return float(min(MAX_ACCELERATION_NOISE, max(within_vehicle, acceleration.smoothed)))
 
 
 _MotionSettings = TypeVar("_MotionSettings", bound="MotionNoiseSettings")
@@ -268,12 +353,12 @@ class MotionNoiseSettings(Settings):
     linear_acceleration_noise: float | None = setting(None, low=0, high=1e4)
     """Constant-velocity model: white linear acceleration noise (m/s^2). Unset (the default): ``relpoint
     run`` takes 5 times the acceleration noise that explains the path its first observations register
-    into, within 2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m, or
-    that acceleration itself when it is more than 2 m/s^2
-    (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports both as
-    ``linear_acceleration_noise`` and ``acceleration_measured``): about 4.2 m/s^2 on the simulator's
-    figure eight, 50 on the same ten times larger, about 1.8 on a hand-held camera at 30 Hz, 0.6 on a
-    slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop.
+    into, within 2 m/s^2 (a vehicle's) and 2 m/s^2 scaled by the observation noise against 0.3 m, but
+    never less than the acceleration the path itself shows
+    (:func:`relpoint.estimators._noise.derived_acceleration_noise`; ``run.json`` reports them as
+    ``linear_acceleration_noise``, ``acceleration_measured`` and ``acceleration_path``): 2 m/s^2 on the
+    simulator's figure eight, 23 on the same ten times larger, about 1.8 on a hand-held camera at
+    30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop.
     Built directly, without ``SPEC.factory``: 2 m/s^2."""
 
     odometry_check: bool = setting(True)
@@ -349,7 +434,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def __init__(
         self,
-        build: Callable[[float, float | None], Estimator],
+        build: Callable[[float, PathAcceleration | None], Estimator],
         fallback: float,
         name: str,
         frames: int = NOISE_FRAMES,
@@ -375,8 +460,10 @@ class NoiseAdaptive(Estimator[PointObservation]):
         self._replayed: list[Pose] = []
         self.sigma: float | None = None
         self.estimated = False
-        self.acceleration: float | None = None
+        self.acceleration: PathAcceleration | None = None
         self.revisit: float | None = None
+        self.along_and_across: tuple[float, float] | None = None
+        self._units = ""
         # Iterations held back and replayed at the last of them (their work is done then): the pipeline
         # spreads that iteration's time over them.
         self.replayed_steps = 0
@@ -395,6 +482,9 @@ class NoiseAdaptive(Estimator[PointObservation]):
             self.estimated = sigma is not None
             self.sigma = sigma if sigma is not None else self._fallback
         self.revisit = revisit_ratio(registrations)
+        self._units = _unit_warning(self.name, observations, [item for kind, item in self._held if kind == "odometry"])
+        if self._known_sigma is None:
+            self.along_and_across = noise_along_and_across(registrations)
         if self._not_landmarks():  # said now, as a run over such clouds can take long; explained at its end
             log.warning("%s: the first %d observations look like samples of surfaces, not landmarks (revisit ratio "
                         "%.2f); the run goes on, its result unreliable", self.name, len(observations), self.revisit)  # fmt: skip
@@ -469,11 +559,18 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def summary(self) -> dict[str, Any]:
         inner = self._inner.summary() if self._inner is not None else {}
-        measured = {"acceleration_measured": self.acceleration} if self._measure_acceleration else {}
+        measured: dict[str, Any] = {}
+        if self._measure_acceleration:
+            measured["acceleration_measured"] = self.acceleration.white if self.acceleration else None
+            measured["acceleration_path"] = self.acceleration.smoothed if self.acceleration else None
         if self.odometry_check is not None:
             measured["odometry_check"] = self.odometry_check.summary()
         if self.revisit is not None:
             measured["revisit_ratio"] = self.revisit
+        if self.along_and_across is not None:
+            measured["observation_sigma_along_sight"], measured["observation_sigma_across_sight"] = (
+                self.along_and_across
+            )
         return {**inner, "observation_sigma": self.sigma, "observation_sigma_estimated": self.estimated, **measured}
 
     def _not_landmarks(self) -> bool:
@@ -488,10 +585,26 @@ class NoiseAdaptive(Estimator[PointObservation]):
             "`relpoint import ... --points`); depth images suit the dense estimator"
         )
 
+    def _anisotropy_warning(self) -> list[str]:
+        if self.along_and_across is None or self._not_landmarks():
+            return []
+        along, across = self.along_and_across
+        if not along > ANISOTROPY_WARNING * across:
+            return []
+        return [
+            f"{self.name}: the points' noise along the line of sight ({along:.3g} m) is {along / across:.1f} times "
+            f"that across it ({across:.3g} m), as a stereo camera's or a depth sensor's range error is; the "
+            f"estimator models it the same in every direction ({self.sigma:.3g} m), which understates it along "
+            "the sight: static points may be taken for movers and the map spreads along the rays. "
+            f"`--param observation_sigma={along:.2g}` models the larger (a firmer map, at times a looser path)"
+        ]
+
     def run_warnings(self) -> list[str]:
         checked = self.odometry_check.warnings() if self.odometry_check is not None else []
         surfaces = [self._not_landmarks_warning()] if self._not_landmarks() else []
-        return surfaces + checked + (self._inner.run_warnings() if self._inner is not None else [])
+        inner = self._inner.run_warnings() if self._inner is not None else []
+        units = [self._units] if self._units else []
+        return units + surfaces + self._anisotropy_warning() + checked + inner
 
     def __getattr__(self, name: str) -> Any:
         # Anything else (diagnostics the benchmarks and tests read) comes from the built estimator.

@@ -186,7 +186,7 @@ class FastSlam(Estimator[PointObservation]):
         if cfg.pose_noise is not None:
             position_jitter = orientation_jitter = cfg.pose_noise
         else:
-            position_jitter = POSE_JITTER * sigma / SIMULATOR_SIGMA
+            position_jitter = POSE_JITTER * min(1.0, sigma / SIMULATOR_SIGMA)
             orientation_jitter = POSE_JITTER
         self._pose_jitter = np.diag([position_jitter**2] * 3 + [orientation_jitter**2] * 3)
         # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.

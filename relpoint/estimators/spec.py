@@ -8,7 +8,13 @@ from typing import Any
 
 import numpy as np
 
-from relpoint.estimators._noise import SIMULATOR_SIGMA, MotionNoiseSettings, NoiseAdaptive, derived_acceleration_noise
+from relpoint.estimators._noise import (
+    SIMULATOR_SIGMA,
+    MotionNoiseSettings,
+    NoiseAdaptive,
+    PathAcceleration,
+    derived_acceleration_noise,
+)
 from relpoint.estimators.base import DEPTH, POINTS, Estimator
 from relpoint.settings import Settings
 
@@ -53,7 +59,7 @@ class EstimatorSpec:
         if config.observation_sigma is not None and not (measure_acceleration or check_odometry):
             return self.estimator_class(config.at_noise(config.observation_sigma), rng)
 
-        def build(sigma: float, acceleration: float | None) -> Estimator:
+        def build(sigma: float, acceleration: PathAcceleration | None) -> Estimator:
             fitted = config.at_noise(sigma)
             if measure_acceleration:
                 fitted = fitted.at_acceleration(derived_acceleration_noise(acceleration, sigma))
