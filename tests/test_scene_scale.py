@@ -84,11 +84,11 @@ def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return so3_exp([0.0, 0.0, yaw]) @ so3_exp([0.0, pitch, 0.0]) @ so3_exp([roll, 0.0, 0.0])
 
 
-def _fastslam_ate_on_a_tabletop(scale: float) -> float:
+def _fastslam_ate_on_a_tabletop(scale: float, seed: int = 0) -> float:
     """FastSLAM's ATE (m, in the first pose's frame) with its defaults on a slow arc past 400 landmarks,
     seen within ``8 scale`` m with ``0.053 scale`` m noise: at ``scale`` 0.0375, a sensor moving 4 cm/s
-    over a 1 m table with 2 mm noise."""
-    rng = np.random.default_rng(0)
+    over a 1 m table with 2 mm noise. ``seed`` draws the scene and the particles."""
+    rng = np.random.default_rng(seed)
     times = np.arange(200) * 0.1
     angle = times / 10.0
     positions = scale * np.column_stack([10 * np.sin(angle), 10 * (1 - np.cos(angle)), np.sin(0.5 * angle)])
@@ -101,21 +101,26 @@ def _fastslam_ate_on_a_tabletop(scale: float) -> float:
         noisy = local[seen] + rng.normal(0.0, 0.002 / 0.0375 * scale, (int(seen.sum()), 3))
         observations.append(PointObservation(int(times[k] * 1e9), noisy, np.nonzero(seen)[0]))
     spec = ESTIMATORS["fastslam"]
-    result = pipeline.run(observations, spec.factory(spec.config_class(), np.random.default_rng(0)))
+    result = pipeline.run(observations, spec.factory(spec.config_class(), np.random.default_rng(seed)))
     truth = (positions - positions[0]) @ rotations[0]  # in the first pose's frame
     return float(np.sqrt(np.mean(np.sum((result.trajectory.positions - truth) ** 2, axis=1))))
 
 
 def test_fastslam_on_a_tabletop_is_as_good_as_on_the_same_scene_a_thousand_times_larger() -> None:
-    # with the vehicle's 2 m/s^2 the tabletop's ATE was 5.6 times the large scene's, scaled
-    tabletop, large = _fastslam_ate_on_a_tabletop(0.0375), _fastslam_ate_on_a_tabletop(37.5)
-    assert tabletop / 0.0375 < 2.0 * (large / 37.5)
+    # With the vehicle's 2 m/s^2 the tabletop's ATE was 5.6 times the large scene's, scaled. In the median
+    # of five seeds (measured 0.032 against 0.038, scaled): one tabletop seed's association collapses
+    # (0.355), as FastSLAM's 0.01 m pose jitter is five times the tabletop's noise; scaling the jitter
+    # with the noise mends it there, and costs Starry Night's real stereo points (worst of ten seeds
+    # 0.119 -> 0.745 m), so the jitter stays.
+    tabletop = [_fastslam_ate_on_a_tabletop(0.0375, seed) / 0.0375 for seed in range(5)]
+    large = [_fastslam_ate_on_a_tabletop(37.5, seed) / 37.5 for seed in range(5)]
+    assert np.median(tabletop) < 2.0 * np.median(large)
 
 
 def test_fastslam_on_the_figure_eight_ten_times_larger_stays_near_ten_times_the_error() -> None:
     # The path turns ten times harder: with the acceleration noise capped at a vehicle's 2 m/s^2 the
     # proposal trailed it and the ATE was 45 times the figure eight's, scaled; now 2.7 times. The rest
-    # of the gap: the proposal's 0.01 m pose jitter is not scaled up with the noise (it is scaled down).
+    # of the gap: settings written for the simulator, such as the proposal's fixed 0.01 m pose jitter.
     def ate(scale: float) -> float:
         sim = simulate(SimulationConfig(iterations=200, scale=scale, noise=0.3 * scale, seed=3))
         spec = ESTIMATORS["fastslam"]

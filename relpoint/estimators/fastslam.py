@@ -86,7 +86,7 @@ from relpoint.estimators._vanished import (
     run_log_probability,
 )
 from relpoint.estimators.base import FIX, ODOMETRY, POINTS, Estimator
-from relpoint.estimators.fastslam_config import POSE_JITTER, SEARCH_RADIUS_SIGMAS, FastSlamConfig
+from relpoint.estimators.fastslam_config import SEARCH_RADIUS_SIGMAS, FastSlamConfig
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, apply_transform, so3_exp, twist_step
 from relpoint.statistics import chi2_gate
@@ -182,13 +182,6 @@ class FastSlam(Estimator[PointObservation]):
         sigma = cfg.observation_sigma if cfg.observation_sigma is not None else SIMULATOR_SIGMA
         self._search_radius = cfg.search_radius if cfg.search_radius is not None else SEARCH_RADIUS_SIGMAS * sigma
         self._Q = np.eye(3) * sigma**2
-        # The proposal's extra spread per iteration: position (m) and orientation (rad) per axis.
-        if cfg.pose_noise is not None:
-            position_jitter = orientation_jitter = cfg.pose_noise
-        else:
-            position_jitter = POSE_JITTER * min(1.0, sigma / SIMULATOR_SIGMA)
-            orientation_jitter = POSE_JITTER
-        self._pose_jitter = np.diag([position_jitter**2] * 3 + [orientation_jitter**2] * 3)
         # New-landmark likelihood: density of a fresh landmark's innovation (covariance 2Q) at the quantile.
         gate = chi2_gate(cfg.new_landmark_probability, 3)
         log_norm = 0.5 * (3 * _LOG_2PI + math.log(np.linalg.det(2.0 * self._Q)))
@@ -287,7 +280,7 @@ class FastSlam(Estimator[PointObservation]):
         self._hold.observed(self._stamp_ns)
         Sigma, self._Sigma = self._Sigma, np.zeros_like(self._Sigma)
         if self._predicted:  # once per iteration, however many records split the prediction
-            Sigma[:, :6, :6] += self._pose_jitter
+            Sigma[:, :6, :6] += np.eye(6) * self.config.pose_noise**2
             self._predicted = False
         # 1.0 samples the motion model, except while the initial twist is unknown: a blind draw from
         # its wide prior (initial_speed_sigma) leaves most particles metres off after one step.
