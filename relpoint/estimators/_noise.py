@@ -589,8 +589,8 @@ class NoiseAdaptive(Estimator[PointObservation]):
         if self.along_and_across is None or self._not_landmarks():
             return []
         along, across = self.along_and_across
-        if not along > ANISOTROPY_WARNING * across:
-            return []
+        if not (along > ANISOTROPY_WARNING * across and along > self.sigma):
+            return []  # isotropic, or the noise taken (the range floor) already covers the error along the sight
         return [
             f"{self.name}: the points' noise along the line of sight ({along:.3g} m) is {along / across:.1f} times "
             f"that across it ({across:.3g} m), as a stereo camera's or a depth sensor's range error is; the "
