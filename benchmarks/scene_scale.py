@@ -2,7 +2,7 @@
 
 Two scenes, each at several scales with the noise scaled alike, over five seeds (the scene's draws and
 the estimator's): a slow tabletop arc past 400 landmarks (at scale 0.0375 a sensor moving 4 cm/s over a
-1 m table with 2 mm noise; tests/test_scene_scale.py) and the simulator's figure eight (200
+1 m table with 2 mm noise; ``relpoint.simulation.tabletop``) and the simulator's figure eight (200
 iterations, noise 0.3 m times the scale). Scale-invariant defaults give the same figures at every
 scale; the worst seed is printed beside the median. Nothing is gated: the figures are printed.
 
@@ -21,32 +21,11 @@ import numpy as np
 
 from relpoint import pipeline
 from relpoint.estimators import ESTIMATORS
-from relpoint.geometry import so3_exp
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint.simulation.tabletop import tabletop_arc
 from relpoint.types import PointObservation
 
 Scene = Callable[[float, int], tuple[list[PointObservation], np.ndarray]]
-
-
-def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    return so3_exp([0.0, 0.0, yaw]) @ so3_exp([0.0, pitch, 0.0]) @ so3_exp([roll, 0.0, 0.0])
-
-
-def tabletop(scale: float, seed: int) -> tuple[list[PointObservation], np.ndarray]:
-    """Observations and true positions (in the first pose's frame) of the tabletop arc at ``scale``."""
-    rng = np.random.default_rng(seed)
-    times = np.arange(200) * 0.1
-    angle = times / 10.0
-    positions = scale * np.column_stack([10 * np.sin(angle), 10 * (1 - np.cos(angle)), np.sin(0.5 * angle)])
-    rotations = [_rotation(a, 0.15 * np.sin(1.3 * a), 0.2 * np.sin(0.7 * a)) for a in angle]
-    landmarks = rng.uniform([-15, -15, -3], [15, 15, 3], (400, 3)) * scale + positions.mean(axis=0)
-    observations = []
-    for k, (rotation, position) in enumerate(zip(rotations, positions, strict=True)):
-        local = (landmarks - position) @ rotation  # R^T (m - p), row-wise
-        seen = np.linalg.norm(local, axis=1) <= 8 * scale
-        noisy = local[seen] + rng.normal(0.0, 0.002 / 0.0375 * scale, (int(seen.sum()), 3))
-        observations.append(PointObservation(int(times[k] * 1e9), noisy, np.nonzero(seen)[0]))
-    return observations, (positions - positions[0]) @ rotations[0]
 
 
 def figure_eight(scale: float, seed: int) -> tuple[list[PointObservation], np.ndarray]:
@@ -56,7 +35,7 @@ def figure_eight(scale: float, seed: int) -> tuple[list[PointObservation], np.nd
 
 
 SCENES: dict[str, tuple[Scene, tuple[float, ...]]] = {
-    "tabletop": (tabletop, (0.0375, 37.5)),
+    "tabletop": (tabletop_arc, (0.0375, 37.5)),
     "figure8": (figure_eight, (0.01, 1.0, 10.0)),
 }
 

@@ -19,6 +19,7 @@ from relpoint.estimators._noise import (
 from relpoint.evaluation import landmark_metrics
 from relpoint.geometry import so3_exp
 from relpoint.simulation import SimulationConfig, simulate
+from relpoint.simulation.tabletop import tabletop_arc
 from relpoint.types import PointObservation
 
 
@@ -79,30 +80,12 @@ def test_the_ekf_on_a_scene_a_hundred_times_smaller_gives_errors_a_hundred_times
     assert small_landmarks / 0.01 < 2.0 * landmarks
 
 
-def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return so3_exp([0.0, 0.0, yaw]) @ so3_exp([0.0, pitch, 0.0]) @ so3_exp([roll, 0.0, 0.0])
-
-
 def _fastslam_ate_on_a_tabletop(scale: float, seed: int = 0) -> float:
-    """FastSLAM's ATE (m, in the first pose's frame) with its defaults on a slow arc past 400 landmarks,
-    seen within ``8 scale`` m with ``0.053 scale`` m noise: at ``scale`` 0.0375, a sensor moving 4 cm/s
-    over a 1 m table with 2 mm noise. ``seed`` draws the scene and the particles."""
-    rng = np.random.default_rng(seed)
-    times = np.arange(200) * 0.1
-    angle = times / 10.0
-    positions = scale * np.column_stack([10 * np.sin(angle), 10 * (1 - np.cos(angle)), np.sin(0.5 * angle)])
-    rotations = [_rotation(a, 0.15 * np.sin(1.3 * a), 0.2 * np.sin(0.7 * a)) for a in angle]
-    landmarks = rng.uniform([-15, -15, -3], [15, 15, 3], (400, 3)) * scale + positions.mean(axis=0)
-    observations = []
-    for k, (rotation, position) in enumerate(zip(rotations, positions, strict=True)):
-        local = (landmarks - position) @ rotation  # R^T (m - p), row-wise
-        seen = np.linalg.norm(local, axis=1) <= 8 * scale
-        noisy = local[seen] + rng.normal(0.0, 0.002 / 0.0375 * scale, (int(seen.sum()), 3))
-        observations.append(PointObservation(int(times[k] * 1e9), noisy, np.nonzero(seen)[0]))
+    """FastSLAM's ATE (m, in the first pose's frame) with its defaults on the tabletop arc at ``scale``
+    (:func:`relpoint.simulation.tabletop.tabletop_arc`). ``seed`` draws the scene and the particles."""
+    observations, truth = tabletop_arc(scale, seed)
     spec = ESTIMATORS["fastslam"]
     result = pipeline.run(observations, spec.factory(spec.config_class(), np.random.default_rng(seed)))
-    truth = (positions - positions[0]) @ rotations[0]  # in the first pose's frame
     return float(np.sqrt(np.mean(np.sum((result.trajectory.positions - truth) ** 2, axis=1))))
 
 

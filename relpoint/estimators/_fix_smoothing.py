@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._trajectory_smoothing import POSITION_STEPS, smooth_corrections
-from relpoint.geometry import FloatArray, measured_basis
+from relpoint.geometry import FloatArray, kabsch, measured_basis
 from relpoint.types import Trajectory
 
 #: Log-likelihood (nats) a random walk of the correction must gain over a constant correction to be
@@ -135,8 +135,6 @@ def _rigid_onto_fixes(
 ) -> tuple[FloatArray, FloatArray] | None:  # fmt: skip
     """The rigid motion ``(R, t)`` that best moves the path onto the fixes measuring all three axes,
     or None when they are too few or spread along too little to fix a rotation."""
-    from relpoint.geometry import kabsch
-
     variances = np.asarray(fix_variances, dtype=np.float64)
     full = np.all(np.isfinite(variances) & (variances > 0) & (variances < 1e4), axis=1)
     if full.sum() < RIGID_MIN_FIXES or len(stamps_ns) < 2:

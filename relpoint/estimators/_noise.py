@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from relpoint.estimators.base import Estimator
 from relpoint.geometry import FloatArray, kabsch
@@ -105,9 +106,13 @@ ACCELERATION_SPAN_S = 0.5
 ACCELERATION_MARGIN = 5.0
 
 
+#: Registration pairs within this many times their median distance count; farther ones are outliers.
+REGISTRATION_TRIM = 3.0
+
+
 def register(
     first: FloatArray, second: FloatArray, initial: tuple[FloatArray, FloatArray] | None = None,
-    iterations: int = 15, trim: float = 3.0,
+    iterations: int = 15, trim: float = REGISTRATION_TRIM,
 ) -> tuple[FloatArray, FloatArray, FloatArray] | None:  # fmt: skip
     """Move ``second`` onto ``first`` (both (N, 3), m) by ICP over mutual nearest neighbours.
 
@@ -124,20 +129,34 @@ def register(
     residual = np.empty(0)
     for _ in range(iterations):
         moved = second @ R.T + t
-        distance, nearest = tree_first.query(moved)
-        back = cKDTree(moved).query(first[nearest])[1]
-        mutual = back == np.arange(len(moved))
-        if mutual.sum() < 3:
+        matched = _trimmed_matches(tree_first, first, moved, trim)
+        if matched is None:
             return None
-        keep = mutual & (distance <= trim * np.median(distance[mutual]))
-        if keep.sum() < 3:
-            return None
+        distance, nearest, keep = matched
         residual = distance[keep]
         R_new, t_new = kabsch(second[keep], first[nearest[keep]])
         if np.allclose(R_new, R, atol=1e-9) and np.allclose(t_new, t, atol=1e-9):
             break
         R, t = R_new, t_new
     return R, t, residual
+
+
+def _trimmed_matches(
+    tree_first: Any, first: FloatArray, moved: FloatArray, trim: float
+) -> tuple[FloatArray, npt.NDArray[np.intp], npt.NDArray[np.bool_]] | None:
+    """The mutual nearest neighbours of ``moved`` (N, 3) in ``first`` (``tree_first`` its cKDTree) within
+    ``trim`` times their median distance: ``(distance, nearest, keep)`` over ``moved``'s points, or None
+    when fewer than three pairs hold."""
+    from scipy.spatial import cKDTree
+
+    distance, nearest = tree_first.query(moved)
+    mutual = cKDTree(moved).query(first[nearest])[1] == np.arange(len(moved))
+    if mutual.sum() < 3:
+        return None
+    keep = mutual & (distance <= trim * np.median(distance[mutual]))
+    if keep.sum() < 3:
+        return None
+    return distance, nearest, keep
 
 
 def pair_residuals(first: FloatArray, second: FloatArray) -> FloatArray:
@@ -248,13 +267,10 @@ def noise_along_and_across(registrations: ConsecutiveRegistrations, min_pairs: i
     along, across = [], []
     for first, second, (R, t, _) in _baseline_registrations(registrations):
         moved = second @ R.T + t
-        distance, nearest = cKDTree(first).query(moved)
-        mutual = cKDTree(moved).query(first[nearest])[1] == np.arange(len(moved))
-        if mutual.sum() < 3:
+        matched = _trimmed_matches(cKDTree(first), first, moved, REGISTRATION_TRIM)
+        if matched is None or matched[2].sum() < min_pairs:
             continue
-        keep = mutual & (distance <= 3.0 * np.median(distance[mutual]))
-        if keep.sum() < min_pairs:
-            continue
+        _, nearest, keep = matched
         target = first[nearest[keep]]
         residual = target - moved[keep]
         sight = target / np.maximum(np.linalg.norm(target, axis=1, keepdims=True), 1e-12)
