@@ -38,8 +38,10 @@ from formats.trajectory_files import (
     TrajectoryFormat,
     describe_unknown,
     detect_format,
+    header_layout,
     read_euroc_csv,
     read_kitti,
+    read_named_columns,
     read_relpoint_csv,
     read_tum,
 )
@@ -341,11 +343,36 @@ def load_trajectory(
         return read_relpoint_csv(path)
     if fmt is TrajectoryFormat.KITTI:
         return read_kitti(path, times)
+    if fmt is TrajectoryFormat.NAMED_COLUMNS:
+        return read_named_columns(path)
     raise InputError(
         f"{path}: unknown trajectory format ({describe_unknown(path)})",
         "give a TUM file (8 values per line), a EuRoC ground-truth CSV, KITTI poses (12 values per line), "
         "relpoint's trajectory.csv, a relpoint run directory or an MCAP file",
     )
+
+
+def assumed_quaternion_order(path: str | os.PathLike[str]) -> str | None:
+    """The quaternion order a text trajectory file is read in by its format alone, where no header names
+    its columns: ``"xyzw"`` (TUM) or ``"wxyz"`` (EuRoC CSV); None for anything else (a run directory, a
+    log, KITTI matrices, relpoint's CSV, a header naming the columns)."""
+    path = Path(path)
+    if not path.is_file() or is_log(path):
+        return None
+    fmt = detect_format(path)
+    if fmt is TrajectoryFormat.TUM:
+        layout = header_layout(path)
+        return None if layout is not None and layout.is_tum else "xyzw"
+    if fmt is TrajectoryFormat.EUROC and header_layout(path) is None:
+        return "wxyz"
+    return None
+
+
+def with_quaternion_order(trajectory: Trajectory, read_as: str) -> Trajectory:
+    """``trajectory`` as it would have been read with its file's quaternion columns in the other order
+    (``read_as`` is the order it was read in: ``"xyzw"`` or ``"wxyz"``)."""
+    shift = -1 if read_as == "xyzw" else 1
+    return Trajectory(trajectory.stamps_ns, trajectory.positions, np.roll(trajectory.quats_xyzw, shift, axis=1))
 
 
 def is_index_stamped(path: str | os.PathLike[str], times: str | os.PathLike[str] | None) -> bool:

@@ -11,8 +11,14 @@
   (12 values). Stamps come from a separate times file (one value in seconds per line, KITTI's
   ``times.txt``); without one, pose ``i`` gets stamp ``i`` seconds, so two KITTI files without times
   pair frame by frame, as evo pairs them by index.
+* Any of these, or a CSV another tool wrote, with a header line naming its columns
+  (``#timestamp,x,y,z,qw,qx,qy,qz``, ``time tx ty tz qx qy qz qw``, ``rostopic echo -p``'s
+  ``%time,field.pose.position.x,...``; commented out with ``#`` or not): the columns are taken by
+  their names (:func:`header_layout`), the stamp's unit from the header (``[ns]``, ``_ns``) or, for
+  integer stamps of 17 digits or more, nanoseconds. A header states the quaternion order, which the
+  values alone cannot.
 
-:func:`detect_format` tells the three apart by content (and a ``.csv`` suffix where content alone is
+:func:`detect_format` tells them apart by content (and a ``.csv`` suffix where content alone is
 ambiguous). Each has a reader and a writer (``read_tum``/``write_tum``, ``read_euroc_csv``/
 ``write_euroc_csv``, ``read_kitti``/``write_kitti``).
 
@@ -34,6 +40,7 @@ import logging
 import os
 import re
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from enum import Enum
 from pathlib import Path
@@ -203,6 +210,26 @@ def _read_tum_fast(path: Path) -> Trajectory | None:
     return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], [number for number, _ in lines])
 
 
+def _finite_rows(
+    path: Path, stamps: list[int], lines: list[int], values: np.ndarray
+) -> tuple[list[int], list[int], np.ndarray]:
+    """The rows of ``values`` (N, 7) without a NaN or infinite value, with their stamps and line numbers.
+
+    A pose with a NaN or infinite value (a motion-capture dropout) says nothing: left out, as evo's
+    alignment would be poisoned by it, with one warning; InputError when no row is left.
+    """
+    finite = np.isfinite(values).all(axis=1)
+    if finite.all():
+        return stamps, lines, values
+    dropped = np.nonzero(~finite)[0]
+    if dropped.size == len(stamps):
+        raise InputError(f"{path}: every pose holds a NaN or infinite value", "check how the file was written")
+    logger.warning("%s: %d pose%s holding a NaN or infinite value left out (the first: line %d)",
+                   path, dropped.size, "s" if dropped.size > 1 else "", lines[int(dropped[0])])  # fmt: skip
+    keep = np.nonzero(finite)[0]
+    return [stamps[k] for k in keep], [lines[k] for k in keep], values[keep]
+
+
 def read_tum(path: str | os.PathLike[str]) -> Trajectory:
     """Read a TUM trajectory file (see the module docstring).
 
@@ -235,19 +262,7 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
         for number, fields in zip(lines, rows, strict=True):
             _numbers(fields, path, number)
         raise
-    finite = np.isfinite(values).all(axis=1)
-    if not finite.all():
-        # A pose with a NaN or infinite value (a motion-capture dropout) says nothing: left out, as evo's
-        # alignment would be poisoned by it; the file's other poses are used.
-        dropped = np.nonzero(~finite)[0]
-        if dropped.size == len(stamps):
-            raise InputError(f"{path}: every pose holds a NaN or infinite value", "check how the file was written")
-        logger.warning("%s: %d pose%s holding a NaN or infinite value left out (the first: line %d)",
-                       path, dropped.size, "s" if dropped.size > 1 else "", lines[int(dropped[0])])  # fmt: skip
-        keep = np.nonzero(finite)[0]
-        stamps = [stamps[k] for k in keep]
-        lines = [lines[k] for k in keep]
-        values = values[keep]
+    stamps, lines, values = _finite_rows(path, stamps, lines, values)
     logger.debug("read %d poses from %s", len(stamps), path)
     return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
 
@@ -374,6 +389,8 @@ class TrajectoryFormat(Enum):
     KITTI = "kitti"
     EUROC = "euroc"
     RELPOINT_CSV = "relpoint-csv"
+    #: A header line names the columns (:func:`header_layout`, :func:`read_named_columns`).
+    NAMED_COLUMNS = "named-columns"
 
 
 #: The header of relpoint's own ``trajectory.csv`` (:func:`formats.tables.write_trajectory_csv`).
@@ -384,8 +401,9 @@ RELPOINT_CSV_HEADER = ["iteration", "timestamp", "x", "y", "z", "qx", "qy", "qz"
 _EUROC_HEADER_MARKS = ("p_RS_R_x", "q_RS_w")
 
 
-def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
-    """(``#`` lines before the first data line, fields of that line) from the first 64 KiB of ``path``.
+def _head(path: Path) -> tuple[list[tuple[int, str]], tuple[int, str]] | None:
+    """(``#`` lines before the first data line, that line), each as (line number, stripped text), from the
+    first 64 KiB of ``path``.
 
     None for a binary file or one without a data line there; InputError if it cannot be opened.
     """
@@ -399,13 +417,239 @@ def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
     except UnicodeDecodeError:
         return None
     comments = []
-    for line in text.splitlines():
+    for number, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
         if stripped.startswith("#"):
-            comments.append(stripped)
+            comments.append((number, stripped))
         elif stripped:
-            return comments, [f for f in _SEPARATORS.split(stripped) if f] + ([","] if "," in stripped else [])
+            return comments, (number, stripped)
     return None
+
+
+def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
+    """(``#`` lines before the first data line, fields of that line, with a trailing ``","`` when the line
+    is comma-separated) from the first 64 KiB of ``path``; None as :func:`_head`."""
+    head = _head(path)
+    if head is None:
+        return None
+    comments, (_, line) = head
+    return [text for _, text in comments], [f for f in _SEPARATORS.split(line) if f] + ([","] if "," in line else [])
+
+
+#: Words naming a stamp column; a name of these and units alone (``timestamp [ns]``, ``time_s``,
+#: ``field.header.stamp``) is the stamp.
+_STAMP_WORDS = frozenset({"timestamp", "time", "stamp", "t", "times", "field", "header", "sec", "secs", "seconds"})
+#: Stamp units, in nanoseconds.
+_STAMP_UNITS = {"s": _NS_PER_S, "sec": _NS_PER_S, "secs": _NS_PER_S, "seconds": _NS_PER_S, "ms": 1_000_000,
+                "us": 1_000, "ns": 1}  # fmt: skip
+#: Words that make an axis a position or a quaternion component (the last such word of a name counts:
+#: ``field.pose.orientation.x`` is a quaternion's, ``p_RS_R_x`` a position's).
+_POSITION_WORDS = frozenset({"p", "t", "pos", "position", "translation", "trans"})
+_QUATERNION_WORDS = frozenset({"q", "quat", "quaternion", "orientation", "rotation", "rot"})
+_UNIT = re.compile(r"[\[(]([^\])]*)[\])]")
+#: A name's words: runs of letters and digits.
+_WORD = re.compile(r"[A-Za-z0-9]+")
+#: Integer stamps with a header that names no unit are nanoseconds from this value up (year 5e9 in seconds).
+_NANOSECOND_STAMP = 10**17
+
+
+def _column_role(name: str) -> tuple[str, str] | None:
+    """What a header's column ``name`` holds: ``("t", unit)`` (unit ``""`` when not named), ``("p", axis)``
+    or ``("q", axis)``; None for any other column (velocities, biases, covariances)."""
+    unit_match = _UNIT.search(name)
+    unit = unit_match.group(1).strip().lower() if unit_match else ""
+    words = [w.lower() for w in _WORD.findall(_UNIT.sub(" ", name))]
+    if not words:
+        return None
+    stamp_words = [w for w in words if w not in _STAMP_UNITS]
+    if stamp_words and set(stamp_words) <= _STAMP_WORDS and set(stamp_words) != {"field"}:
+        units = [w for w in words if w in _STAMP_UNITS]
+        unit = unit or (units[-1] if units else "")
+        return ("t", unit) if unit in _STAMP_UNITS or not unit else None
+    last, kinds = words[-1], words[:-1]
+    if last not in ("x", "y", "z", "w"):
+        if len(last) == 2 and last[1] in "xyzw" and last[0] in "qtp":  # qx, tx, px
+            last, kinds = last[1], [*kinds, last[0]]
+        else:
+            return None
+    kind = next((w for w in reversed(kinds) if w in _POSITION_WORDS or w in _QUATERNION_WORDS), None)
+    if kind is None:
+        if kinds:  # v_RS_R_x, b_w_RS_S_x, twist.linear.x: another quantity's axis
+            return None
+        return ("q", "w") if last == "w" else ("p", last)
+    if kind in _QUATERNION_WORDS:
+        return "q", last
+    return ("p", last) if last != "w" else None
+
+
+@dataclass(frozen=True)
+class ColumnLayout:
+    """Where a trajectory file's values are, from the header line naming its columns.
+
+    line: the header's line number (1-based). commented: the header starts with ``#``. names: its column
+    names. stamp: the stamp's column; position: x, y, z's; quaternion: x, y, z, w's (0-based).
+    stamp_unit_ns: nanoseconds per stamp unit as the header names it, None when it names none.
+    """
+
+    line: int
+    commented: bool
+    names: tuple[str, ...]
+    stamp: int
+    position: tuple[int, int, int]
+    quaternion: tuple[int, int, int, int]
+    stamp_unit_ns: int | None
+
+    @property
+    def is_tum(self) -> bool:
+        """The columns are TUM's, in TUM's order, in seconds (or no unit named)."""
+        return (
+            len(self.names) == 8
+            and (self.stamp, self.position, self.quaternion) == (0, (1, 2, 3), (4, 5, 6, 7))
+            and self.stamp_unit_ns in (None, _NS_PER_S)
+        )
+
+
+def _header_names(text: str) -> list[str]:
+    """The column names of a header line (commas separate names when there are any, else blanks; a
+    blank-separated unit such as ``[m]`` belongs to the name before it)."""
+    text = text.lstrip("#").strip()
+    if "," in text:
+        return [name.strip() for name in text.split(",")]
+    names: list[str] = []
+    for word in text.split():
+        if names and _UNIT.fullmatch(word):
+            names[-1] += " " + word
+        else:
+            names.append(word)
+    return names
+
+
+def _layout_of(names: list[str], line: int, commented: bool) -> ColumnLayout | None:
+    """The layout that ``names`` give, or None unless they name one stamp, one x, y, z and one quaternion."""
+    roles: dict[tuple[str, str], int] = {}
+    stamp_unit = ""
+    for column, name in enumerate(names):
+        role = _column_role(name)
+        if role is None:
+            continue
+        if role[0] == "t":
+            role, stamp_unit = ("t", ""), role[1]
+        if role in roles:
+            return None  # two columns for one value: the names do not say which to take
+        roles[role] = column
+    wanted = [("t", ""), *(("p", a) for a in "xyz"), *(("q", a) for a in "xyzw")]
+    if any(role not in roles for role in wanted):
+        return None
+    return ColumnLayout(
+        line=line,
+        commented=commented,
+        names=tuple(names),
+        stamp=roles[("t", "")],
+        position=(roles[("p", "x")], roles[("p", "y")], roles[("p", "z")]),
+        quaternion=(roles[("q", "x")], roles[("q", "y")], roles[("q", "z")], roles[("q", "w")]),
+        stamp_unit_ns=_STAMP_UNITS.get(stamp_unit),
+    )
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def header_layout(path: str | os.PathLike[str]) -> ColumnLayout | None:
+    """The column layout a header line of ``path`` names, or None when it has none that names them all.
+
+    The header is the first non-blank line when its first value is not a number (a header left
+    uncommented), else the last ``#`` line before the first data line. It must name the stamp, the
+    position's x, y, z and the quaternion's x, y, z, w, each once (``timestamp``, ``time``, ``%time``,
+    ``field.header.stamp``; ``x``, ``tx``, ``p_x``, ``pos_x``, ``field.pose.position.x``,
+    ``p_RS_R_x``; ``qx``, ``q_x``, ``q_RS_x``, ``field.pose.orientation.x``, ``w``); other columns are
+    ignored. Units in brackets (``timestamp [ns]``) or as a last word (``time_ns``) set the stamp's.
+
+    Raises
+    ------
+    InputError
+        If the file cannot be opened, or its first line is an uncommented header whose names do not
+        give the layout.
+    """
+    path = Path(path)
+    head = _head(path)
+    if head is None:
+        return None
+    comments, (number, line) = head
+    first = [f for f in _SEPARATORS.split(line) if f]
+    if first and not _is_number(first[0]):
+        names = _header_names(line)
+        layout = _layout_of(names, number, commented=False)
+        if layout is None:
+            raise InputError(
+                f"{path}:{number}: a header line whose names do not say where the stamp, position and "
+                f"quaternion are ({', '.join(names[:10])})",
+                "name the columns as timestamp,x,y,z,qx,qy,qz,qw (any order; `[ns]` after timestamp for "
+                "nanoseconds), or comment the line out with # to read the file as TUM",
+            )
+        return layout
+    if comments:
+        number, text = comments[-1]
+        return _layout_of(_header_names(text), number, commented=True)
+    return None
+
+
+def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None = None) -> Trajectory:
+    """Read a trajectory file by the column names of its header (:func:`header_layout`).
+
+    Stamps are seconds unless the header names another unit; integer stamps of 17 digits or more under
+    a header naming none are nanoseconds. Rows holding a NaN or an infinite value are left out with a
+    warning, as :func:`read_tum` does.
+
+    Raises
+    ------
+    InputError
+        No header naming the columns, no poses, a row with another number of values than the header
+        names, a bad stamp or value, a zero quaternion, or stamps going back in time - naming the file
+        and line.
+    """
+    path = Path(path)
+    layout = layout or header_layout(path)
+    if layout is None:
+        raise InputError(f"{path}: no header line naming the columns (timestamp, x, y, z, qx, qy, qz, qw)")
+    width = len(layout.names)
+    stamps_text: list[str] = []
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    for number, fields in _data_lines(path):
+        if number == layout.line:
+            continue
+        if len(fields) != width:
+            raise InputError(f"{path}:{number}: expected {width} values, as the header on line {layout.line} names, "
+                             f"got {len(fields)}")  # fmt: skip
+        stamps_text.append(fields[layout.stamp])
+        rows.append([fields[k] for k in (*layout.position, *layout.quaternion)])
+        lines.append(number)
+    unit = layout.stamp_unit_ns
+    if unit is None and stamps_text and all(t.isascii() and t.isdigit() for t in stamps_text):
+        unit = 1 if int(stamps_text[0]) >= _NANOSECOND_STAMP else None
+    stamps: list[int] = []
+    for text, number in zip(stamps_text, lines, strict=True):
+        try:
+            if unit in (None, _NS_PER_S):
+                stamps.append(parse_stamp_ns(text))
+            else:
+                stamps.append(int((Decimal(text) * unit).to_integral_value()))
+        except (ValueError, InvalidOperation):
+            raise InputError(f"{path}:{number}: bad timestamp {text!r}") from None
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    except ValueError:  # find the offending line for the message
+        for number, fields in zip(lines, rows, strict=True):
+            _numbers(fields, path, number)
+        raise
+    stamps, lines, values = _finite_rows(path, stamps, lines, values)
+    logger.debug("read %d poses from %s by its header's column names", len(stamps), path)
+    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
 
 
 def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
@@ -413,6 +657,8 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
 
     * a ``#`` line naming EuRoC's columns (``p_RS_R_x``, ``q_RS_w``): EuRoC;
     * a first line ``iteration,timestamp,x,y,z,qx,qy,qz,qw``: relpoint's own ``trajectory.csv``;
+    * a header line naming the columns (:func:`header_layout`), other than a ``#`` line naming TUM's in
+      TUM's order over values read as TUM: named columns (:func:`read_named_columns`);
     * else by the first data line: 12 values KITTI; 8 values TUM, unless the file is named ``*.csv``,
       the values are comma-separated and the first is an integer (nanoseconds), which is EuRoC; more
       than 8 comma-separated values with an integer first one (EuRoC's velocity and bias columns): EuRoC.
@@ -420,7 +666,7 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
     Raises
     ------
     InputError
-        If the file cannot be opened.
+        If the file cannot be opened, or its first line is a header that does not name the columns.
     """
     path = Path(path)
     head = _first_lines(path)
@@ -431,6 +677,16 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
         return TrajectoryFormat.EUROC
     if fields[: len(RELPOINT_CSV_HEADER)] == RELPOINT_CSV_HEADER:
         return TrajectoryFormat.RELPOINT_CSV
+    by_values = _format_by_values(path, fields)
+    layout = header_layout(path)
+    if layout is not None and not (layout.commented and layout.is_tum and by_values is TrajectoryFormat.TUM):
+        return TrajectoryFormat.NAMED_COLUMNS
+    return by_values
+
+
+def _format_by_values(path: Path, fields: list[str]) -> TrajectoryFormat | None:
+    """The format the first data line's ``fields`` (as :func:`_first_lines` gives them) and the file's
+    suffix say, whatever a header says."""
     commas = fields[-1:] == [","]
     values = fields[:-1] if commas else fields
     integer_stamp_csv = commas and values[0].isascii() and values[0].isdigit()

@@ -22,11 +22,13 @@ from formats.atomic import write_text
 from formats.outputs import register_csv_header
 from formats.ply import read_ply
 from formats.reference_trajectories import (
+    assumed_quaternion_order,
     check_index_pairing,
     is_index_stamped,
     load_ground_truth_landmarks,
     load_landmark_map,
     load_trajectory,
+    with_quaternion_order,
 )
 from formats.tables import read_map_history_csv
 from relpoint.errors import InputError, UsageError
@@ -99,7 +101,46 @@ def evaluate_files(
     truth = load_ground_truth_landmarks(reference, landmarks_topic) if wanted else None
     history = estimate / "map_history.csv"
     snapshots = read_map_history_csv(history) if landmarks is not None and history.is_file() else []
-    return measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)
+    evaluation = measure(ref, est, settings, landmarks=landmarks, truth=truth, snapshots=snapshots)
+    _check_quaternion_order(evaluation, ref, est, reference, estimate, settings)
+    return evaluation
+
+
+#: An aligned rotation error (RMSE, degrees) above this from a file whose quaternion order its format
+#: assumed is tried with the other order (:func:`_check_quaternion_order`).
+ORDER_CHECK_DEG = 60.0
+
+
+def _check_quaternion_order(
+    evaluation: FileEvaluation, ref: Trajectory, est: Trajectory, reference: Path, estimate: Path,
+    settings: EvaluationSettings,
+) -> None:  # fmt: skip
+    """Warn when a text file read in its format's quaternion order (TUM x y z w, EuRoC w x y z; no header
+    names the columns) leaves a rotation error above ``ORDER_CHECK_DEG`` that the other order would cut
+    to a third or less: the values alone cannot tell the two orders apart, and files with the
+    other order are common. The figures are left as read."""
+    rotation = evaluation.summary.get("ape_rot_deg_rmse", math.nan)
+    if not rotation > ORDER_CHECK_DEG:
+        return
+    for path, is_estimate in ((estimate, True), (reference, False)):
+        read_as = assumed_quaternion_order(path)
+        if read_as is None:
+            continue
+        other = "wxyz" if read_as == "xyzw" else "xyzw"
+        pair = (ref, with_quaternion_order(est, read_as)) if is_estimate else (with_quaternion_order(ref, read_as), est)
+        try:
+            result = evaluate_trajectory(*pair, settings)
+        except InputError:
+            continue
+        other_rotation = result.summary.get("ape_rot_deg_rmse", math.nan)
+        if other_rotation <= rotation / 3.0:
+            header = "#timestamp tx ty tz qw qx qy qz" if other == "wxyz" else "#timestamp tx ty tz qx qy qz qw"
+            log.warning(
+                "%s: read with its quaternions in the order %s (as its format has them), the rotation error is "
+                "%.1f deg; with %s it would be %.1f deg. If the file holds %s, name its columns in a header line "
+                "(%s); the figures here are as read",
+                path, " ".join(read_as), rotation, " ".join(other), other_rotation, " ".join(other), header,
+            )  # fmt: skip
 
 
 def measure(

@@ -254,7 +254,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     ESTIMATE is a `relpoint run` output directory, a TUM file, a EuRoC ground-truth CSV, KITTI poses
     (--times; without it pose i is at i s and pairs by index with KITTI poses of equal count) or an MCAP file
     (--estimate-topic). Text files are recognised by content: 8 values per line TUM, 12 KITTI, a header
-    naming p_RS_R_x or ns stamps with 8+ comma-separated values EuRoC. When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
+    naming p_RS_R_x or ns stamps with 8+ comma-separated values EuRoC, and a header line naming the columns
+    (timestamp,x,y,z,qw,qx,qy,qz in any order) sets them. When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
     with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
     ESTIMATE is a dense run (map.ply with normals) and --reference-cloud is given, the map's accuracy
     and completeness (dense_*) are added, after the trajectory alignment. --t-start/--t-end crop both

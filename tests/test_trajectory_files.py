@@ -644,3 +644,116 @@ def test_nanosecond_stamps_in_a_seconds_format_are_named(tmp_path: Path, caplog:
     )
     with pytest.raises(InputError, match="nanoseconds"):
         read_tum(tmp_path / "epoch.txt")
+
+
+# --- files whose header names the columns --------------------------------------------------------------
+
+
+def _columns_text(trajectory: Trajectory, header: str, order: str, *, sep: str = ",", stamp: str = "s") -> str:
+    """``trajectory`` as a text file under ``header``, columns t x y z then the quaternion in ``order``."""
+    lines = [header]
+    for t, p, q in zip(trajectory.stamps_ns, trajectory.positions, trajectory.quats_xyzw, strict=True):
+        quat = dict(zip("xyzw", q.tolist(), strict=True))
+        text = str(int(t)) if stamp == "ns" else format_stamp(int(t))
+        lines.append(sep.join([text, *map(repr, p.tolist()), *(repr(quat[a]) for a in order)]))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize(
+    ("header", "order", "sep", "stamp"),
+    [
+        ("timestamp,x,y,z,qx,qy,qz,qw", "xyzw", ",", "s"),  # uncommented, TUM order
+        ("#timestamp,x,y,z,qw,qx,qy,qz", "wxyz", ",", "s"),  # w first, named
+        ("timestamp tx ty tz qw qx qy qz", "wxyz", " ", "s"),  # uncommented, blanks
+        ("# timestamp tx ty tz qw qx qy qz", "wxyz", " ", "s"),  # a TUM-looking file, w first
+        ("#timestamp [ns],x,y,z,qx,qy,qz,qw", "xyzw", ",", "ns"),  # nanoseconds, x-y-z-w: not EuRoC's order
+        ("time_ns,pos_x,pos_y,pos_z,quat_w,quat_x,quat_y,quat_z", "wxyz", ",", "ns"),
+        ("#timestamp,x,y,z,qx,qy,qz,qw", "xyzw", ",", "ns"),  # integer stamps of 19 digits: nanoseconds
+        ("%time,field.pose.position.x,field.pose.position.y,field.pose.position.z,field.pose.orientation.x,"
+         "field.pose.orientation.y,field.pose.orientation.z,field.pose.orientation.w", "xyzw", ",", "ns"),
+    ],
+)  # fmt: skip
+def test_a_header_naming_the_columns_sets_the_order(
+    tmp_path: Path, header: str, order: str, sep: str, stamp: str
+) -> None:
+    from formats.reference_trajectories import load_trajectory
+
+    original = _trajectory(np.random.default_rng(3))
+    path = tmp_path / "trajectory.csv"
+    path.write_text(_columns_text(original, header, order, sep=sep, stamp=stamp))
+    assert detect_format(path) is TrajectoryFormat.NAMED_COLUMNS
+    _assert_same(load_trajectory(path), original)
+
+
+def test_named_columns_ignore_other_quantities_and_keep_units(tmp_path: Path) -> None:
+    from formats.trajectory_files import header_layout, read_named_columns
+
+    path = tmp_path / "odometry.csv"
+    path.write_text(
+        "# header: t in ms\nstamp [ms], v_x, x, y, z, b_w_RS_S_x, w, qx, qy, qz, covariance_x\n"
+        "1500, 9, 1, 2, 3, 9, 1, 0, 0, 0, 9\n2500.5, 9, 4, 5, 6, 9, 0, 0, 0, 1, 9\n"
+    )
+    layout = header_layout(path)
+    assert layout is not None and not layout.commented
+    assert (layout.stamp, layout.position, layout.quaternion) == (0, (2, 3, 4), (7, 8, 9, 6))
+    trajectory = read_named_columns(path)
+    assert trajectory.stamps_ns.tolist() == [1_500_000_000, 2_500_500_000]
+    np.testing.assert_array_equal(trajectory.positions, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(trajectory.quats_xyzw, [[0, 0, 0, 1], [0, 0, 1, 0]])
+
+
+def test_commented_tum_and_euroc_headers_keep_their_readers(tmp_path: Path) -> None:
+    tum = tmp_path / "a.txt"
+    tum.write_text("# timestamp tx ty tz qx qy qz qw\n1.5 0 0 0 0 0 0 1\n")
+    assert detect_format(tum) is TrajectoryFormat.TUM
+    euroc = tmp_path / "data.csv"
+    euroc.write_text("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+                     "1403636579758555392,0,0,0,1,0,0,0\n")  # fmt: skip
+    assert detect_format(euroc) is TrajectoryFormat.EUROC
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("time,a,b,c,d,e,f,g\n1,0,0,0,0,0,0,1\n", r":1: a header line whose names do not say .*comment the line out"),
+        ("t,x,y,z,x,qy,qz,qw\n1,0,0,0,0,0,0,1\n", r":1: a header line whose names"),  # x twice
+        ("timestamp,x,y,z,qx,qy,qz,qw\n1,0,0,0,0,0,0,1,5\n", r":2: expected 8 values, as the header on line 1"),
+        ("timestamp,x,y,z,qx,qy,qz,qw\nnow,0,0,0,0,0,0,1\n", r":2: bad timestamp 'now'"),
+    ],
+)
+def test_bad_headers_and_rows_under_them_name_the_line(tmp_path: Path, text: str, message: str) -> None:
+    from formats.reference_trajectories import load_trajectory
+
+    path = tmp_path / "t.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        load_trajectory(path)
+
+
+@pytest.mark.parametrize("layout", ["tum-w-first", "euroc-x-y-z-w"])
+def test_evaluate_says_when_the_other_quaternion_order_fits(
+    tmp_path: Path, fr1: dict[str, list[str]], layout: str
+) -> None:
+    """A TUM file holding w x y z, or nanosecond CSV rows holding x y z w (read as EuRoC's w x y z): the
+    values alone cannot tell; a rotation error that the other order cuts from 164 to 2 degrees can."""
+    estimate = tmp_path / ("est.txt" if layout == "tum-w-first" else "est.csv")
+    rows = []
+    for row in fr1["est"]:
+        stamp, x, y, z, qx, qy, qz, qw = row.split()
+        if layout == "tum-w-first":
+            rows.append(" ".join([stamp, x, y, z, qw, qx, qy, qz]))
+        else:
+            rows.append(",".join([str(parse_stamp_ns(stamp)), x, y, z, qx, qy, qz, qw]))
+    estimate.write_text("\n".join(rows) + "\n")
+    reference = shared_data(FR1) / GT
+    code, stdout, err = _invoke("evaluate", estimate, "-r", reference, "--align", "se3")
+    assert code == 0, err
+    other = "w x y z" if layout == "tum-w-first" else "x y z w"
+    assert f"with {other} it would be 2.1 deg" in err, err
+    fixed = tmp_path / "named.csv"
+    header = "#timestamp,x,y,z,qw,qx,qy,qz" if layout == "tum-w-first" else "#timestamp [ns],x,y,z,qx,qy,qz,qw"
+    fixed.write_text(header + "\n" + "\n".join(row.replace(" ", ",") for row in rows) + "\n")
+    code, stdout, err = _invoke("evaluate", fixed, "-r", reference, "--align", "se3")
+    assert code == 0 and "would be" not in err, err
+    rotation = next(line for line in stdout.splitlines() if line.startswith("APE rotation"))
+    assert float(rotation.split()[3]) == pytest.approx(2.0577, abs=1e-4)  # evo's angle_deg rmse
