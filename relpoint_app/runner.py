@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
-from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, Record, Topics
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, Record, Topics, role_accepts
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
@@ -205,7 +205,30 @@ def input_roles(
                        f"{role.replace('_', ' ')} (name another topic with {ROLE_OPTIONS[role]})")  # fmt: skip
             log.warning("%s", message)
             reader.warnings.append(message)
+        elif info is None and (others := _unused_topics_for(reader, role)):
+            # A real bag's topics are named by its drivers: a colour stream on /camera/color/image_raw is
+            # not read unless named, and the run would say nothing of it.
+            label = "colour images" if role == "color" else role.replace("_", " ")
+            message = (f"no {label} on {topic}; the log has {ROLE_TYPES[role]} on "
+                       f"{', '.join(others[:3])}{' ...' if len(others) > 3 else ''}: name one with "
+                       f"{ROLE_OPTIONS[role]} to use it")  # fmt: skip
+            log.warning("%s", message)
+            reader.warnings.append(message)
     return needed + [role for role in optional if reader.role_present(role)]
+
+
+def _unused_topics_for(reader: LogReader, role: str) -> list[str]:
+    """The log's topics, with messages, of a type that ``role`` takes and that no role of the run reads (for
+    colour, none named as depth: a depth image is an Image too)."""
+    taken = set(reader.topics.roles().values())
+    return sorted(
+        topic
+        for topic, info in reader.topic_infos.items()
+        if info.count
+        and topic not in taken
+        and role_accepts(role, info.typename)
+        and not (role == "color" and "depth" in topic.lower())
+    )
 
 
 #: Roles a time window crops; the others (camera_info) describe the sensor and are always read.

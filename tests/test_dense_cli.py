@@ -177,9 +177,10 @@ def test_a_dense_log_without_any_depth_fails_naming_depth(tmp_path: Path) -> Non
     assert error.value.exit_code == 4
 
 
-def _depth_log(path: Path, colour_topic_type: str | None = None) -> Path:
+def _depth_log(path: Path, colour_topic_type: str | None = None, colour_topic: str | None = None) -> Path:
     """A 4-frame depth log of a tilted wall; with ``colour_topic_type``, the colour role's default topic
-    carries ground-truth poses (``"pose"``) instead of images."""
+    carries ground-truth poses (``"pose"``) instead of images; with ``colour_topic``, grey rgb8 images
+    are on that topic."""
     from formats import ros2
     from formats.log import LogWriter
     from relpoint.types import Intrinsics, Pose
@@ -195,7 +196,28 @@ def _depth_log(path: Path, colour_topic_type: str | None = None) -> Path:
             if colour_topic_type == "pose":
                 message = ros2.pose_to_msg(Pose(stamp, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
                 writer.write("/camera/color/image", ros2.POSE_STAMPED, message, stamp)
+            if colour_topic is not None:
+                grey = np.full((48, 64, 3), 128, dtype=np.uint8)
+                writer.write(colour_topic, ros2.IMAGE, ros2.color_image_to_msg(stamp, grey), stamp)
     return path
+
+
+def test_colour_on_a_driver_named_topic_is_pointed_out(tmp_path: Path) -> None:
+    # A camera driver's topics (/camera/color/image_raw) are not relpoint's defaults: the map came out
+    # black without a word.
+    log = _depth_log(tmp_path / "wall.mcap", colour_topic="/camera/color/image_raw")
+    code, _, err = invoke("run", str(log), "-e", "dense", "-o", str(tmp_path / "a"))
+    assert code == 0, err
+    warnings = json.loads((tmp_path / "a" / "run.json").read_text())["warnings"]
+    expected = ("no colour images on /camera/color/image; the log has sensor_msgs/msg/Image on "
+                "/camera/color/image_raw: name one with --color-topic to use it")  # fmt: skip
+    assert expected in warnings
+    code, _, err = invoke("run", str(log), "-e", "dense", "-o", str(tmp_path / "b"), "--color-topic",
+                          "/camera/color/image_raw")  # fmt: skip
+    assert code == 0, err
+    assert not any("colour" in w for w in json.loads((tmp_path / "b" / "run.json").read_text())["warnings"])
+    colours = read_ply(tmp_path / "b" / "map.ply")
+    assert np.all(colours["red"] == 128)
 
 
 def test_a_colour_topic_that_cannot_be_read_is_an_error_when_named_and_a_warning_when_not(tmp_path: Path) -> None:

@@ -466,8 +466,8 @@ class DenseFusion(Estimator[DepthFrame]):
                 median = float(np.median(self._unused_depths))
                 seen = f"their median depth is {median:.2f} m"
                 if median > self.config.max_depth:
-                    seen += (f", beyond max_depth {self.config.max_depth:g} m: a 16UC1 image holds millimetres "
-                             "(REP 118); convert another unit (TUM's 5000 per metre) when writing the log, or "
+                    seen += (f", beyond max_depth {self.config.max_depth:g} m: a depth image holds millimetres "
+                             "in 16UC1 and metres in 32FC1 (REP 118); convert another unit (TUM's 5000 per metre) when writing the log, or "
                              "raise --param max_depth")  # fmt: skip
                 elif median < self.config.min_depth:
                     seen += f", below min_depth {self.config.min_depth:g} m: check the depth unit, or lower --param min_depth"
