@@ -123,7 +123,89 @@ def _check_suffix(path: Path, suffix: str) -> None:
 
 def open_reader(path: Path) -> AnyReader:
     """An unopened rosbags ``AnyReader`` over the log at ``path`` (any layout)."""
-    return AnyReader([path])
+    _tolerate_foreign_schemas()
+    return AnyReader([path], default_typestore=ros2.typestore())
+
+
+def complete_typestore(reader: AnyReader) -> None:
+    """Give an open reader the standard definitions of the types its schemaless channels carry.
+
+    rosbags takes a log's definitions from its schemas, and the standard ones only when no channel has
+    one; a channel written without a schema (an empty one) beside others with theirs could not be
+    decoded. The log's own definitions take precedence.
+    """
+    standard = ros2.typestore().fielddefs
+    known = reader.typestore.fielddefs
+    missing = {c.msgtype for c in reader.connections if c.msgtype in standard and c.msgtype not in known}
+    if not missing:
+        return
+    needed: dict[str, Any] = {}
+    while missing:
+        name = missing.pop()
+        if name in needed or name in known or name not in standard:
+            continue
+        needed[name] = standard[name]
+        missing |= set(_referenced_types(standard[name]))
+    reader.typestore.register(needed)
+
+
+def _referenced_types(fielddef: Any) -> list[str]:
+    """The message types a typestore field definition refers to (its fields, arrays and sequences of them)."""
+    names = []
+    for _, (kind, detail) in fielddef[1]:
+        if kind == Nodetype.NAME:
+            names.append(detail)
+        elif kind in (Nodetype.ARRAY, Nodetype.SEQUENCE) and detail[0][0] == Nodetype.NAME:
+            names.append(detail[0][1])
+    return names
+
+
+_MSG_SEPARATOR = "=" * 80
+
+
+def normalised_msg_text(text: str) -> str:
+    """A ``ros2msg`` schema's text as rosbags parses it: line ends ``\\n`` and each separator between
+    the definitions exactly 80 ``=`` (the MCAP ros2 profile's). Writers differ on both (CRLF, 40 or 120
+    ``=``, a trailing blank), and other readers (mcap-ros2-support) accept them."""
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    return "\n".join(_MSG_SEPARATOR if len(set(line.strip())) == 1 and line.strip()[:3] == "===" else line
+                     for line in lines)  # fmt: skip
+
+
+#: Schema encodings a ROS 2 reader decodes (the MCAP ros2 profile's, and schemaless).
+ROS_SCHEMA_ENCODINGS = frozenset({"ros2msg", "ros2idl", "omgidl", ""})
+
+
+@functools.cache
+def _tolerate_foreign_schemas() -> None:
+    """Let rosbags open an MCAP file that also holds channels of another schema encoding.
+
+    An MCAP file may mix profiles: a Foxglove recording adds JSON or protobuf channels (``jsonschema``,
+    ``protobuf``, ``flatbuffer`` schemas) beside the ROS 2 ones. rosbags' MCAP storage looks every
+    schema's encoding up in a fixed table and fails the whole file on any other (a ``KeyError`` read as a
+    corrupt file), where the log format says that anything else in the file is ignored. Such a schema
+    is taken as schemaless instead: its channel is listed under its own type name, and no role reads it.
+    """
+    try:
+        from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
+        from rosbags.rosbag2 import storage_mcap
+    except ImportError:  # another rosbags layout: nothing to adapt
+        return
+    original = getattr(storage_mcap, "get_msgdef", None)
+    if original is None or getattr(original, "tolerates_foreign_schemas", False):
+        return
+
+    def get_msgdef(schema: Any) -> Any:
+        if schema is not None and schema.encoding not in ROS_SCHEMA_ENCODINGS:
+            return MessageDefinition(MessageDefinitionFormat.NONE, "")
+        if schema is not None and schema.encoding == "ros2msg" and isinstance(schema.data, str):
+            if not schema.data.strip():  # no definition at all: as a schemaless channel
+                return MessageDefinition(MessageDefinitionFormat.NONE, "")
+            schema = schema._replace(data=normalised_msg_text(schema.data))
+        return original(schema)
+
+    get_msgdef.tolerates_foreign_schemas = True  # type: ignore[attr-defined]
+    storage_mcap.get_msgdef = get_msgdef
 
 
 # --- what the storage holds -------------------------------------------------------------------------

@@ -51,6 +51,7 @@ from formats.layouts import (
     MessageMigrator,
     Storage,
     check_storage,
+    complete_typestore,
     decompress_bag,
     describe_storage,
     detect_layout,
@@ -260,6 +261,7 @@ class LogReader:
         reader = open_reader(self._read_path)
         try:
             reader.open()
+            complete_typestore(reader)
         except _READ_ERRORS as error:
             raise _corrupt(self.path, self.layout, error) from None
         return reader

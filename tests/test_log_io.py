@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -292,3 +293,65 @@ def test_an_unindexed_mcap_file_out_of_log_time_order_says_so_and_how_to_index_i
         LogReader(path)
     assert "unindexed (no chunk indexes or summary) and its messages are not in log-time order" in caught.value.message
     assert "truncated" not in caught.value.message and "mcap recover" in caught.value.hint
+
+
+def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: tuple[str, str, bytes] | None = None) -> None:
+    """``source`` written again by the raw mcap writer: each ros2msg schema's text through ``schema_text``
+    (None: unchanged), and with ``extra`` = (schema encoding, message encoding, payload) a channel of
+    another profile beside the ROS 2 ones, a message of it after every cloud."""
+    from mcap.writer import Writer
+
+    with source.open("rb") as stream, target.open("wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ros2", library="test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        foreign = None
+        if extra is not None:
+            foreign_schema = writer.register_schema("vendor.Status", extra[0], b'{"type": "object"}')
+            foreign = writer.register_channel("/vendor/status", extra[1], foreign_schema)
+        for schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            if schema.id not in schemas:
+                text = schema.data.decode()
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, (schema_text(text) if schema_text else text).encode()
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
+            writer.add_message(channels[channel.id], log_time=message.log_time, publish_time=message.publish_time,
+                               data=message.data, sequence=message.sequence)  # fmt: skip
+            if foreign is not None and channel.topic == "/points":
+                writer.add_message(foreign, log_time=message.log_time, publish_time=message.log_time,
+                                   data=extra[2], sequence=0)  # fmt: skip
+        writer.finish()
+
+
+@pytest.mark.parametrize(
+    ("variant", "schema_text", "extra"),
+    [
+        ("a JSON channel (Foxglove)", None, ("jsonschema", "json", b'{"level": 3}')),
+        ("a protobuf channel", None, ("protobuf", "protobuf", b"\x08\x03")),
+        ("separators of 40 =", lambda t: t.replace("=" * 80, "=" * 40), None),
+        ("separators of 120 = and a trailing blank", lambda t: t.replace("=" * 80, "=" * 120 + " "), None),
+        ("CRLF line ends", lambda t: t.replace("\n", "\r\n"), None),
+        ("empty schemas (schemaless channels)", lambda t: "", None),
+    ],
+)  # fmt: skip
+def test_logs_other_writers_make_read_as_relpoint_s_own(
+    tmp_path: Path, small_log: Path, variant: str, schema_text: Any, extra: tuple[str, str, bytes] | None
+) -> None:
+    """What another writer puts in an MCAP file beside the log format's topics, or how it spells a schema,
+    must not matter: each was refused as a truncated or corrupt file."""
+    path = tmp_path / "other.mcap"
+    _rewrite(small_log, path, schema_text, extra)
+    ours, theirs = LogReader(small_log), LogReader(path)
+    expected = [r.value for r in ours.records(["points", "odometry", "fix", "ground_truth_pose"])]
+    read = [r.value for r in theirs.records(["points", "odometry", "fix", "ground_truth_pose"])]
+    assert len(read) == len(expected) > 0, variant
+    for a, b in zip(read, expected, strict=True):
+        assert type(a) is type(b) and a.stamp_ns == b.stamp_ns
+        if isinstance(a, PointObservation):
+            np.testing.assert_array_equal(a.points, b.points)
+    assert not theirs.skipped, theirs.skipped
+    if extra is not None:
+        assert theirs.topic_infos["/vendor/status"].typename == "vendor.Status"
