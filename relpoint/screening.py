@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from relpoint.types import DepthFrame, OdometryMeasurement, PointObservation, PositionFix
+from relpoint.types import UNMEASURED_TWIST_VARIANCE, DepthFrame, OdometryMeasurement, PointObservation, PositionFix
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +137,11 @@ class InputScreen:
         ):
             self._count("fixes: non-finite or implausible", 1, f"position {fix.position.tolist()}")
             return None
+        if not is_positive_semidefinite(fix.covariance):
+            self._count("fixes: covariance not positive semi-definite", 1,
+                        f"the position covariance has a negative eigenvalue; variances "
+                        f"{np.round(np.diag(fix.covariance), 6).tolist()}")  # fmt: skip
+            return None
         if not np.any(np.diag(fix.covariance) > 0):
             # All zero is how ROS messages say "unknown" (REP 145); taken as exact, one such fix would
             # override the filter, and the next make its covariance singular.
@@ -170,11 +175,29 @@ class InputScreen:
         ):
             self._count("odometry: non-finite or implausible", 1, f"twist {linear.tolist()} {angular.tolist()}")
             return None
-        if odometry.unset_axes.any():
-            # Zero is REP 145's "unknown", -1 some drivers'; the filters give those axes their motion
-            # model's noise (OdometryMeasurement.twist_covariance) rather than take them as exact.
+        unset = odometry.unset_axes
+        if not is_positive_semidefinite(odometry.covariance[np.ix_(~unset, ~unset)]):
+            self._count("odometry: covariance not positive semi-definite", 1,
+                        f"the twist covariance of the measured axes has a negative eigenvalue; "
+                        f"variances {np.round(np.diag(odometry.covariance), 6).tolist()}")  # fmt: skip
+            return None
+        if unset.any():
+            # Zero is REP 145's "unknown", -1 some drivers', 1e3-1e6 others' for an axis they do not
+            # measure; the filters give those axes their motion model's noise
+            # (OdometryMeasurement.twist_covariance) rather than take them as exact or let them wander.
             self.unset_odometry_axes += 1
             if self.unset_odometry_axes == 1:
-                log.warning("odometry leaves the variance of %s unset (zero or negative): the motion model's noise is "
-                            "used for them", ", ".join(np.array(TWIST_AXES)[odometry.unset_axes]))  # fmt: skip
+                log.warning("odometry leaves the variance of %s unset (zero, negative, or %g and above: not measured): "
+                            "the motion model's noise is used for them", ", ".join(np.array(TWIST_AXES)[unset]),
+                            UNMEASURED_TWIST_VARIANCE)  # fmt: skip
         return odometry
+
+
+def is_positive_semidefinite(covariance: np.ndarray) -> bool:
+    """Whether a symmetric matrix has no eigenvalue below minus a rounding tolerance (an empty one has
+    none); a covariance that breaks this gives negative variances along some direction."""
+    if covariance.size == 0:
+        return True
+    symmetric = 0.5 * (covariance + covariance.T)
+    scale = float(np.max(np.abs(np.diag(symmetric)))) or 1.0
+    return bool(np.linalg.eigvalsh(symmetric).min() >= -1e-9 * scale)

@@ -266,6 +266,12 @@ class GroundTruthLandmarks:
         object.__setattr__(self, "dynamic", dynamic)
 
 
+#: A twist variance ((m/s)^2 or (rad/s)^2) from which an odometry axis counts as not measured: a standard
+#: deviation of 10 m/s or 10 rad/s says nothing a motion model does not, and taken as a measurement
+#: it lets the pose wander (a 1e6 roll-rate variance left an EKF 50 m off on the figure eight).
+UNMEASURED_TWIST_VARIANCE = 100.0
+
+
 @dataclass(frozen=True, eq=False)
 class OdometryMeasurement:
     """Body-frame velocities of the sensor, held from ``stamp_ns`` until the next measurement.
@@ -289,9 +295,12 @@ class OdometryMeasurement:
 
     @property
     def unset_axes(self) -> npt.NDArray[np.bool_]:
-        """(6,) the twist axes whose variance the message leaves unset: zero (REP 145's "unknown") or
-        negative (drivers' -1)."""
-        return ~(np.diag(self.covariance) > 0)
+        """(6,) the twist axes whose variance the message leaves unset: zero (REP 145's "unknown"),
+        negative (drivers' -1), or :data:`UNMEASURED_TWIST_VARIANCE` and above (the 1e3-1e6 that
+        wheel-odometry drivers such as ros2_control's diff_drive_controller give the axes they do not
+        measure)."""
+        variances = np.diag(self.covariance)
+        return ~((variances > 0) & (variances < UNMEASURED_TWIST_VARIANCE))
 
     def twist_covariance(self, fallback_variances: FloatArray) -> FloatArray:
         """The (6, 6) twist covariance, with each unset axis (:attr:`unset_axes`) given its variance in

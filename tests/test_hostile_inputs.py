@@ -103,6 +103,38 @@ def test_odometry_without_variances_is_weighed_by_the_motion_model(name: str, va
     assert position_rmse(tmp_path / "unset") <= 1.5 * position_rmse(tmp_path / "clean") + 0.1
 
 
+@pytest.mark.parametrize("name", ("ekf", "fastslam"))
+def test_odometry_placeholder_variances_are_taken_as_unmeasured(name: str, tmp_path: Path) -> None:
+    # ros2_control's diff_drive_controller publishes 1e6 on the axes it does not measure and 1e3 on yaw:
+    # taken as measurements the EKF ended 77 m off (exit 0, no word) and FastSLAM broke down (exit 4).
+    placeholders = np.diag([0.0025, 0.0025, 1e6, 1e6, 1e6, 1e3])
+    clean = write_log(tmp_path / "clean.mcap", CONFIG, odometry=True)
+    driver = write_log(tmp_path / "driver.mcap", CONFIG, odometry=True, odometry_covariance=placeholders)
+    for log in (clean, driver):
+        code, err = invoke("run", str(log), "--estimator", name, "-o", str(tmp_path / log.stem))
+        assert code == 0, err
+    assert "odometry leaves the variance of vz, wx, wy, wz unset (zero, negative, or 100 and above" in err
+    assert position_rmse(tmp_path / "driver") <= 1.5 * position_rmse(tmp_path / "clean") + 0.1
+
+
+def test_a_covariance_that_is_no_covariance_is_skipped_and_counted(tmp_path: Path) -> None:
+    # An off-diagonal term larger than the variances: the EKF took square roots of negative variances
+    # (a numpy RuntimeWarning on stderr, 172 iterations skipped, ATE 7 m, exit 0).
+    broken = np.eye(6) * 0.0025
+    broken[0, 1] = broken[1, 0] = 0.01
+    log = write_log(tmp_path / "broken.mcap", CONFIG, odometry=True, odometry_covariance=broken)
+    code, err = invoke("run", str(log), "--estimator", "ekf", "-o", str(tmp_path / "out"))
+    assert code == 0, err
+    assert "RuntimeWarning" not in err and "covariance not positive semi-definite" in err
+    document = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert document["skipped"]["odometry: covariance not positive semi-definite"] == CONFIG.iterations
+    screen = InputScreen()
+    covariance = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], covariance)) is None
+    assert screen.fix(PositionFix(0, [1.0, 2.0, 3.0], np.eye(3))) is not None
+    assert screen.skipped == {"fixes: covariance not positive semi-definite": 1}
+
+
 def test_fuse_says_when_every_fix_of_the_log_is_unusable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # All-zero covariances (ROS's "unknown"): every fix skipped, and fuse said the log had none (exit 4).
     import tests.hostile_logs as hostile
