@@ -665,12 +665,14 @@ class LogWriter:
         return self._channels[topic]
 
     def write(self, topic: str, typename: str, message: Any, stamp_ns: int) -> None:
-        """Write one message; ``log_time`` and ``publish_time`` are ``stamp_ns``."""
+        """Write one message; ``log_time`` and ``publish_time`` are ``stamp_ns``, or 0 for a stamp before
+        1970 (a negative ROS time, which a header holds; MCAP's times are unsigned)."""
         channel_id = self._channel(topic, typename)
+        log_time = max(int(stamp_ns), 0)
         self._writer.add_message(
             channel_id=channel_id,
-            log_time=int(stamp_ns),
-            publish_time=int(stamp_ns),
+            log_time=log_time,
+            publish_time=log_time,
             data=ros2.serialize(message, typename),
             sequence=self._sequence[topic],
         )

@@ -331,8 +331,8 @@ def drive(
     records of ``roles``, cropped to ``window``; ``relpoint run``, ``relpoint fuse --restart``, batch
     jobs and the Python API all come here.
 
-    BLAS runs single-threaded: the estimators' matrices are small, and on a busy machine OpenBLAS's
-    spinning worker threads made the EKF about 20 times slower.
+    BLAS runs single-threaded (numpy's and scipy's pools alike): the estimators' matrices are small, and
+    on a busy machine OpenBLAS's spinning worker threads made the EKF about 20 times slower.
     """
     observations = 0
 
@@ -343,6 +343,11 @@ def drive(
             yield record
 
     records = counted(cropped_records(reader.records(roles), window or TimeWindow()))
+    # scipy bundles an OpenBLAS of its own, loaded with scipy.linalg: a pool loaded after the limit is
+    # set keeps its threads (the figure eight's final adjustment took 7.6 s instead of 2 s, 13 s on a
+    # loaded machine, in banded solves of 900 unknowns), so it is loaded first.
+    import scipy.linalg  # noqa: F401
+
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             return pipeline.run(

@@ -355,3 +355,16 @@ def test_logs_other_writers_make_read_as_relpoint_s_own(
     assert not theirs.skipped, theirs.skipped
     if extra is not None:
         assert theirs.topic_infos["/vendor/status"].typename == "vendor.Status"
+
+
+def test_a_stamp_before_1970_is_logged_at_zero_and_kept_in_its_header(tmp_path: Path) -> None:
+    # A ROS time may be negative (int32 seconds); MCAP's log_time cannot. Writing a run's result.mcap
+    # for such a log failed with an internal error after the whole estimation had run.
+    path = tmp_path / "early.mcap"
+    with LogWriter(path) as writer:
+        writer.write_ground_truth_pose(Pose(-1_000_000_000_000, (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0)))
+        writer.write_ground_truth_pose(Pose(5, (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0)))
+    with path.open("rb") as stream:
+        read = list(make_reader(stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
+    assert [message.log_time for _, _, message, _ in read] == [0, 5]
+    assert read[0][3].header.stamp.sec == -1000 and read[1][3].header.stamp.nanosec == 5

@@ -181,3 +181,34 @@ def test_association_purity_reaches_the_evaluation(tmp_path: Path, small_log: Pa
     assert code == 0, err
     summary = json.loads((tmp_path / "e.json").read_text())["summary"]
     assert summary["lm_purity_mean"] == pytest.approx(float(np.mean(purity)), abs=1e-6)
+
+
+BLAS_THREADS_IN_A_RUN = """
+import sys
+from threadpoolctl import threadpool_info
+import relpoint
+from relpoint.estimators.relative_point import adjustment
+seen = []
+solve = adjustment._solve_positive_definite
+def spy(*args):
+    seen.extend(pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas")
+    return solve(*args)
+adjustment._solve_positive_definite = spy
+relpoint.run(sys.argv[1], estimator="relpoint")
+print(len(seen), max(seen))
+"""
+
+
+def test_every_blas_pool_is_single_threaded_while_an_estimator_runs(small_log: Path) -> None:
+    # scipy's own OpenBLAS, loaded with scipy.linalg inside the run, kept its threads: on two busy cores
+    # the figure eight's final adjustment took 7.6 s (13 s under load) in place of 1.4 s.
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}  # a pool of two whatever the machine's cores
+    completed = subprocess.run([sys.executable, "-c", BLAS_THREADS_IN_A_RUN, str(small_log)], env=env,
+                               capture_output=True, text=True, check=False, timeout=300)  # fmt: skip
+    assert completed.returncode == 0, completed.stderr
+    solves, threads = map(int, completed.stdout.split())
+    assert solves > 0 and threads == 1
