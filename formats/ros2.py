@@ -25,6 +25,7 @@ from formats.pointcloud2 import Field, decode_cloud, encode_cloud, xyz_from_clou
 from relpoint.errors import InputError
 from relpoint.types import (
     GroundTruthLandmarks,
+    IntArray,
     Intrinsics,
     OdometryMeasurement,
     PointObservation,
@@ -396,13 +397,22 @@ def _check_image_size(what: str, width: int, height: int) -> None:
         raise OversizedMessage(f"{what} of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
 
 
+def landmark_ids(column: np.ndarray) -> IntArray:
+    """An ``id`` field's values as int64. The format's ``id`` is INT32 with -1 for clutter; an unsigned
+    field of the same width (a writer that declared UINT32 and stored -1) is read as the signed value its
+    bits hold, so its 4294967295 is -1 again, not a landmark of its own."""
+    if column.dtype.kind == "u" and column.dtype.itemsize in (4, 8):
+        column = column.view(column.dtype.str.replace("u", "i"))
+    return column.astype(np.int64)
+
+
 def msg_to_observation(message: Any) -> tuple[PointObservation, int]:
     """A PointObservation of the finite points of a PointCloud2, and the number of invalid points dropped."""
     cloud = cloud_of(message)
     xyz, finite = xyz_from_cloud(cloud)
     ids = None
     if cloud.dtype.names and "id" in cloud.dtype.names and cloud["id"].ndim == 1:
-        ids = cloud["id"][finite].astype(np.int64)
+        ids = landmark_ids(cloud["id"][finite])
     observation = PointObservation(stamp_ns_of(message), xyz, ids, str(message.header.frame_id) or "sensor")
     return observation, int(len(cloud) - len(xyz))
 
@@ -414,7 +424,7 @@ def msg_to_landmarks(message: Any) -> GroundTruthLandmarks:
     names = cloud.dtype.names or ()
     if "id" not in names:
         raise InputError("the ground-truth landmark cloud has no 'id' field")
-    ids = cloud["id"][finite].astype(np.int64)
+    ids = landmark_ids(cloud["id"][finite])
     dynamic = cloud["dynamic"][finite].astype(bool) if "dynamic" in names else np.zeros(len(ids), dtype=bool)
     return GroundTruthLandmarks(xyz, ids, dynamic)
 

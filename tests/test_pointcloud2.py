@@ -125,3 +125,15 @@ def test_fields_relpoint_does_not_read_may_repeat_overflow_or_have_unknown_types
     # ... but a field relpoint reads must be unambiguous.
     with pytest.raises(InputError, match="two fields named 'x'"):
         decode_cloud(data.tobytes(), [*fields, Field("x", 4, FLOAT32)], width=4, height=1, point_step=24, row_step=96)
+
+
+def test_an_unsigned_id_field_reads_minus_one_as_clutter() -> None:
+    # A writer that declared `id` UINT32 and stored -1 (the format's clutter) gave 4294967295: each
+    # clutter point counted as a landmark of its own, lowering the map's purity without a word.
+    from formats.ros2 import landmark_ids
+
+    stored = np.array([3, -1, 7], dtype=np.int32)
+    np.testing.assert_array_equal(landmark_ids(stored.view(np.uint32)), [3, -1, 7])
+    np.testing.assert_array_equal(landmark_ids(stored.astype(np.int64).view(np.uint64)), [3, -1, 7])
+    np.testing.assert_array_equal(landmark_ids(np.array([3, 255], dtype=np.uint8)), [3, 255])
+    np.testing.assert_array_equal(landmark_ids(np.array([3.0, -1.0], dtype=np.float32)), [3, -1])
