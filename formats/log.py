@@ -110,6 +110,16 @@ ROLE_OPTIONS: dict[str, str] = {
 }
 
 
+#: The order of records of one stamp (:meth:`LogReader.records`): relpoint's own writers' order, the
+#: truth first, then what the sensor saw at that instant, then the odometry that holds from it and the fix.
+ROLE_ORDER: dict[str, int] = {
+    role: rank
+    for rank, role in enumerate(
+        ("ground_truth_landmarks", "camera_info", "ground_truth_pose", "color", "depth", "points", "odometry", "fix")
+    )
+}
+
+
 #: Most that ``log_time - header.stamp`` may differ between the topics of one pass over a log (ns). The
 #: records are merged by stamp, which holds back up to this much of the log; recorders' receive latency
 #: is well below it, while topics stamped on different clocks (sim time and wall time, a device clock)
@@ -436,9 +446,10 @@ class LogReader:
         Recorders log a message when they receive it, so across topics log-time order is not stamp
         order (a cloud stamped at capture reaches the recorder after the odometry of that instant). The
         messages are read in log-time order and merged by stamp in a buffer that holds a record until
-        the log time has passed its stamp by the largest ``log_time - header.stamp`` of the topics
-        read (measured in the summary pass); equal stamps keep their log order, and a log whose
-        log times are its stamps goes through unchanged and unbuffered.
+        the log time has passed its stamp by more than the largest ``log_time - header.stamp`` of the
+        topics read (measured in the summary pass). Records of equal stamps come in the order of
+        :data:`ROLE_ORDER`, whatever order a recorder logged them in (a fix received before the cloud
+        of its instant changed a FastSLAM run's ATE by 16 %).
 
         Checks that stamps strictly increase per topic (else :class:`InputError`), and that the topics
         read share one clock (their ``log_time - header.stamp`` within :data:`MAX_STAMP_SKEW_NS`). Invalid
@@ -451,7 +462,7 @@ class LogReader:
         # Calibration is not a time series: a static publisher stamps its CameraInfo 0, or repeats one
         # stamp. It neither sets the merge's horizon nor has to increase; each message holds until the next.
         horizon = self._merge_horizon([t for t, r in topic_roles.items() if r != "camera_info"])
-        held: list[tuple[int, int, Record]] = []  # (stamp, arrival, record), a heap
+        held: list[tuple[int, int, int, Record]] = []  # (stamp, role's rank, arrival, record), a heap
         arrival = itertools.count()
         previous: dict[str, int] = {}
         reader = self._open()
@@ -463,8 +474,8 @@ class LogReader:
             ]  # fmt: skip
             for connection, log_time, raw in reader.messages(connections=connections):
                 # every message from here on is stamped at or after log_time - horizon
-                while horizon is not None and held and held[0][0] <= log_time - horizon:
-                    yield heapq.heappop(held)[2]
+                while horizon is not None and held and held[0][0] < log_time - horizon:
+                    yield heapq.heappop(held)[3]
                 topic = connection.topic
                 role = topic_roles[topic]
                 if len(raw) > ros2.MAX_MESSAGE_BYTES:  # refused before a byte of it is decoded
@@ -489,11 +500,11 @@ class LogReader:
                     continue
                 # a stamp the summary pass could not read from the bytes may lag more: wait for it too
                 horizon = max(horizon, log_time - record.stamp_ns)
-                heapq.heappush(held, (record.stamp_ns, next(arrival), record))
-                while held and held[0][0] <= log_time - horizon:
-                    yield heapq.heappop(held)[2]
+                heapq.heappush(held, (record.stamp_ns, ROLE_ORDER[role], next(arrival), record))
+                while held and held[0][0] < log_time - horizon:
+                    yield heapq.heappop(held)[3]
             while held:
-                yield heapq.heappop(held)[2]
+                yield heapq.heappop(held)[3]
         except _READ_ERRORS as error:
             reader.close()
             raise _corrupt(self.path, self.layout, error) from None
