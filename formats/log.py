@@ -304,9 +304,10 @@ class LogReader:
 
     def _read_channels(self) -> dict[str, TopicInfo]:
         """Every topic with type, count and time range; one pass over the records checks every chunk's CRC."""
-        first: dict[str, int] = {}
-        last: dict[str, int] = {}
+        first: dict[tuple[str, str], int] = {}  # per (topic, type): a topic may carry several types
+        last: dict[tuple[str, str], int] = {}
         counts: Counter[str] = Counter()
+        typed_counts: Counter[tuple[str, str]] = Counter()
         stamped: dict[tuple[str, str], bool | None] = {}  # (topic, type) -> ROS 1 serialised, None: no header
         previous: dict[str, int] = {}
         reader = self._open()
@@ -316,9 +317,10 @@ class LogReader:
             for connection, log_time, raw in reader.messages():
                 topic = connection.topic
                 counts[topic] += 1
-                first.setdefault(topic, log_time)
-                last[topic] = log_time
                 key = (topic, connection.msgtype)
+                typed_counts[key] += 1
+                first.setdefault(key, log_time)
+                last[key] = log_time
                 if key not in stamped:
                     encoding = getattr(connection.ext, "serialization_format", ROS1_ENCODING)
                     header = ros2.normalise_typename(connection.msgtype) in ros2.HEADER_FIRST_TYPES
@@ -328,14 +330,13 @@ class LogReader:
             if self.layout is Layout.ROSBAG2:
                 self._check_counts(reader, counts)
             topics: dict[str, TopicInfo] = {}
-            for connection in reader.connections:
-                if connection.topic in topics:
-                    continue
+            for connection in self._typed_connections(reader, typed_counts):
+                key = (connection.topic, connection.msgtype)
                 # ROS 1 connections name no serialisation format: their messages are ROS 1-serialised
                 encoding = getattr(connection.ext, "serialization_format", ROS1_ENCODING)
                 topics[connection.topic] = TopicInfo(
                     connection.topic, ros2.normalise_typename(connection.msgtype), encoding,
-                    counts[connection.topic], first.get(connection.topic), last.get(connection.topic),
+                    typed_counts[key], first.get(key), last.get(key),
                 )  # fmt: skip
         except _READ_ERRORS as error:
             reader.close()
@@ -345,6 +346,33 @@ class LogReader:
             raise
         self._spare = reader
         return topics
+
+    def _typed_connections(self, reader: AnyReader, typed_counts: Counter[tuple[str, str]]) -> list[Any]:
+        """One connection per topic, whose type the topic is listed and read as. A topic that carries
+        several types (two publishers, one of another type) is read as the type its role takes, else as
+        its most frequent one; the others' messages are not read, which a warning says."""
+        by_topic: dict[str, list[Any]] = {}
+        for connection in reader.connections:
+            kinds = by_topic.setdefault(connection.topic, [])
+            if all(c.msgtype != connection.msgtype for c in kinds):
+                kinds.append(connection)
+        role_of = {topic: role for role, topic in self.topics.roles().items()}
+        chosen = []
+        for topic, kinds in by_topic.items():
+            role = role_of.get(topic)
+            accepted = [c for c in kinds if role is not None and role_accepts(role, ros2.normalise_typename(c.msgtype))]
+            best = max(accepted or kinds, key=lambda c: typed_counts[(topic, c.msgtype)])
+            chosen.append(best)
+            others = [c for c in kinds if c is not best and typed_counts[(topic, c.msgtype)]]
+            if others:
+                left = ", ".join(f"{typed_counts[(topic, c.msgtype)]} {ros2.normalise_typename(c.msgtype)}"
+                                 for c in others)  # fmt: skip
+                warning = (f"{topic} carries more than one message type: read as "
+                           f"{ros2.normalise_typename(best.msgtype)} ({typed_counts[(topic, best.msgtype)]} messages); "
+                           f"its {left} messages are not read")  # fmt: skip
+                log.warning("%s", warning)
+                self.warnings.append(warning)
+        return chosen
 
     def _note_stamp(self, topic: str, log_time: int, stamp: int | None, previous: dict[str, int]) -> None:
         """Widen ``topic``'s range of log_time - stamp, unless its stamps stopped increasing here."""

@@ -368,3 +368,34 @@ def test_a_stamp_before_1970_is_logged_at_zero_and_kept_in_its_header(tmp_path: 
         read = list(make_reader(stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
     assert [message.log_time for _, _, message, _ in read] == [0, 5]
     assert read[0][3].header.stamp.sec == -1000 and read[1][3].header.stamp.nanosec == 5
+
+
+def test_a_topic_carrying_two_types_is_read_as_its_role_s(tmp_path: Path, small_log: Path) -> None:
+    # A second publisher of another type on /points, registered first: the log was refused ("carries
+    # std_msgs/msg/String") although every cloud was there; registered after the clouds it was read.
+    from mcap.writer import Writer
+
+    path = tmp_path / "two-types.mcap"
+    with small_log.open("rb") as stream, path.open("wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ros2", library="test")
+        string = writer.register_channel("/points", "cdr", writer.register_schema("std_msgs/msg/String", "ros2msg",
+                                                                                  b"string data"))  # fmt: skip
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+            if channel.topic == "/points" and message.sequence % 2:
+                writer.add_message(string, message.log_time, b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00", message.log_time)
+        writer.finish()
+    reader = LogReader(path)
+    reader.require("points")
+    assert reader.topic_infos["/points"].typename == ros2.POINT_CLOUD2
+    clouds = [r.value for r in reader.records(["points"])]
+    assert [c.stamp_ns for c in clouds] == [r.value.stamp_ns for r in LogReader(small_log).records(["points"])]
+    assert any("/points carries more than one message type" in w and "std_msgs/msg/String" in w
+               for w in reader.warnings)  # fmt: skip
