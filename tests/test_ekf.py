@@ -473,3 +473,21 @@ def test_a_turn_that_starts_at_once_is_followed_by_widening_the_prediction(caplo
     assert stiff.summary()["landmarks"] > summary["landmarks"] + 20
     assert stiff_error > 2 * error
     assert len([r for r in caplog.records if "association collapsed" in r.getMessage()]) == 1
+
+
+def test_a_large_map_is_warned_of_once_and_its_block_grows_by_half(caplog: pytest.LogCaptureFixture) -> None:
+    # A 20,000-iteration log grew the EKF to 3,100 landmarks and 1.8 GB without a word (the doubled
+    # block stood half empty); it ran on for over 20 minutes.
+    import logging
+
+    from relpoint.estimators.ekf import LARGE_MAP_LANDMARKS
+
+    ekf = EkfSlam(EkfConfig(observation_sigma=0.1))
+    rng = np.random.default_rng(0)
+    with caplog.at_level(logging.WARNING):
+        for _ in range(LARGE_MAP_LANDMARKS // 100 + 5):
+            ekf._add_landmarks(rng.normal(scale=50.0, size=(100, 3)))
+            assert ekf._P_block.shape[0] <= max(INITIAL_CAPACITY, 1.5 * ekf._size)  # grown by half, not doubled
+    warnings = [r.getMessage() for r in caplog.records if "map reached" in r.getMessage()]
+    assert len(warnings) == 1 and f"reached {LARGE_MAP_LANDMARKS} landmarks" in warnings[0]
+    np.testing.assert_array_equal(ekf._P, ekf._P.T)
