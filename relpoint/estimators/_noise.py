@@ -502,8 +502,9 @@ class NoiseAdaptive(Estimator[PointObservation]):
         if self._known_sigma is None:
             self.along_and_across = noise_along_and_across(registrations)
         if self._not_landmarks():  # said now, as a run over such clouds can take long; explained at its end
-            log.warning("%s: the first %d observations look like samples of surfaces, not landmarks (revisit ratio "
-                        "%.2f); the run goes on, its result unreliable", self.name, len(observations), self.revisit)  # fmt: skip
+            log.warning("%s: the first %d observations look like samples of surfaces, or landmarks with noise near "
+                        "their spacing (revisit ratio %.2f); the run goes on, its result may be unreliable", self.name,
+                        len(observations), self.revisit)  # fmt: skip
         if self._measure_acceleration:
             self.acceleration = estimate_acceleration(observations, registrations)
         if odometry:
@@ -594,11 +595,13 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
     def _not_landmarks_warning(self) -> str:
         return (
-            f"{self.name}: the points come back no closer to where they were seen before than to their neighbours "
-            f"(median ratio {self.revisit:.2f}; landmarks: under 0.1): these look like fresh samples of surfaces "
-            "(a lidar scan, a depth cloud), not landmarks seen again and again, and an association by position "
-            "cannot pair them; the map and path are unreliable. The point estimators need point features (e.g. "
-            "`relpoint import ... --points`); depth images suit the dense estimator"
+            f"{self.name}: the points come back about as far from where they were seen before as from their "
+            f"neighbours (median ratio {self.revisit:.2f}; landmarks seen with noise well under their spacing: under "
+            "0.1): these are fresh samples of surfaces (a lidar scan, a depth cloud), not landmarks seen again and "
+            f"again, or landmarks whose noise ({self.sigma:.3g} m measured) is near their spacing. Either way an "
+            "association by position pairs many of them wrongly; the map and path may be unreliable. The point "
+            "estimators need point features (e.g. `relpoint import ... --points`); depth images suit the dense "
+            "estimator"
         )
 
     def _anisotropy_warning(self) -> list[str]:
