@@ -97,6 +97,24 @@ def role_accepts(role: str, typename: str | None) -> bool:
     return typename == ROLE_TYPES[role] or typename in ROLE_ALSO_TYPES.get(role, ())
 
 
+#: Words in a topic's name that say which images it holds: a topic named for colour alone is no depth
+#: camera's, one named for depth no colour camera's (RealSense's /camera/aligned_depth_to_color/image_raw
+#: names both, and is depth).
+_IMAGE_WORDS: dict[str, tuple[str, ...]] = {"depth": ("depth",), "color": ("color", "colour", "rgb")}
+
+
+def may_serve(role: str, topic: str, typename: str | None) -> bool:
+    """Whether a topic of ``typename`` could carry ``role``'s messages: its type is one the role takes,
+    and, for images, its name does not say it holds the other kind only (candidates to name with an option)."""
+    if not role_accepts(role, typename):
+        return False
+    if role not in _IMAGE_WORDS:
+        return True
+    name = topic.lower()
+    other = next(r for r in _IMAGE_WORDS if r != role)
+    return any(w in name for w in _IMAGE_WORDS[role]) or not any(w in name for w in _IMAGE_WORDS[other])
+
+
 #: The command-line option that renames each role's topic.
 ROLE_OPTIONS: dict[str, str] = {
     "points": "--points-topic",

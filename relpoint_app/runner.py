@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 import relpoint
 from formats.config_files import load_settings
-from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, Record, Topics, role_accepts
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, Record, Topics, may_serve
 from formats.outputs import check_output_directory
 from formats.run_output import write_run_directory
 from relpoint import pipeline
@@ -218,16 +218,13 @@ def input_roles(
 
 
 def _unused_topics_for(reader: LogReader, role: str) -> list[str]:
-    """The log's topics, with messages, of a type that ``role`` takes and that no role of the run reads (for
-    colour, none named as depth: a depth image is an Image too)."""
+    """The log's topics, with messages, that may serve ``role`` (:func:`formats.log.may_serve`: for colour,
+    none named as depth, an Image too) and that no role of the run reads."""
     taken = set(reader.topics.roles().values())
     return sorted(
         topic
         for topic, info in reader.topic_infos.items()
-        if info.count
-        and topic not in taken
-        and role_accepts(role, info.typename)
-        and not (role == "color" and "depth" in topic.lower())
+        if info.count and topic not in taken and may_serve(role, topic, info.typename)
     )
 
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from formats import ros2
 from formats.layouts import Storage
-from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, role_accepts
+from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, may_serve, role_accepts
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -150,7 +150,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     named = set(reader.topics.roles().values())
     document["candidate_topics"] = {
         role: [topic for topic, item in reader.topic_infos.items()
-               if role_accepts(role, item.typename) and item.count and topic not in named]
+               if may_serve(role, topic, item.typename) and item.count and topic not in named]
         for role in missing
     }  # fmt: skip
     if as_json:

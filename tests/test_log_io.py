@@ -399,3 +399,17 @@ def test_a_topic_carrying_two_types_is_read_as_its_role_s(tmp_path: Path, small_
     assert [c.stamp_ns for c in clouds] == [r.value.stamp_ns for r in LogReader(small_log).records(["points"])]
     assert any("/points carries more than one message type" in w and "std_msgs/msg/String" in w
                for w in reader.warnings)  # fmt: skip
+
+
+def test_image_topics_named_for_the_other_kind_are_no_candidates() -> None:
+    # `relpoint info` offered a camera driver's /camera/color/image_raw as the depth topic to name.
+    from formats.log import may_serve
+
+    image = ros2.IMAGE
+    assert may_serve("depth", "/camera/aligned_depth_to_color/image_raw", image)  # RealSense: depth, named both
+    assert may_serve("depth", "/kinect/image", image)  # a name that says nothing
+    assert not may_serve("depth", "/camera/color/image_raw", image)
+    assert may_serve("color", "/camera/rgb/image_color", image)
+    assert not may_serve("color", "/camera/depth/image_rect_raw", image)
+    assert not may_serve("color", "/camera/color/camera_info", ros2.CAMERA_INFO)
+    assert may_serve("odometry", "/odometry/filtered", ros2.ODOMETRY)
