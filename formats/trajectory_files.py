@@ -210,6 +210,20 @@ def _read_tum_fast(path: Path) -> Trajectory | None:
     return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], [number for number, _ in lines])
 
 
+def _pose_rows(path: Path, stamps: list[int], rows: list[list[str]], lines: list[int]) -> Trajectory:
+    """The trajectory of text ``rows`` (x y z qx qy qz qw each) at ``stamps``, read from ``lines`` of ``path``:
+    InputError naming the line of a non-numeric value; rows with a NaN or infinite value left out."""
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    except ValueError:  # find the offending line for the message
+        for number, fields in zip(lines, rows, strict=True):
+            _numbers(fields, path, number)
+        raise
+    stamps, lines, values = _finite_rows(path, stamps, lines, values)
+    logger.debug("read %d poses from %s", len(stamps), path)
+    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
+
+
 def _finite_rows(
     path: Path, stamps: list[int], lines: list[int], values: np.ndarray
 ) -> tuple[list[int], list[int], np.ndarray]:
@@ -256,15 +270,7 @@ def read_tum(path: str | os.PathLike[str]) -> Trajectory:
             raise InputError(f"{path}:{number}: bad timestamp {fields[0]!r}") from None
         rows.append(fields[1:])
         lines.append(number)
-    try:
-        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
-    except ValueError:  # find the offending line for the message
-        for number, fields in zip(lines, rows, strict=True):
-            _numbers(fields, path, number)
-        raise
-    stamps, lines, values = _finite_rows(path, stamps, lines, values)
-    logger.debug("read %d poses from %s", len(stamps), path)
-    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
+    return _pose_rows(path, stamps, rows, lines)
 
 
 def read_kitti(path: str | os.PathLike[str], times_path: str | os.PathLike[str] | None = None) -> Trajectory:
@@ -430,8 +436,11 @@ def _first_lines(path: Path) -> tuple[list[str], list[str]] | None:
     """(``#`` lines before the first data line, fields of that line, with a trailing ``","`` when the line
     is comma-separated) from the first 64 KiB of ``path``; None as :func:`_head`."""
     head = _head(path)
-    if head is None:
-        return None
+    return None if head is None else _split_head(head)
+
+
+def _split_head(head: tuple[list[tuple[int, str]], tuple[int, str]]) -> tuple[list[str], list[str]]:
+    """:func:`_first_lines` of a file whose :func:`_head` is ``head``."""
     comments, (_, line) = head
     return [text for _, text in comments], [f for f in _SEPARATORS.split(line) if f] + ([","] if "," in line else [])
 
@@ -576,7 +585,11 @@ def header_layout(path: str | os.PathLike[str]) -> ColumnLayout | None:
         give the layout.
     """
     path = Path(path)
-    head = _head(path)
+    return _layout_in(path, _head(path))
+
+
+def _layout_in(path: Path, head: tuple[list[tuple[int, str]], tuple[int, str]] | None) -> ColumnLayout | None:
+    """:func:`header_layout` of a file whose :func:`_head` is ``head``."""
     if head is None:
         return None
     comments, (number, line) = head
@@ -641,15 +654,7 @@ def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None
                 stamps.append(int((Decimal(text) * unit).to_integral_value()))
         except (ValueError, InvalidOperation):
             raise InputError(f"{path}:{number}: bad timestamp {text!r}") from None
-    try:
-        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
-    except ValueError:  # find the offending line for the message
-        for number, fields in zip(lines, rows, strict=True):
-            _numbers(fields, path, number)
-        raise
-    stamps, lines, values = _finite_rows(path, stamps, lines, values)
-    logger.debug("read %d poses from %s by its header's column names", len(stamps), path)
-    return _build(path, stamps, values[:, :3].tolist(), values[:, 3:], lines)
+    return _pose_rows(path, stamps, rows, lines)
 
 
 def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
@@ -669,16 +674,16 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:
         If the file cannot be opened, or its first line is a header that does not name the columns.
     """
     path = Path(path)
-    head = _first_lines(path)
+    head = _head(path)
     if head is None:
         return None
-    comments, fields = head
+    comments, fields = _split_head(head)
     if any(mark in line for line in comments for mark in _EUROC_HEADER_MARKS):
         return TrajectoryFormat.EUROC
     if fields[: len(RELPOINT_CSV_HEADER)] == RELPOINT_CSV_HEADER:
         return TrajectoryFormat.RELPOINT_CSV
     by_values = _format_by_values(path, fields)
-    layout = header_layout(path)
+    layout = _layout_in(path, head)
     if layout is not None and not (layout.commented and layout.is_tum and by_values is TrajectoryFormat.TUM):
         return TrajectoryFormat.NAMED_COLUMNS
     return by_values

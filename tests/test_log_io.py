@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
@@ -295,10 +295,20 @@ def test_an_unindexed_mcap_file_out_of_log_time_order_says_so_and_how_to_index_i
     assert "truncated" not in caught.value.message and "mcap recover" in caught.value.hint
 
 
-def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: tuple[str, str, bytes] | None = None) -> None:
+class _Extra(NamedTuple):
+    """A channel added to a rewritten log (registered before the log's own), a message of it after every cloud."""
+
+    topic: str
+    type_name: str
+    schema_encoding: str
+    schema_data: bytes
+    message_encoding: str
+    payload: bytes
+
+
+def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: _Extra | None = None) -> None:
     """``source`` written again by the raw mcap writer: each ros2msg schema's text through ``schema_text``
-    (None: unchanged), and with ``extra`` = (schema encoding, message encoding, payload) a channel of
-    another profile beside the ROS 2 ones, a message of it after every cloud."""
+    (None: unchanged), and with ``extra`` a channel beside the log's."""
     from mcap.writer import Writer
 
     with source.open("rb") as stream, target.open("wb") as out:
@@ -306,10 +316,10 @@ def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: tuple[s
         writer.start(profile="ros2", library="test")
         schemas: dict[int, int] = {}
         channels: dict[int, int] = {}
-        foreign = None
+        added = None
         if extra is not None:
-            foreign_schema = writer.register_schema("vendor.Status", extra[0], b'{"type": "object"}')
-            foreign = writer.register_channel("/vendor/status", extra[1], foreign_schema)
+            added_schema = writer.register_schema(extra.type_name, extra.schema_encoding, extra.schema_data)
+            added = writer.register_channel(extra.topic, extra.message_encoding, added_schema)
         for schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
             if schema.id not in schemas:
                 text = schema.data.decode()
@@ -320,17 +330,19 @@ def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: tuple[s
                 channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
             writer.add_message(channels[channel.id], log_time=message.log_time, publish_time=message.publish_time,
                                data=message.data, sequence=message.sequence)  # fmt: skip
-            if foreign is not None and channel.topic == "/points":
-                writer.add_message(foreign, log_time=message.log_time, publish_time=message.log_time,
-                                   data=extra[2], sequence=0)  # fmt: skip
+            if added is not None and extra is not None and channel.topic == "/points":
+                writer.add_message(added, log_time=message.log_time, publish_time=message.log_time,
+                                   data=extra.payload, sequence=0)  # fmt: skip
         writer.finish()
 
 
 @pytest.mark.parametrize(
     ("variant", "schema_text", "extra"),
     [
-        ("a JSON channel (Foxglove)", None, ("jsonschema", "json", b'{"level": 3}')),
-        ("a protobuf channel", None, ("protobuf", "protobuf", b"\x08\x03")),
+        ("a JSON channel (Foxglove)", None,
+         _Extra("/vendor/status", "vendor.Status", "jsonschema", b'{"type": "object"}', "json", b'{"level": 3}')),
+        ("a protobuf channel", None,
+         _Extra("/vendor/status", "vendor.Status", "protobuf", b'{"type": "object"}', "protobuf", b"\x08\x03")),
         ("separators of 40 =", lambda t: t.replace("=" * 80, "=" * 40), None),
         ("separators of 120 = and a trailing blank", lambda t: t.replace("=" * 80, "=" * 120 + " "), None),
         ("CRLF line ends", lambda t: t.replace("\n", "\r\n"), None),
@@ -338,7 +350,7 @@ def _rewrite(source: Path, target: Path, schema_text: Any = None, extra: tuple[s
     ],
 )  # fmt: skip
 def test_logs_other_writers_make_read_as_relpoint_s_own(
-    tmp_path: Path, small_log: Path, variant: str, schema_text: Any, extra: tuple[str, str, bytes] | None
+    tmp_path: Path, small_log: Path, variant: str, schema_text: Any, extra: _Extra | None
 ) -> None:
     """What another writer puts in an MCAP file beside the log format's topics, or how it spells a schema,
     must not matter: each was refused as a truncated or corrupt file."""
@@ -373,25 +385,10 @@ def test_a_stamp_before_1970_is_logged_at_zero_and_kept_in_its_header(tmp_path: 
 def test_a_topic_carrying_two_types_is_read_as_its_role_s(tmp_path: Path, small_log: Path) -> None:
     # A second publisher of another type on /points, registered first: the log was refused ("carries
     # std_msgs/msg/String") although every cloud was there; registered after the clouds it was read.
-    from mcap.writer import Writer
-
     path = tmp_path / "two-types.mcap"
-    with small_log.open("rb") as stream, path.open("wb") as out:
-        writer = Writer(out)
-        writer.start(profile="ros2", library="test")
-        string = writer.register_channel("/points", "cdr", writer.register_schema("std_msgs/msg/String", "ros2msg",
-                                                                                  b"string data"))  # fmt: skip
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
-            if schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
-            if channel.topic == "/points" and message.sequence % 2:
-                writer.add_message(string, message.log_time, b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00", message.log_time)
-        writer.finish()
+    string = _Extra("/points", "std_msgs/msg/String", "ros2msg", b"string data", "cdr",
+                    b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00")  # fmt: skip
+    _rewrite(small_log, path, extra=string)
     reader = LogReader(path)
     reader.require("points")
     assert reader.topic_infos["/points"].typename == ros2.POINT_CLOUD2
