@@ -78,7 +78,9 @@ def test_config_from_mapping_rejects_unknown_keys_and_round_trips() -> None:
 
 
 def test_spec_builds_an_ekf() -> None:
-    given = EkfConfig(observation_sigma=0.3, linear_acceleration_noise=2.0, odometry_check=False)
+    given = EkfConfig(
+        observation_sigma=0.3, linear_acceleration_noise=2.0, angular_acceleration_noise=0.5, odometry_check=False
+    )
     assert isinstance(SPEC.factory(given, np.random.default_rng(0)), EkfSlam)
     # the odometry is checked against the first observations, which are held back for it
     checked = SPEC.factory(dataclasses.replace(given, odometry_check=True), np.random.default_rng(0))

@@ -41,8 +41,8 @@ def test_every_estimator_is_built_as_config_and_rng_and_declares_its_input_kind(
     assert isinstance(built, NoiseAdaptive) == (spec.noise_adaptive and config.observation_sigma is None)
     if spec.noise_adaptive:
         given = config.at_noise(0.05)
-        if getattr(given, "linear_acceleration_noise", 0.0) is None:  # a motion model's, measured alike
-            given = given.at_acceleration(1.0)
+        if getattr(given, "derives_acceleration", False):  # a motion model's, measured alike
+            given = dataclasses.replace(given, linear_acceleration_noise=1.0, angular_acceleration_noise=0.5)
         if getattr(given, "odometry_check", False):  # the odometry's check holds the first observations back
             assert isinstance(spec.factory(given, np.random.default_rng(0)), NoiseAdaptive)
             given = dataclasses.replace(given, odometry_check=False)

@@ -56,7 +56,7 @@ def test_config_rejects_bad_values(options: dict[str, object]) -> None:
 def test_config_round_trips_and_spec_builds() -> None:
     config = FastSlamConfig.from_mapping(
         {"variant": "1.0", "particles": 7, "observation_sigma": 0.3, "linear_acceleration_noise": 2.0,
-         "odometry_check": False}
+         "angular_acceleration_noise": 0.5, "odometry_check": False}
     )  # fmt: skip
     assert FastSlamConfig.from_mapping(config.to_dict()) == config
     with pytest.raises(UsageError):

@@ -98,6 +98,13 @@ SIMULATOR_SIGMA = 0.3
 VEHICLE_ACCELERATION = 2.0
 #: The largest linear acceleration noise (m/s^2) the settings take.
 MAX_ACCELERATION_NOISE = 1e4
+#: The motion models' angular acceleration noise (rad/s^2) where the held-back path cannot tell, and
+#: the most it takes from a calm path: a vehicle's, which the defaults were chosen for.
+VEHICLE_ANGULAR_ACCELERATION = 0.5
+#: The largest angular acceleration noise (rad/s^2) the settings take.
+MAX_ANGULAR_ACCELERATION_NOISE = 1e3
+#: The simulator's interval between observations (s), at which the vehicle defaults were chosen.
+SIMULATOR_INTERVAL_S = 0.1
 #: Velocities are taken over about this span (s) of the held-back path: over one iteration the
 #: registrations' own error, divided by dt^2, would swamp a slow sensor's acceleration.
 ACCELERATION_SPAN_S = 0.5
@@ -429,32 +436,83 @@ def noise_along_and_across(registrations: ConsecutiveRegistrations, min_pairs: i
     return float(np.median(along)), float(np.median(across))
 
 
-def _chained_positions(registrations: ConsecutiveRegistrations) -> tuple[FloatArray, FloatArray] | None:
-    """Stamps (s) and positions (m, in the first observation's frame) of the registered observations,
-    chained from their consecutive registrations; None if any pair failed or there are fewer than 3."""
+def _chained_path(registrations: ConsecutiveRegistrations) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    """Stamps (s), positions (m) and rotations (``R_first_k``) of the registered observations, in the
+    first observation's frame, chained from their consecutive registrations; None if any pair failed
+    or there are fewer than 3."""
     if len(registrations.observations) < 3 or any(step is None for step in registrations.steps):
         return None
     R, t = np.eye(3), np.zeros(3)
-    positions = [t]
+    positions, rotations = [t], [R]
     for step in registrations.steps:
         assert step is not None
         R, t = R @ step[0], R @ step[1] + t  # T_0<-k+1 = T_0<-k  T_k<-k+1
         positions.append(t)
+        rotations.append(R)
     stamps = np.array([o.stamp_ns for o in registrations.observations], dtype=np.float64) * 1e-9
-    return stamps, np.array(positions)
+    return stamps, np.array(positions), np.array(rotations)
+
+
+#: The measured starting twist's standard deviation: this fraction of it, plus what three times the
+#: noise over one interval (at the points' median range, for the turn rate) would hide.
+STARTING_TWIST_SPREAD = 0.25
+#: The measured starting twist replaces the start from rest when the first interval moves the points
+#: by more than this fraction of their spacing (in the median): a prediction from rest then pairs them
+#: with their neighbours. Measured: the simulator's figure eight and corridor 0.13 and 0.18, an
+#: independent simulator's car, turn on the spot and drone at 10 Hz 0.19-0.36, its circle at 1 Hz 1.8.
+#: Below it the start from rest is kept: the filters learn the twist from the first observations (on
+#: the figure eight at 10 Hz, starting from the measured twist changed FastSLAM's ATE by chance, up or
+#: down by up to 70 % a seed, the mean of eight seeds by 1 %).
+STARTING_SHIFT_FRACTION = 0.5
+
+
+def starting_twist(registrations: ConsecutiveRegistrations, sigma: float) -> tuple[FloatArray, FloatArray] | None:
+    """The body-frame twist ``(v (m/s), w (rad/s))`` (6,) that carries the first registered observation
+    onto the second (the constant-velocity models' ``p' = p + R v dt``, ``R' = R Exp(w dt)``), and its
+    standard deviation (6,) for observation noise ``sigma`` (m): ``STARTING_TWIST_SPREAD`` of the
+    twist's size plus ``3 sigma / dt`` (linear) and ``3 sigma / (r dt)`` (angular, ``r`` the first
+    observation's median range). None unless the two register onto each other (their points revisit)
+    and the motion between them moves the points by more than ``STARTING_SHIFT_FRACTION`` of their
+    spacing: a start from rest suits a smaller one."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
+    if not registrations.revisits or not registrations.revisits[0] or registrations.steps[0] is None:
+        return None
+    first, second = registrations.observations[:2]
+    dt = (second.stamp_ns - first.stamp_ns) * 1e-9
+    reach = float(np.median(np.linalg.norm(first.points, axis=1)))
+    if not (dt > 0 and reach > 0):
+        return None
+    R, t, _ = registrations.steps[0]
+    shift = float(np.median(np.linalg.norm(second.points @ R.T + t - second.points, axis=1)))
+    spacing = float(np.median(cKDTree(first.points).query(first.points, k=2)[0][:, 1]))
+    if not shift > STARTING_SHIFT_FRACTION * spacing:
+        return None
+    linear, angular = t / dt, Rotation.from_matrix(R).as_rotvec() / dt
+    spread = np.repeat(
+        [STARTING_TWIST_SPREAD * np.linalg.norm(linear) + 3.0 * sigma / dt,
+         STARTING_TWIST_SPREAD * np.linalg.norm(angular) + 3.0 * sigma / (reach * dt)], 3,
+    )  # fmt: skip
+    return np.r_[linear, angular], spread
 
 
 @dataclass(frozen=True)
 class PathAcceleration:
-    """How hard the held-back path accelerates (m/s^2), two ways (:func:`estimate_acceleration`).
+    """How hard the held-back path accelerates, two ways (:func:`estimate_acceleration`).
 
-    ``white``: the white acceleration noise over one interval that explains its velocity changes.
-    ``smoothed``: its velocity change over the span, per second: the acceleration the path itself
-    shows. A smooth turn of acceleration ``A`` gives ``smoothed`` ``A`` and ``white`` ``A sqrt(m)``.
+    ``white``: the white acceleration noise (m/s^2) over one interval that explains its velocity
+    changes. ``smoothed``: its velocity change over the span, per second: the acceleration the path
+    itself shows. A smooth turn of acceleration ``A`` gives ``smoothed`` ``A`` and ``white`` ``A sqrt(m)``.
+    ``angular_white`` and ``angular_smoothed``: the same (rad/s^2) of its angular velocity in the
+    sensor frame, which a steady turn keeps. ``interval``: the median time between observations (s).
     """
 
     white: float
     smoothed: float
+    angular_white: float = 0.0
+    angular_smoothed: float = 0.0
+    interval: float = SIMULATOR_INTERVAL_S
 
 
 def estimate_acceleration(
@@ -467,13 +525,17 @@ def estimate_acceleration(
     spans, over the span's time ``S``, is an acceleration smoothed over ``S`` (``smoothed``). Under white
     acceleration noise the velocity wanders as the square root of time, so the noise over one interval
     ``dt`` is that times ``sqrt(S / dt) = sqrt(m)`` (``white``): the motion models' ``(a dt)^2`` per
-    iteration then wander the velocity as much over ``S`` as the path did. None when the path cannot be
-    chained or is too short.
+    iteration then wander the velocity as much over ``S`` as the path did. The angular velocity over a
+    span is the rotation between its ends, in the sensor frame at its start, over its time; its changes
+    give ``angular_smoothed`` and ``angular_white`` alike. None when the path cannot be chained or is too
+    short.
     """
-    path = _chained_positions(registrations or ConsecutiveRegistrations.of(observations))
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
+    path = _chained_path(registrations or ConsecutiveRegistrations.of(observations))
     if path is None:
         return None
-    stamps, positions = path
+    stamps, positions, rotations = path
     dt = float(np.median(np.diff(stamps)))
     if not dt > 0:
         return None
@@ -481,11 +543,16 @@ def estimate_acceleration(
     if len(stamps) < 2 * m + 1:
         return None
     span = stamps[m:] - stamps[:-m]
-    velocity = (positions[m:] - positions[:-m]) / span[:, None]
-    change = np.linalg.norm(velocity[m:] - velocity[:-m], axis=1)
     between = 0.5 * (span[m:] + span[:-m])
-    smoothed = float(np.median(change / between))
-    return PathAcceleration(white=smoothed * math.sqrt(m), smoothed=smoothed)
+    velocity = (positions[m:] - positions[:-m]) / span[:, None]
+    smoothed = float(np.median(np.linalg.norm(velocity[m:] - velocity[:-m], axis=1) / between))
+    turns = np.swapaxes(rotations[:-m], 1, 2) @ rotations[m:]  # R_k^T R_k+m: the span's rotation in frame k
+    angular = Rotation.from_matrix(turns).as_rotvec() / span[:, None]
+    angular_smoothed = float(np.median(np.linalg.norm(angular[m:] - angular[:-m], axis=1) / between))
+    return PathAcceleration(
+        white=smoothed * math.sqrt(m), smoothed=smoothed, angular_white=angular_smoothed * math.sqrt(m),
+        angular_smoothed=angular_smoothed, interval=dt,
+    )  # fmt: skip
 
 
 def derived_acceleration_noise(acceleration: PathAcceleration | None, sigma: float) -> float:
@@ -501,6 +568,22 @@ def derived_acceleration_noise(acceleration: PathAcceleration | None, sigma: flo
     # A path turning harder than a vehicle (an aerial sensor, a scene ten times the simulator's) keeps at
     # least what it shows: capped at the vehicle's, the prediction trails it and the association breaks.
     return float(min(MAX_ACCELERATION_NOISE, max(within_vehicle, acceleration.smoothed)))
+
+
+def derived_angular_acceleration_noise(acceleration: PathAcceleration | None) -> float:
+    """The motion models' angular acceleration noise (rad/s^2) for a log whose held-back path shows
+    ``acceleration`` (None: unknown): ``ACCELERATION_MARGIN`` times its angular white noise, within
+    ``VEHICLE_ANGULAR_ACCELERATION`` and that scaled by the square of the simulator's interval over the
+    log's (so that the turn the noise lets the prediction make over one interval, ``a dt^2``, is never
+    less than on the simulator's scenes), but never less than the angular acceleration the path itself
+    shows. At 10 Hz and faster it is the vehicle's; at 1 Hz that would let the prediction turn by 29
+    degrees between two observations, where a steady turn seen at 1 Hz is mapped with a tenth of it."""
+    if acceleration is None:
+        return VEHICLE_ANGULAR_ACCELERATION
+    # (stamps in ns make a 10 Hz interval 0.1 s only within rounding: the vehicle's noise holds there exactly)
+    floor = VEHICLE_ANGULAR_ACCELERATION * min(1.0, (SIMULATOR_INTERVAL_S / acceleration.interval) ** 2 * (1 + 1e-6))
+    within_vehicle = min(VEHICLE_ANGULAR_ACCELERATION, max(ACCELERATION_MARGIN * acceleration.angular_white, floor))
+    return float(min(MAX_ANGULAR_ACCELERATION_NOISE, max(within_vehicle, acceleration.angular_smoothed)))
 
 
 _MotionSettings = TypeVar("_MotionSettings", bound="MotionNoiseSettings")
@@ -522,20 +605,49 @@ class MotionNoiseSettings(Settings):
     30 Hz, 0.6 on a slow sensor seen at 2 Hz, a few cm/s^2 on a tabletop.
     Built directly, without ``SPEC.factory``: 2 m/s^2."""
 
+    angular_acceleration_noise: float | None = setting(None, low=0, high=1e3)
+    """Constant-velocity model: white angular acceleration noise (rad/s^2). Unset (the default):
+    ``relpoint run`` takes 5 times the angular acceleration noise that explains the held-back path's
+    turns, within 0.5 rad/s^2 (a vehicle's) and 0.5 scaled by the square of 0.1 s over the log's
+    interval, but never less than the angular acceleration the path itself shows
+    (:func:`relpoint.estimators._noise.derived_angular_acceleration_noise`; ``run.json``:
+    ``angular_acceleration_noise``, ``angular_acceleration_measured``): 0.5 at 10 Hz and faster, less
+    on a steady turn seen at a low rate, where 0.5 rad/s^2 lets the prediction turn by tens of degrees
+    between two observations. Built directly, without ``SPEC.factory``: 0.5 rad/s^2."""
+
     odometry_check: bool = setting(True)
     """Check the odometry against the motion the first observations register into, and where its
     twist is biased by more than the deviation its messages state, raise that axis's variance by the
     bias squared for the whole log (:mod:`relpoint.estimators._odometry_check`; ``run.json``:
     ``odometry_check``). Only ``relpoint run`` (``SPEC.factory``) checks."""
 
-    def at_acceleration(self: _MotionSettings, acceleration: float) -> _MotionSettings:
-        """These settings with ``linear_acceleration_noise = acceleration`` (m/s^2)."""
-        return dataclasses.replace(self, linear_acceleration_noise=acceleration)
+    def at_acceleration(self: _MotionSettings, acceleration: PathAcceleration | None, sigma: float) -> _MotionSettings:
+        """These settings with their unset acceleration noises derived from what the held-back path
+        shows (``acceleration``, None: unknown) at observation noise ``sigma`` (m)."""
+        linear, angular = self.linear_acceleration_noise, self.angular_acceleration_noise
+        return dataclasses.replace(
+            self,
+            linear_acceleration_noise=derived_acceleration_noise(acceleration, sigma) if linear is None else linear,
+            angular_acceleration_noise=(
+                derived_angular_acceleration_noise(acceleration) if angular is None else angular
+            ),
+        )
 
     @property
     def acceleration_noise(self) -> float:
         """``linear_acceleration_noise`` (m/s^2), or the vehicle default when it is unset."""
         return self.linear_acceleration_noise if self.linear_acceleration_noise is not None else VEHICLE_ACCELERATION
+
+    @property
+    def angular_noise(self) -> float:
+        """``angular_acceleration_noise`` (rad/s^2), or the vehicle default when it is unset."""
+        angular = self.angular_acceleration_noise
+        return angular if angular is not None else VEHICLE_ANGULAR_ACCELERATION
+
+    @property
+    def derives_acceleration(self) -> bool:
+        """Whether an acceleration noise is unset, to be derived from the log."""
+        return self.linear_acceleration_noise is None or self.angular_acceleration_noise is None
 
 
 def estimate_observation_noise(
@@ -617,6 +729,7 @@ class NoiseAdaptive(Estimator[PointObservation]):
         self.acceleration: PathAcceleration | None = None
         self.revisit: float | None = None
         self.along_and_across: tuple[float, float] | None = None
+        self.initial_twist: FloatArray | None = None
         self._units = ""
         # Iterations held back and replayed at the last of them (their work is done then): the pipeline
         # spreads that iteration's time over them.
@@ -650,6 +763,9 @@ class NoiseAdaptive(Estimator[PointObservation]):
 
             self.odometry_check = check_odometry(registrations.observations, registrations.steps, odometry)
         self._inner = self._build(self.sigma, self.acceleration)
+        start = starting_twist(registrations, self.sigma)
+        if start is not None and self._inner.start_moving(*start):
+            self.initial_twist = start[0]
         for kind, item in self._held:
             if kind == "step":
                 self._replayed.append(self._inner.step(item))
@@ -718,6 +834,9 @@ class NoiseAdaptive(Estimator[PointObservation]):
         if self._measure_acceleration:
             measured["acceleration_measured"] = self.acceleration.white if self.acceleration else None
             measured["acceleration_path"] = self.acceleration.smoothed if self.acceleration else None
+            measured["angular_acceleration_measured"] = self.acceleration.angular_white if self.acceleration else None
+        if self.initial_twist is not None:
+            measured["initial_twist"] = [round(float(x), 9) for x in self.initial_twist]
         if self.odometry_check is not None:
             measured["odometry_check"] = self.odometry_check.summary()
         if self.revisit is not None:

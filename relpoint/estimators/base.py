@@ -58,6 +58,13 @@ class Estimator(abc.ABC, Generic[InputT]):
         them); by default :meth:`compile`."""
         self.compile()
 
+    def start_moving(self, twist: FloatArray, twist_sigma: FloatArray) -> bool:
+        """Before the first :meth:`step`: the sensor's body-frame twist over the first interval
+        ``(v (m/s), w (rad/s))`` (6,) as the log's first observations show it, with its standard
+        deviation (6,). An estimator with a constant-velocity motion model starts from it instead of
+        from rest and returns True; ignored by default (False)."""
+        return False
+
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
         """Take a body-frame velocity measurement (ignored by estimators that do not use odometry)."""
 

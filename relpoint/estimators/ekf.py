@@ -175,6 +175,13 @@ class EkfSlam(Estimator[PointObservation]):
 
     # ------------------------------------------------------------------------------------ interface
 
+    def start_moving(self, twist: FloatArray, twist_sigma: FloatArray) -> bool:
+        if self._nv != 12 or self._stamp_ns is not None:
+            return False
+        self._twist = np.array(twist, dtype=np.float64)
+        self._P[6:12, 6:12] = np.diag(np.square(twist_sigma))
+        return True
+
     def step(self, observation: PointObservation) -> Pose:
         """Predict to the observation's stamp, associate, update, add new landmarks; return the pose."""
         if self._stamp_ns is None:
@@ -323,6 +330,7 @@ class EkfSlam(Estimator[PointObservation]):
             "association": self.config.association,
             "motion": self.config.motion,
             "linear_acceleration_noise": self.config.acceleration_noise,
+            "angular_acceleration_noise": self.config.angular_noise,
             "state_size": int(self._P.shape[0]),
             "time_gaps_bridged": self._gaps.bridged,
             "odometry_stale": self._hold.stale,
@@ -499,7 +507,7 @@ class EkfSlam(Estimator[PointObservation]):
         nv = self._nv
         F = np.eye(nv)
         Q = np.zeros((nv, nv))
-        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_acceleration_noise], 3)
+        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_noise], 3)
         if self._hold.held is not None:
             assert self._stamp_ns is not None
             # Eq. 7: X(k+1) = F(X(k), U(k) + noise); the held odometry twist is the input U, its noise

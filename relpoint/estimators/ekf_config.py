@@ -86,8 +86,6 @@ class EkfConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSettings):
     quaternion_noise: float = setting(0.05, low=0, high=1)
     """Constant-position model: noise per quaternion component per iteration (MRPT default 0.05;
     applied as 2 x this in radians per axis, since a small rotation d has quaternion part d/2)."""
-    angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
-    """Constant-velocity model: white angular acceleration noise (rad/s^2)."""
     collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
     """When an iteration's association collapses (fewer than half the landmarks the last observation
     saw pair, and more points would start landmarks than pair: the motion changed faster than the
@@ -97,9 +95,12 @@ class EkfConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSettings):
     starts. ``association_widened`` in ``run.json`` counts those iterations, and
     ``association_collapsed`` (with a warning) those that collapse all the same. 1: no retry."""
     initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
-    """Constant-velocity model: prior standard deviation of the initial linear velocity (m/s)."""
+    """Constant-velocity model: prior standard deviation of the initial linear velocity (m/s). Where the first interval
+    moves the points by more than half their spacing (a low rate, a fast platform), ``relpoint run``
+    starts instead from the twist the first two observations register into (``initial_twist`` in
+    ``run.json``; :func:`relpoint.estimators._noise.starting_twist`)."""
     initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
-    """Constant-velocity model: prior standard deviation of the initial angular velocity (rad/s)."""
+    """Constant-velocity model: prior standard deviation of the initial angular velocity (rad/s); as ``initial_speed_sigma``."""
     initial_orientation_sigma: float = setting(0.0, low=0, high=10)
     """``fix_alignment="none"`` only: prior standard deviation of the initial orientation (rad per
     axis) when a position fix places the start: 0 assumes the sensor starts with its axes along the

@@ -227,6 +227,8 @@ class FastSlam(Estimator[PointObservation]):
         self._moved = False
         self._predicted = False  # predicted since the last observation (pose_noise is added once per iteration)
         self._twist_unknown = False
+        # The first prediction's twist spread: the configured prior, or the measured start's (start_moving).
+        self._initial_twist_sigma = np.repeat([cfg.initial_speed_sigma, cfg.initial_turn_rate_sigma], 3)
         self._step_stamp_ns: int | None = None
         self._Sigma = np.zeros((n, 12, 12))
         self._hold = OdometryHold()
@@ -271,6 +273,13 @@ class FastSlam(Estimator[PointObservation]):
     def weights(self) -> FloatArray:
         """Normalised particle weights (N,)."""
         return np.exp(self.log_weights)
+
+    def start_moving(self, twist: FloatArray, twist_sigma: FloatArray) -> bool:
+        if self._stamp_ns is not None:
+            return False
+        self.twists[:] = twist
+        self._initial_twist_sigma = np.array(twist_sigma, dtype=np.float64)
+        return True
 
     def step(self, observation: PointObservation) -> Pose:
         """Propose poses, associate and weight, update landmarks, resample; return the mean pose."""
@@ -581,6 +590,7 @@ class FastSlam(Estimator[PointObservation]):
             "variant": self.config.variant,
             "particles": self.config.particles,
             "linear_acceleration_noise": self.config.acceleration_noise,
+            "angular_acceleration_noise": self.config.angular_noise,
             "landmarks": self.map_size,
             "landmarks_not_mapped": self._not_mapped(),
             "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
@@ -672,7 +682,7 @@ class FastSlam(Estimator[PointObservation]):
         cfg = self.config
         n = cfg.particles
         F = np.zeros((n, 12, 12))
-        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_acceleration_noise], 3)
+        acceleration = np.repeat([cfg.acceleration_noise, cfg.angular_noise], 3)
         if self._hold.held is not None:
             twist = np.broadcast_to(self._hold.twist(), (n, 6))
             # the noise of holding the twist over this interval (relpoint.estimators._odometry_hold)
@@ -681,7 +691,7 @@ class FastSlam(Estimator[PointObservation]):
             twist = self.twists
             q = (acceleration * dt) ** 2
             if not self._moved:
-                q += np.repeat([cfg.initial_speed_sigma**2, cfg.initial_turn_rate_sigma**2], 3)
+                q += self._initial_twist_sigma**2
                 self._twist_unknown = True
             Q_twist = np.diag(q)
             F[:, 6:, 6:] = np.eye(6)  # the twist persists; with odometry the input replaces it

@@ -58,8 +58,6 @@ class FastSlamConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSetti
     """A point that no landmark explains starts a landmark only if it also lies outside this wider
     quantile of every candidate landmark; points in between are discarded. Without the band a point
     of a drifted landmark (a loop closure) starts a duplicate that then wins every later association."""
-    angular_acceleration_noise: float = setting(0.5, low=0, high=1e3)
-    """Constant-velocity proposal: white angular acceleration noise (rad/s^2)."""
     collapse_noise_scale: float = setting(16.0, low=1, high=1e3)
     """2.0 (and the first step of 1.0): when an iteration's association collapses in the particles
     (on average fewer than half the landmarks the last observation saw pair, and more points would
@@ -69,9 +67,12 @@ class FastSlamConfig(MotionNoiseSettings, MovingLandmarkSettings, FixFusionSetti
     landmark starts. ``association_widened`` in ``run.json`` counts those iterations, and
     ``association_collapsed`` (with a warning) those that collapse all the same. 1: no retry."""
     initial_speed_sigma: float = setting(10.0, low=0, high=1e4)
-    """Prior standard deviation of the initial linear velocity (m/s)."""
+    """Prior standard deviation of the initial linear velocity (m/s). Where the first interval
+    moves the points by more than half their spacing (a low rate, a fast platform), ``relpoint run``
+    starts instead from the twist the first two observations register into (``initial_twist`` in
+    ``run.json``; :func:`relpoint.estimators._noise.starting_twist`)."""
     initial_turn_rate_sigma: float = setting(0.3, low=0, high=1e2)
-    """Prior standard deviation of the initial angular velocity (rad/s)."""
+    """Prior standard deviation of the initial angular velocity (rad/s); as ``initial_speed_sigma``."""
     pose_noise: float = setting(0.01, low=0, high=1e2)
     """Extra position noise per iteration, per axis (m), and the same in radians for orientation;
     keeps the proposal full rank when odometry is perfect. Not derived from the noise: scaled down with

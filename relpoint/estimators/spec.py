@@ -13,7 +13,6 @@ from relpoint.estimators._noise import (
     MotionNoiseSettings,
     NoiseAdaptive,
     PathAcceleration,
-    derived_acceleration_noise,
 )
 from relpoint.estimators.base import DEPTH, POINTS, Estimator
 from relpoint.settings import Settings
@@ -54,7 +53,7 @@ class EstimatorSpec:
         if not self.noise_adaptive:
             return self.estimator_class(config, rng)
         # A motion model whose acceleration noise is unset takes it from the held-back path.
-        measure_acceleration = isinstance(config, MotionNoiseSettings) and config.linear_acceleration_noise is None
+        measure_acceleration = isinstance(config, MotionNoiseSettings) and config.derives_acceleration
         check_odometry = isinstance(config, MotionNoiseSettings) and config.odometry_check
         if config.observation_sigma is not None and not (measure_acceleration or check_odometry):
             return self.estimator_class(config.at_noise(config.observation_sigma), rng)
@@ -62,7 +61,7 @@ class EstimatorSpec:
         def build(sigma: float, acceleration: PathAcceleration | None) -> Estimator:
             fitted = config.at_noise(sigma)
             if measure_acceleration:
-                fitted = fitted.at_acceleration(derived_acceleration_noise(acceleration, sigma))
+                fitted = fitted.at_acceleration(acceleration, sigma)
             return self.estimator_class(fitted, rng)
 
         compile_code = getattr(self.estimator_class, "compile", None)
