@@ -50,9 +50,27 @@ def write_ply(path: str | os.PathLike[str], vertices: np.ndarray, *, comments: l
 
 
 def _marked(comments: list[str] | None) -> list[str]:
-    """The comments, with one naming relpoint (what lets a later run recognise and replace the file)."""
-    comments = list(comments or [])
+    """The comments as :func:`ply_comment` lines, with one naming relpoint (what lets a later run recognise
+    and replace the file)."""
+    comments = [ply_comment(c) for c in comments or []]
     return comments if any("relpoint" in c for c in comments) else ["written by relpoint", *comments]
+
+
+#: Escapes of the control characters that have a short one (the others are written ``\xNN``).
+_SHORT_ESCAPES = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
+
+
+def ply_comment(text: str) -> str:
+    """``text`` as one line of printable ASCII, which a PLY header's comment must be (a file name such as
+    ``café.mcap`` goes into one): other characters are escaped as Python's ``backslashreplace`` does
+    (``\\xe9``, ``\\u2013``), newlines, returns and tabs as ``\\n``, ``\\r``, ``\\t``."""
+    return "".join(char if " " <= char <= "~" else _SHORT_ESCAPES.get(char) or _escaped(char) for char in text)
+
+
+def _escaped(char: str) -> str:
+    """One character as its ``\\xNN``, ``\\uNNNN`` or ``\\UNNNNNNNN`` escape."""
+    code = ord(char)
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}" if code < 0x10000 else f"\\U{code:08x}"
 
 
 def read_ply(path: str | os.PathLike[str]) -> np.ndarray:

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
 from formats.log import LogReader
-from formats.ply import read_ply, write_ply
+from formats.ply import ply_comment, read_ply, write_ply
 from formats.reference_trajectories import load_ground_truth_landmarks
 from formats.tables import read_map_csv, write_map_csv
 from formats.trajectory_files import read_kitti, read_tum
@@ -170,6 +172,24 @@ def test_run_directory_landmarks_to_ply_and_csv(run_dir: Path, tmp_path: Path) -
     again = read_map_csv(tmp_path / "lm.csv")
     np.testing.assert_array_equal(again.positions, landmarks.positions)
     np.testing.assert_array_equal(again.gt_id, landmarks.gt_id)
+
+
+def test_a_source_named_in_other_characters_or_lines_is_exported_with_an_ascii_comment(
+    small_log: Path, run_dir: Path, tmp_path: Path
+) -> None:
+    # PLY comments are one line of ASCII, and the source's name goes into one
+    log = tmp_path / "jos\u00e9" / "caf\u00e9\n2.mcap"
+    log.parent.mkdir()
+    shutil.copyfile(small_log, log)
+    run = tmp_path / "jos\u00e9" / "run_\u00e9\u2013\n"
+    shutil.copytree(run_dir, run)
+    export_ok(log, "-o", tmp_path / "lm.ply")
+    export_ok(run, "-o", tmp_path / "map.ply")
+    export_ok(run, "--what", "landmarks", "-o", tmp_path / "run_lm.ply")
+    assert "ground-truth landmarks of caf\\xe9\\n2.mcap, frame world" in PlyData.read(tmp_path / "lm.ply").comments
+    assert "relpoint map from run_\\xe9\\u2013\\n/map.ply" in PlyData.read(tmp_path / "map.ply").comments
+    assert len(read_ply(tmp_path / "run_lm.ply")) == len(read_map_csv(run_dir / "map.csv"))
+    assert ply_comment("a\\b\tc\r\x01\U0001f600") == "a\\b\\tc\\r\\x01\\U0001f600"
 
 
 def dense_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
