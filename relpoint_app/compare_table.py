@@ -3,8 +3,10 @@
 Text and Markdown are for reading: one row per summary key, one column per run (runs are few, keys
 many). CSV and JSON are for scripts: one row per run (``run, estimator, align`` and one column per
 key). Missing values (a run without that figure) are ``-`` in text and Markdown, empty in CSV and
-``null`` in JSON; undefined ones (NaN) are ``nan``, ``nan`` and ``null``. Every form names relpoint in
-its first line or key, which is how a later ``compare -o`` knows it may replace the file.
+``null`` in JSON; undefined ones (NaN) are ``n/a`` in text and Markdown (as ``evaluate`` prints them),
+empty in CSV and ``null`` in JSON (as ``evaluate --csv`` and a batch's ``results.csv`` write them). Every
+form names relpoint in its first line or key, which is how a later ``compare -o`` knows it may replace
+the file.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ def _cell(value: float | None) -> str:
     if value is None:
         return "-"
     if math.isnan(value):
-        return "nan"
+        return "n/a"
     if float(value).is_integer() and abs(value) < 1e15:
         return str(int(value))
     return f"{value:.6f}"
@@ -80,13 +82,17 @@ def markdown_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
 
 
 def csv_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
-    """One line per run; floats written with ``repr`` (round-trip exact)."""
+    """One line per run; floats written with ``repr`` (round-trip exact), missing and non-finite ones empty."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow([*ROW_LABELS, *keys])
     for row in table_rows(runs, keys):
-        writer.writerow([*(row[name] for name in ROW_LABELS), *("" if row[k] is None else repr(row[k]) for k in keys)])
+        writer.writerow([*(row[name] for name in ROW_LABELS), *(_csv_cell(row[k]) for k in keys)])
     return buffer.getvalue()
+
+
+def _csv_cell(value: float | None) -> str:
+    return "" if value is None or not math.isfinite(value) else repr(value)
 
 
 def _finite_or_none(value: Any) -> Any:

@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import logging
+import math
 import os
 import shutil
 from pathlib import Path
@@ -18,7 +19,9 @@ from formats.evo_results import read_evo_result
 from formats.log import LogReader
 from formats.tables import read_map_csv, write_map_csv, write_map_history_csv
 from formats.trajectory_files import read_tum, write_tum
+from relpoint.evaluation.comparison import ComparedRun
 from relpoint.types import LandmarkMap, Trajectory
+from relpoint_app.compare_table import render_table
 from relpoint_app.plots import plot_title
 from relpoint_cli.main import cli
 from tests.conftest import shared_data
@@ -487,3 +490,19 @@ def test_a_result_zip_that_inflates_beyond_the_limit_is_refused_before_it_is_rea
     code, out, err = invoke("compare", bomb)
     assert code == 3 and out == ""
     assert "inflate to 2 MiB, more than the 1 MiB" in err and len(err.strip().splitlines()) == 1
+
+
+def test_undefined_figures_are_empty_in_csv_and_n_a_in_the_tables() -> None:
+    # as evaluate --csv and a batch's results.csv write them; a missing figure is empty (CSV) or "-"
+    runs = [
+        ComparedRun("a", "ekf", "none", {"ate_rmse": 0.5, "dyn_precision": math.nan, "lm_err_rmse": math.inf}),
+        ComparedRun("b", "fastslam", "none", {"ate_rmse": 0.25}),
+    ]
+    keys = ["ate_rmse", "dyn_precision", "lm_err_rmse"]
+    rows = list(csv.reader(io.StringIO(render_table(runs, keys, "csv"))))
+    assert rows[1:] == [["a", "ekf", "none", "0.5", "", ""], ["b", "fastslam", "none", "0.25", "", ""]]
+    for table_format in ("text", "markdown"):
+        line = next(line for line in render_table(runs, keys, table_format).splitlines() if "dyn_precision" in line)
+        assert "n/a" in line and line.rstrip(" |").endswith("-") and "nan" not in line
+    summaries = [run["summary"] for run in json.loads(render_table(runs, keys, "json"))["runs"]]
+    assert summaries[0]["dyn_precision"] is None and summaries[1]["dyn_precision"] is None
