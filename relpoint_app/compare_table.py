@@ -21,6 +21,7 @@ from typing import Any
 import relpoint
 from formats.outputs import register_csv_header_prefix
 from relpoint.evaluation.comparison import ComparedRun, table_rows
+from relpoint.evaluation.evaluate import COUNT_KEYS, with_counts
 
 TABLE_FORMATS = ("text", "markdown", "csv", "json")
 
@@ -86,13 +87,18 @@ def csv_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow([*ROW_LABELS, *keys])
-    for row in table_rows(runs, keys):
+    for row in map(_counted_row, table_rows(runs, keys)):
         writer.writerow([*(row[name] for name in ROW_LABELS), *(_csv_cell(row[k]) for k in keys)])
     return buffer.getvalue()
 
 
 def _csv_cell(value: float | None) -> str:
     return "" if value is None or not math.isfinite(value) else repr(value)
+
+
+def _counted_row(row: dict[str, Any]) -> dict[str, Any]:
+    """A :func:`table_rows` row with its counts as ints (a missing one stays None)."""
+    return {**row, **with_counts({k: v for k, v in row.items() if k in COUNT_KEYS and v is not None})}
 
 
 def _finite_or_none(value: Any) -> Any:
@@ -112,7 +118,7 @@ def json_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
                 "source": run.source,
                 "summary": {k: _finite_or_none(row[k]) for k in keys},
             }
-            for run, row in zip(runs, table_rows(runs, keys), strict=True)
+            for run, row in zip(runs, map(_counted_row, table_rows(runs, keys)), strict=True)
         ],
     }
     return json.dumps(document, indent=2, allow_nan=False) + "\n"

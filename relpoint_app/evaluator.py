@@ -34,7 +34,7 @@ from formats.tables import read_map_history_csv
 from relpoint.errors import InputError, UsageError
 from relpoint.evaluation import AlignMode, EvaluationResult, EvaluationSettings, evaluate_trajectory, landmark_metrics
 from relpoint.evaluation.dense import dense_metrics
-from relpoint.evaluation.evaluate import frame_mismatch
+from relpoint.evaluation.evaluate import frame_mismatch, with_counts
 from relpoint.evaluation.landmarks import ground_truth_ids_unique, has_ground_truth_ids
 from relpoint.geometry import FloatArray
 from relpoint.pipeline import RunResult
@@ -233,9 +233,9 @@ def _json_value(value: Any) -> Any:
 
 
 def evaluation_json(summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> str:
-    """The text of ``evaluation.json`` (``relpoint evaluate --json``): the summary (NaN and inf as
-    null), the settings, the inputs and the relpoint version."""
-    document = {"summary": summary, "settings": settings.to_dict(), "inputs": inputs,
+    """The text of ``evaluation.json`` (``relpoint evaluate --json``): the summary (counts as integers,
+    NaN and inf as null), the settings, the inputs and the relpoint version."""
+    document = {"summary": with_counts(summary), "settings": settings.to_dict(), "inputs": inputs,
                 "relpoint_version": relpoint.__version__}  # fmt: skip
     return json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"
 

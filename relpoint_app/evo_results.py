@@ -19,6 +19,7 @@ from formats.evo_results import EvoResult, tum_text
 from relpoint.evaluation import STATISTICS, AlignMode, EvaluationResult, PoseRelation, error_statistics
 from relpoint.evaluation.association import stamps_to_seconds
 from relpoint.evaluation.comparison import ComparedRun, ErrorSeries
+from relpoint.evaluation.evaluate import with_counts
 from relpoint.evaluation.rpe import DeltaUnit, accumulated_distances
 
 
@@ -150,14 +151,16 @@ def rpe_result(
 def _relpoint_info(
     result: EvaluationResult, metric: str, summary: Mapping[str, float] | None, extra: Mapping[str, Any] | None
 ) -> dict[str, Any]:
-    """What relpoint adds to ``info.json``: its version, the metric, settings, the whole summary, ``extra``."""
+    """What relpoint adds to ``info.json``: its version, the metric, settings, the whole summary (counts as
+    integers), ``extra``."""
     settings = result.settings
+    counted = with_counts(summary or result.summary)
     return {
         "version": relpoint.__version__,
         "metric": metric,
         "pose_relation": settings.pose_relation.value,
         "settings": settings.to_dict(),
-        "summary": {k: (None if not math.isfinite(v) else v) for k, v in (summary or result.summary).items()},
+        "summary": {k: (None if not math.isfinite(v) else v) for k, v in counted.items()},
         **(extra or {}),
     }
 

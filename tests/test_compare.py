@@ -9,6 +9,7 @@ import logging
 import math
 import os
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -506,3 +507,24 @@ def test_undefined_figures_are_empty_in_csv_and_n_a_in_the_tables() -> None:
         assert "n/a" in line and line.rstrip(" |").endswith("-") and "nan" not in line
     summaries = [run["summary"] for run in json.loads(render_table(runs, keys, "json"))["runs"]]
     assert summaries[0]["dyn_precision"] is None and summaries[1]["dyn_precision"] is None
+
+
+def test_counts_are_integers_in_every_summary_written(tmp_path: Path, small_log: Path) -> None:
+    run = fake_run(tmp_path / "run", small_log, 0.1, estimator="ekf")
+    code, _, err = invoke("evaluate", run, "-r", small_log, "--json", tmp_path / "e.json", "--save-results",
+                          tmp_path / "e.zip")  # fmt: skip
+    assert code == 0, err
+    saved = json.loads((tmp_path / "e.json").read_text())["summary"]
+    with zipfile.ZipFile(tmp_path / "e.zip") as archive:
+        zipped = json.loads(archive.read("info.json"))["relpoint"]["summary"]
+    code, out, err = invoke("compare", run, tmp_path / "e.json", tmp_path / "e.zip", "--format", "json")
+    assert code == 0, err
+    compared = [r["summary"] for r in json.loads(out)["runs"]]
+    for summary in (saved, zipped, *compared):
+        assert summary["matched_poses"] == 120 and type(summary["matched_poses"]) is int
+        assert type(summary["lm_count"]) is int and type(summary["ate_rmse"]) is float
+    assert all(type(saved[key]) is int for key in ("reference_poses", "estimate_poses", "rpe_pairs", "lm_matched"))
+    code, out, err = invoke("compare", run, tmp_path / "e.zip", "--format", "csv")
+    assert code == 0, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert [row["matched_poses"] for row in rows] == ["120", "120"] and rows[0]["lm_count"] == str(saved["lm_count"])

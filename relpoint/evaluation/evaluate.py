@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -31,6 +32,19 @@ from relpoint.types import IntArray, Trajectory
 #: The pose relations of the APE (and so of the ``ape_*`` and ``rpe_*`` figures together):
 #: ``point_distance_error_ratio`` is defined for the RPE only.
 APE_RELATIONS = tuple(relation for relation in PoseRelation if relation is not PoseRelation.POINT_DISTANCE_ERROR_RATIO)
+
+#: Summary keys (trajectory and landmark figures) that count poses, pairs, segments or landmarks.
+COUNT_KEYS = frozenset({
+    "matched_poses", "reference_poses", "estimate_poses", "rpe_pairs", "kitti_segments",
+    "lm_count", "lm_matched", "lm_duplicates", "lm_false",
+})  # fmt: skip
+
+
+def with_counts(summary: Mapping[str, float]) -> dict[str, float | int]:
+    """``summary`` with its counts (:data:`COUNT_KEYS`) as ints, as every file relpoint writes holds them
+    (``200``, not ``200.0``); a count that is NaN (undefined) stays NaN."""
+    return {key: int(value) if key in COUNT_KEYS and float(value).is_integer() else value
+            for key, value in summary.items()}  # fmt: skip
 
 
 @dataclass(frozen=True)
