@@ -24,6 +24,7 @@ import numpy as np
 
 import relpoint
 from formats.atomic import atomic_path
+from formats.outputs import json_text
 from formats.signatures import ZIP_COMMENT_PREFIX
 from relpoint.errors import InputError
 
@@ -68,8 +69,8 @@ def write_evo_result(path: str | os.PathLike[str], evo_result: EvoResult) -> Non
     """Write ``evo_result`` as an evo result zip, atomically (``load_res_file`` reads it back)."""
     with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w") as archive:
         archive.comment = ZIP_COMMENT_PREFIX + relpoint.__version__.encode()
-        archive.writestr("info.json", json.dumps(evo_result.info, allow_nan=False))
-        archive.writestr("stats.json", json.dumps(dict(evo_result.stats)))
+        archive.writestr("info.json", json_text(evo_result.info))
+        archive.writestr("stats.json", json_text(dict(evo_result.stats)))
         for name, array in evo_result.arrays.items():
             buffer = io.BytesIO()
             np.save(buffer, np.asarray(array))

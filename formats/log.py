@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import heapq
 import itertools
-import json
 import logging
 import os
 import sqlite3
@@ -57,7 +56,7 @@ from formats.layouts import (
     detect_layout,
     open_reader,
 )
-from formats.outputs import unreadable_input
+from formats.outputs import json_text, unreadable_input
 from formats.topics import Topics
 from formats.trajectory_files import format_stamp
 from relpoint.errors import InputError, UsageError
@@ -793,4 +792,4 @@ class LogWriter:
 
 def metadata_json(values: dict[str, Any]) -> dict[str, str]:
     """Metadata values as JSON strings with sorted keys (deterministic)."""
-    return {key: json.dumps(value, sort_keys=True) for key, value in sorted(values.items())}
+    return {key: json_text(value, sort_keys=True) for key, value in sorted(values.items())}

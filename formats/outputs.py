@@ -24,11 +24,13 @@ import contextlib
 import errno
 import hashlib
 import json
+import math
 import os
 import re
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from formats.signatures import is_log, is_relpoint_result_zip
 from relpoint.errors import InputError, UsageError
@@ -277,6 +279,24 @@ def written_by_relpoint(path: Path) -> bool:
     if text in _CSV_HEADERS or any(text.startswith(prefix) for prefix in _CSV_HEADER_PREFIXES):
         return True
     return _marked(path)
+
+
+def finite_json(value: Any) -> Any:
+    """``value`` (dicts, lists, tuples and scalars) with every NaN or infinite float as None, which JSON
+    writes ``null``: strict JSON has no NaN, and other readers (``jq``, browsers) refuse Python's."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: finite_json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(item) for item in value]
+    return value
+
+
+def json_text(value: Any, **options: Any) -> str:
+    """``value`` as strict JSON (:func:`finite_json`, ``allow_nan=False``); ``options`` go to ``json.dumps``
+    (``indent``, ``sort_keys``, ``default``). Every JSON relpoint writes is made here."""
+    return json.dumps(finite_json(value), allow_nan=False, **options)
 
 
 def json_object(path: Path, max_bytes: int) -> dict | None:

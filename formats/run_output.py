@@ -6,7 +6,6 @@ only when every file is complete, so an interrupted or failed run leaves no part
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 from formats import ros2
 from formats.atomic import atomic_directory, write_text
 from formats.log import LogWriter
+from formats.outputs import json_text
 from formats.ply import landmark_vertices, stored_coordinates, write_ply
 from formats.rgbd_log import dense_map_vertices
 from formats.tables import write_map_csv, write_map_history_csv, write_timing_csv, write_trajectory_csv
@@ -174,5 +174,5 @@ def write_run_directory(
             },
             "timing": result.timing_summary(),
         }
-        write_text(tmp / "run.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
+        write_text(tmp / "run.json", json_text(document, indent=2, sort_keys=True) + "\n")
     return out_dir

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from formats.atomic import atomic_directory, remove_temporaries, write_text
-from formats.outputs import RUN_FILES
+from formats.outputs import RUN_FILES, json_text
 from formats.topics import Topics
 from relpoint.errors import InputError, RelpointError, UsageError
 from relpoint.estimators import ESTIMATORS
@@ -278,7 +278,7 @@ def _evaluate(job: Job, reader: LogReader, out_dir: Path) -> dict[str, float]:
 def _finish(out_dir: Path, job: Job, row: dict[str, Any], header: str, stream: io.StringIO) -> None:
     write_text(out_dir / "job.log", header + stream.getvalue())
     document = {"spec": job.describe(), "spec_hash": job.spec_hash(), "row": row}
-    write_text(out_dir / "job.json", json.dumps(document, indent=2, sort_keys=True, default=str) + "\n")
+    write_text(out_dir / "job.json", json_text(document, indent=2, sort_keys=True, default=str) + "\n")
 
 
 def run_job(job: Job) -> dict[str, Any]:

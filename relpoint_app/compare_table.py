@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from collections.abc import Sequence
 from typing import Any
 
 import relpoint
-from formats.outputs import register_csv_header_prefix
+from formats.outputs import json_text, register_csv_header_prefix
 from relpoint.evaluation.comparison import ComparedRun, table_rows
 from relpoint.evaluation.evaluate import COUNT_KEYS, with_counts
 
@@ -101,10 +100,6 @@ def _counted_row(row: dict[str, Any]) -> dict[str, Any]:
     return {**row, **with_counts({k: v for k, v in row.items() if k in COUNT_KEYS and v is not None})}
 
 
-def _finite_or_none(value: Any) -> Any:
-    return None if isinstance(value, float) and not math.isfinite(value) else value
-
-
 def json_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
     """``{"relpoint_version", "columns", "runs": [{"run", "estimator", "align", "source", "summary"}]}``."""
     document = {
@@ -116,12 +111,12 @@ def json_table(runs: Sequence[ComparedRun], keys: Sequence[str]) -> str:
                 "estimator": run.estimator,
                 "align": run.align,
                 "source": run.source,
-                "summary": {k: _finite_or_none(row[k]) for k in keys},
+                "summary": {k: row[k] for k in keys},
             }
             for run, row in zip(runs, map(_counted_row, table_rows(runs, keys)), strict=True)
         ],
     }
-    return json.dumps(document, indent=2, allow_nan=False) + "\n"
+    return json_text(document, indent=2) + "\n"
 
 
 def render_table(runs: Sequence[ComparedRun], keys: Sequence[str], table_format: str) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 
 import relpoint
 from formats.atomic import write_text
-from formats.outputs import register_csv_header
+from formats.outputs import json_text, register_csv_header
 from formats.ply import read_ply
 from formats.reference_trajectories import (
     assumed_quaternion_order,
@@ -222,22 +222,12 @@ def evaluate(
     return measure(ref, estimate.trajectory, evaluation_settings, landmarks=estimate.landmarks, truth=truth)
 
 
-def _json_value(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_value(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_value(v) for v in value]
-    return value
-
-
 def evaluation_json(summary: dict[str, float], settings: EvaluationSettings, inputs: dict[str, Any]) -> str:
     """The text of ``evaluation.json`` (``relpoint evaluate --json``): the summary (counts as integers,
     NaN and inf as null), the settings, the inputs and the relpoint version."""
     document = {"summary": with_counts(summary), "settings": settings.to_dict(), "inputs": inputs,
                 "relpoint_version": relpoint.__version__}  # fmt: skip
-    return json.dumps(_json_value(document), indent=2, sort_keys=True, allow_nan=False) + "\n"
+    return json_text(document, indent=2, sort_keys=True) + "\n"
 
 
 def run_estimator(path: Path) -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ import numpy as np
 from formats import ros2
 from formats.layouts import Storage
 from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, may_serve, role_accepts
+from formats.outputs import json_text
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -154,7 +154,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         for role in missing
     }  # fmt: skip
     if as_json:
-        click.echo(json.dumps(document, indent=2))
+        click.echo(json_text(document, indent=2))
         return
     click.echo(f"{log}  {document['size_bytes'] / 1e6:.2f} MB, {document['duration_s']:.3f} s")
     compression = document["compression"]

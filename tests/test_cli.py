@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import math
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from formats.log import LogReader
+from formats.evo_results import EvoResult, write_evo_result
+from formats.log import LogReader, TopicInfo
+from formats.run_output import write_run_directory
+from relpoint.evaluation import EvaluationSettings
+from relpoint.types import LandmarkMap, RunResult, Trajectory
+from relpoint_app.batch_jobs import _finish
+from relpoint_app.batch_plan import Job
 from relpoint_cli.main import cli
 
 
@@ -78,6 +88,43 @@ def test_info_lists_topics_rates_and_capabilities(runner: CliRunner, small_log: 
     assert document["evaluate_trajectory"] and document["evaluate_landmarks"]
     code, out, _ = invoke(runner, "info", str(small_log))
     assert code == 0 and "/ground_truth/pose" in out and "10.00" in out
+
+
+def strict_json(text: str) -> object:
+    """``text`` parsed as strict JSON: NaN and Infinity, which Python writes by default, are refused."""
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"{constant} in JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_every_json_relpoint_writes_is_strict(
+    runner: CliRunner, small_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # non-finite figures are null in run.json, job.json, an evo zip's stats.json and info --json
+    n = 3
+    trajectory = Trajectory(np.arange(n) * 100_000_000, np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)))
+    landmarks = LandmarkMap(np.eye(3), np.full(3, 2), np.zeros(3, dtype=bool), np.arange(3))
+    result = RunResult(trajectory, landmarks, np.full(n, 3), np.full(n, 3), np.full(n, 0.01),
+                       summary={"acceleration_measured": math.nan, "nested": {"ratio": math.inf}})  # fmt: skip
+    write_run_directory(tmp_path / "run", result, {"estimator": "ekf"})
+    summary = strict_json((tmp_path / "run" / "run.json").read_text())["summary"]
+    assert summary["acceleration_measured"] is None and summary["nested"] == {"ratio": None}
+
+    write_evo_result(tmp_path / "e.zip", EvoResult({"title": "APE w.r.t. translation part (m)"},
+                                                   {"rmse": 0.5, "std": math.nan}))  # fmt: skip
+    with zipfile.ZipFile(tmp_path / "e.zip") as archive:
+        assert strict_json(archive.read("stats.json").decode()) == {"rmse": 0.5, "std": None}
+
+    job = Job("small/ekf/default", small_log, "ekf", (), 0, True, True, (), EvaluationSettings(), tmp_path / "job")
+    (tmp_path / "job").mkdir()
+    _finish(tmp_path / "job", job, {"ate_rmse": math.nan, "wall_seconds": 1.5}, "", io.StringIO())
+    assert strict_json((tmp_path / "job" / "job.json").read_text())["row"] == {"ate_rmse": None, "wall_seconds": 1.5}
+
+    monkeypatch.setattr(TopicInfo, "rate_hz", property(lambda self: math.inf))
+    code, out, _ = invoke(runner, "info", str(small_log), "--json")
+    assert code == 0 and all(topic["rate_hz"] is None for topic in strict_json(out)["topics"])
 
 
 def test_info_names_the_topics_that_could_serve_a_missing_role(runner: CliRunner, small_log: Path) -> None:
