@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
+from formats.log import LogReader
 from relpoint.errors import UsageError
 from relpoint.geometry import integrate_twist, transform_points
 from relpoint.simulation import SimulationConfig, paths, simulate
@@ -171,3 +174,19 @@ def test_simulate_refuses_a_start_time_past_ros_stamps(tmp_path: Path) -> None:
         cli, ["-q", "simulate", "-o", str(out), "--iterations", "20", "--start-time", "2147483647"]
     )
     assert result.exit_code == 2 and "a ROS stamp holds" in result.stderr and not out.exists()
+
+
+@pytest.mark.parametrize("start_time", ["1700000000.000001", "1700000000.654321", "2147480000.000123", "0.1"])
+def test_the_first_stamp_is_the_start_time_as_written(tmp_path: Path, start_time: str) -> None:
+    # to the nanosecond for the digits a setting holds (a float product was off by up to a few hundred ns)
+    out = tmp_path / "start.mcap"
+    result = CliRunner().invoke(
+        cli, ["-q", "simulate", "-o", str(out), "--iterations", "3", "--start-time", start_time]
+    )
+    assert result.exit_code == 0, result.stderr
+    reader = LogReader(out)
+    stamps = [record.value.stamp_ns for record in reader.records(["ground_truth_pose"])]
+    exact = int(Decimal(start_time) * 1_000_000_000)
+    assert stamps == [exact, exact + 100_000_000, exact + 200_000_000]
+    recorded = json.loads(reader.metadata()["relpoint.simulation"]["start_time"], parse_float=Decimal)
+    assert recorded * 1_000_000_000 == exact  # the metadata's start time gives the first stamp

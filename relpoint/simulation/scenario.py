@@ -12,6 +12,7 @@ concern, so enabling odometry or fixes does not change the observations of the s
 from __future__ import annotations
 
 from collections.abc import Iterator
+from decimal import Decimal
 
 import numpy as np
 
@@ -157,7 +158,10 @@ def _random_streams(seed: int) -> dict[str, np.random.Generator]:
 
 
 def _stamps_ns(config: SimulationConfig, n: int) -> np.ndarray:
-    start_ns = int(round(config.start_time * 1e9))
+    """The ``n`` stamps (ns) from ``start_time`` at ``rate``. The start is the decimal the setting shows
+    (its shortest repr, as the log's metadata records it) in ns: ``start_time * 1e9`` in floats is off by up
+    to a few hundred ns at today's epoch seconds (1700000000.000001 gave ...000001024)."""
+    start_ns = int((Decimal(repr(config.start_time)) * 1_000_000_000).to_integral_value())
     period_ns = int(round(1e9 / config.rate))
     last_s = (start_ns + period_ns * (n - 1)) // 1_000_000_000
     if last_s > MAX_STAMP_S:
