@@ -199,6 +199,13 @@ class RelativePointEstimator(
         """Compile or load the compiled inner loops (:mod:`._kernels`)."""
         _kernels.prepare()
 
+    def start_moving(self, twist: FloatArray, twist_sigma: FloatArray) -> bool:
+        """The local matching's motion prediction starts from ``twist`` (``twist_sigma`` is not used)."""
+        if self._iteration:
+            return False
+        self.motion.start_from(twist)
+        return True
+
     def step(self, observation: PointObservation) -> Pose:
         """Process one iteration's untransformed points (sensor frame); return ``T_world_sensor``."""
         k = self._iteration

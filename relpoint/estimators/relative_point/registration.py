@@ -107,14 +107,26 @@ class MotionModel:
         self.T_curr_prev = np.eye(4)
         self.interval_s: float | None = None
         self._unscaled: FloatArray | None = None  # the motion before this iteration's rescaling
+        self._starting_twist: FloatArray | None = None  # (v, w) for the first interval (start_from)
+
+    def start_from(self, twist: FloatArray) -> None:
+        """Predict the first interval with the body-frame twist ``(v (m/s), w (rad/s))`` (6,) rather than
+        no motion: the sensor's motion as the log's first observations show it."""
+        self._starting_twist = np.asarray(twist, dtype=np.float64)
 
     def to_interval(self, seconds: float) -> None:
         """Make ``T_curr_prev`` the motion over ``seconds`` at the same body-frame velocity (the process
         model of :func:`relpoint.geometry.integrate_twist`), the ratio of intervals clamped to
-        [1 / :data:`MAX_INTERVAL_RATIO`, :data:`MAX_INTERVAL_RATIO`]."""
+        [1 / :data:`MAX_INTERVAL_RATIO`, :data:`MAX_INTERVAL_RATIO`]; the first interval's from the
+        starting twist, when one was given."""
         if not seconds > 0.0:
             return
         self._unscaled = None
+        if self.interval_s is None and self._starting_twist is not None:
+            twist, self._starting_twist = self._starting_twist, None
+            # T_prev_curr is where the sensor goes; T_curr_prev carries the previous frame's points into this one
+            T_prev_curr = integrate_twist(np.eye(4), twist[:3], twist[3:], seconds)
+            self.T_curr_prev = np.linalg.inv(T_prev_curr)
         if self.interval_s is not None:
             ratio = min(max(seconds / self.interval_s, 1.0 / MAX_INTERVAL_RATIO), MAX_INTERVAL_RATIO)
             if abs(ratio - 1.0) > INTERVAL_TOLERANCE:
