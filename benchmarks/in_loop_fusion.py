@@ -137,7 +137,7 @@ def main() -> None:
     parser.add_argument("--figure8", action="store_true", help="loop closure on the figure eight instead")
     parser.add_argument("--rng-seeds", type=int, nargs="+", default=[0], help="FastSLAM generator seeds")
     parser.add_argument("--angular-noise", type=float, default=None,
-                        help="angular_acceleration_noise of the constant-velocity model (rad/s^2; default 0.5)")  # fmt: skip
+                        help="angular_acceleration_noise of the constant-velocity model (rad/s^2; default: from the log, 0.5 at 10 Hz)")  # fmt: skip
     args = parser.parse_args()
     if args.angular_noise is not None:
         OVERRIDES["angular_acceleration_noise"] = args.angular_noise
