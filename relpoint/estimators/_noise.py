@@ -174,11 +174,13 @@ def _trimmed_matches(
     return distance, nearest, keep
 
 
-def pair_revisit_ratio(first: FloatArray, second: FloatArray, R: FloatArray, t: FloatArray) -> float | None:
+def pair_revisit_ratio(
+    first: FloatArray, second: FloatArray, R: FloatArray, t: FloatArray, min_pairs: int = 3
+) -> float | None:
     """The median, over the mutually nearest pairs of ``second`` moved by ``(R, t)`` onto ``first``, of
     the pair's distance divided by the ``second`` point's distance to its nearest neighbour in
     ``second``: well under 1 where ``second`` sees ``first``'s points again, about 0.5 for fresh samples
-    of one surface or a registration that missed; None with fewer than three such pairs."""
+    of one surface or a registration that missed; None with fewer than ``min_pairs`` such pairs."""
     from scipy.spatial import cKDTree
 
     if len(first) < 2 or len(second) < 2:
@@ -188,7 +190,7 @@ def pair_revisit_ratio(first: FloatArray, second: FloatArray, R: FloatArray, t: 
     mutual = cKDTree(moved).query(first[nearest])[1] == np.arange(len(moved))
     within = cKDTree(second).query(second, k=2)[0][:, 1]
     usable = mutual & (within > 0)
-    if usable.sum() < 3:
+    if usable.sum() < max(3, min_pairs):
         return None
     return float(np.median(between[usable] / within[usable]))
 
@@ -201,6 +203,11 @@ GLOBAL_HYPOTHESES = 2000
 GLOBAL_NEIGHBOURS = 4
 #: Descriptor matches kept per point of the later observation.
 GLOBAL_MATCHES = 3
+#: Mutually nearest pairs a registration from the identity needs before a revisit ratio of
+#: ``REVISIT_RATIO`` or more sends it to other starts. Starry Night's few stereo points (6-9 there)
+#: gave 0.31 on a step that held; another start's nearby answer moved the wide-baseline
+#: registrations to a noise of 0.8 cm where the points scatter by 4.6 cm.
+GLOBAL_MIN_PAIRS = 10
 #: Consecutive observations searched globally before the search is given up on a log where no pair
 #: has brought its points back onto ones seen before (fresh samples of surfaces never do).
 GLOBAL_ATTEMPTS = 3
@@ -268,30 +275,41 @@ def register_consecutive(
     rng: np.random.Generator | None = None,
 ) -> tuple[Registration | None, bool]:
     """Move ``second`` onto ``first``, the observation before it (both (N, 3), m): ICP from the identity
-    (:func:`register`); where that does not bring the points back onto ones seen before (their
+    (:func:`register`); where that fails or does not bring the points back onto ones seen before (its
     :func:`pair_revisit_ratio` ``REVISIT_RATIO`` or more), ICP from ``previous`` (the step before, a
     sensor keeping its pace), then the global search (:func:`register_globally`, its draws from
-    ``rng``). Returns the first of these that does, with True; else the identity's (what
-    :func:`register` returns, or None) with False."""
+    ``rng``): the first of these that does, with True. Else the identity's (what :func:`register`
+    returns, or None), with whether it revisits. Fewer than ``GLOBAL_MIN_PAIRS`` pairs (a few points an
+    observation) keep the identity's."""
     from_identity = register(first, second)
-    if _revisits(first, second, from_identity):
-        return from_identity, True
+    ratio = _revisit_ratio_of(first, second, from_identity)
+    if from_identity is not None and (ratio is None or ratio < REVISIT_RATIO):
+        return from_identity, ratio is not None
+    if from_identity is not None and _revisit_ratio_of(first, second, from_identity, GLOBAL_MIN_PAIRS) is None:
+        return from_identity, False  # too few points to tell a miss from a poor fit: kept
     if previous is not None:
         from_previous = register(first, second, (previous[0], previous[1]))
-        if _revisits(first, second, from_previous):
+        if _ratio_under(first, second, from_previous, REVISIT_RATIO):
             return from_previous, True
     found = register_globally(first, second, rng if rng is not None else np.random.default_rng(0))
-    if _revisits(first, second, found):
+    if _ratio_under(first, second, found, REVISIT_RATIO):
         return found, True
     return from_identity, False
 
 
-def _revisits(first: FloatArray, second: FloatArray, registered: Registration | None) -> bool:
-    """Whether ``registered`` (``register(first, second)``) brings ``second``'s points back onto ``first``'s."""
+def _revisit_ratio_of(
+    first: FloatArray, second: FloatArray, registered: Registration | None, min_pairs: int = 3
+) -> float | None:
+    """:func:`pair_revisit_ratio` of ``registered`` (``register(first, second)``); None if it is None."""
     if registered is None:
-        return False
-    ratio = pair_revisit_ratio(first, second, registered[0], registered[1])
-    return ratio is not None and ratio < REVISIT_RATIO
+        return None
+    return pair_revisit_ratio(first, second, registered[0], registered[1], min_pairs)
+
+
+def _ratio_under(first: FloatArray, second: FloatArray, registered: Registration | None, bound: float) -> bool:
+    """Whether ``registered`` (``register(first, second)``) has a revisit ratio under ``bound``."""
+    ratio = _revisit_ratio_of(first, second, registered)
+    return ratio is not None and ratio < bound
 
 
 def pair_residuals(first: FloatArray, second: FloatArray) -> FloatArray:
