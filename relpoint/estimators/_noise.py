@@ -54,7 +54,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.base import Estimator
-from relpoint.geometry import FloatArray, kabsch
+from relpoint.geometry import FloatArray, kabsch, kabsch_batch
 from relpoint.settings import Settings, setting
 from relpoint.types import LandmarkMap, OdometryMeasurement, PointObservation, Pose, PositionFix, Trajectory
 
@@ -174,13 +174,12 @@ def _trimmed_matches(
     return distance, nearest, keep
 
 
-def pair_revisit_ratio(
-    first: FloatArray, second: FloatArray, R: FloatArray, t: FloatArray, min_pairs: int = 3
-) -> float | None:
-    """The median, over the mutually nearest pairs of ``second`` moved by ``(R, t)`` onto ``first``, of
-    the pair's distance divided by the ``second`` point's distance to its nearest neighbour in
-    ``second``: well under 1 where ``second`` sees ``first``'s points again, about 0.5 for fresh samples
-    of one surface or a registration that missed; None with fewer than ``min_pairs`` such pairs."""
+def revisit_measure(first: FloatArray, second: FloatArray, R: FloatArray, t: FloatArray) -> tuple[float, int] | None:
+    """The revisit ratio of ``second`` moved by ``(R, t)`` onto ``first`` (both (N, 3), m) and the number
+    of pairs it is the median of: over the mutually nearest pairs, the pair's distance divided by the
+    ``second`` point's distance to its nearest neighbour in ``second``. Well under 1 where ``second``
+    sees ``first``'s points again, about 0.5 for fresh samples of one surface or a registration that
+    missed; None with fewer than three such pairs."""
     from scipy.spatial import cKDTree
 
     if len(first) < 2 or len(second) < 2:
@@ -190,9 +189,10 @@ def pair_revisit_ratio(
     mutual = cKDTree(moved).query(first[nearest])[1] == np.arange(len(moved))
     within = cKDTree(second).query(second, k=2)[0][:, 1]
     usable = mutual & (within > 0)
-    if usable.sum() < max(3, min_pairs):
+    pairs = int(usable.sum())
+    if pairs < 3:
         return None
-    return float(np.median(between[usable] / within[usable]))
+    return float(np.median(between[usable] / within[usable])), pairs
 
 
 #: Points of each observation the global search (:func:`register_globally`) draws on, at most.
@@ -248,24 +248,11 @@ def register_globally(first: FloatArray, second: FloatArray, rng: np.random.Gene
     if not rigid.any():
         return None
     p, q = p[rigid], q[rigid]
-    rotations, translations = _kabsch_batch(p, q)
+    rotations, translations = kabsch_batch(p, q)
     moved = np.einsum("hij,nj->hni", rotations, b) + translations[:, None, :]
     distance = tree_a.query(moved.reshape(-1, 3))[0].reshape(len(p), len(b))
     best = int(np.argmax(np.sum(distance <= 0.25 * spacing, axis=1)))
     return register(first, second, (rotations[best], translations[best]))
-
-
-def _kabsch_batch(p: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Rigid motions ``(R (H, 3, 3), t (H, 3))`` taking each ``p[h]`` (H, n, 3) onto ``q[h]`` in least squares."""
-    mean_p, mean_q = p.mean(axis=1), q.mean(axis=1)
-    covariance = np.einsum("hni,hnj->hij", p - mean_p[:, None], q - mean_q[:, None])
-    u, _, vt = np.linalg.svd(covariance)
-    d = np.sign(np.linalg.det(np.einsum("hij,hjk->hik", u, vt)))
-    flip = np.ones((len(p), 3))
-    flip[:, 2] = d
-    rotations = np.einsum("hji,hj,hkj->hik", vt, flip, u)  # V diag(1, 1, d) U^T
-    translations = mean_q - np.einsum("hij,hj->hi", rotations, mean_p)
-    return rotations, translations
 
 
 def register_consecutive(
@@ -273,43 +260,40 @@ def register_consecutive(
     second: FloatArray,
     previous: Registration | None = None,
     rng: np.random.Generator | None = None,
-) -> tuple[Registration | None, bool]:
+) -> tuple[Registration | None, float | None, bool]:
     """Move ``second`` onto ``first``, the observation before it (both (N, 3), m): ICP from the identity
     (:func:`register`); where that fails or does not bring the points back onto ones seen before (its
-    :func:`pair_revisit_ratio` ``REVISIT_RATIO`` or more), ICP from ``previous`` (the step before, a
+    :func:`revisit_measure` ``REVISIT_RATIO`` or more), ICP from ``previous`` (the step before, a
     sensor keeping its pace), then the global search (:func:`register_globally`, its draws from
-    ``rng``): the first of these that does, with True. Else the identity's (what :func:`register`
-    returns, or None), with whether it revisits. Fewer than ``GLOBAL_MIN_PAIRS`` pairs (a few points an
-    observation) keep the identity's."""
+    ``rng``): the first of these that does. Else the identity's (what :func:`register` returns, or
+    None). Fewer than ``GLOBAL_MIN_PAIRS`` pairs (a few points an observation) keep the identity's.
+    Returns the registration, its revisit ratio (None: too few pairs) and whether it revisits."""
     from_identity = register(first, second)
-    ratio = _revisit_ratio_of(first, second, from_identity)
-    if from_identity is not None and (ratio is None or ratio < REVISIT_RATIO):
-        return from_identity, ratio is not None
-    if from_identity is not None and _revisit_ratio_of(first, second, from_identity, GLOBAL_MIN_PAIRS) is None:
-        return from_identity, False  # too few points to tell a miss from a poor fit: kept
+    measured = _measure(first, second, from_identity)
+    if from_identity is not None and (
+        measured is None or measured[0] < REVISIT_RATIO or measured[1] < GLOBAL_MIN_PAIRS
+    ):
+        ratio = None if measured is None else measured[0]
+        return from_identity, ratio, ratio is not None and ratio < REVISIT_RATIO  # kept: it holds, or cannot tell
     if previous is not None:
         from_previous = register(first, second, (previous[0], previous[1]))
-        if _ratio_under(first, second, from_previous, REVISIT_RATIO):
-            return from_previous, True
-    found = register_globally(first, second, rng if rng is not None else np.random.default_rng(0))
-    if _ratio_under(first, second, found, REVISIT_RATIO):
-        return found, True
-    return from_identity, False
+        if (ratio := _revisiting_ratio(first, second, from_previous)) is not None:
+            return from_previous, ratio, True
+    found = register_globally(first, second, rng or np.random.default_rng(0))
+    if (ratio := _revisiting_ratio(first, second, found)) is not None:
+        return found, ratio, True
+    return from_identity, None if measured is None else measured[0], False
 
 
-def _revisit_ratio_of(
-    first: FloatArray, second: FloatArray, registered: Registration | None, min_pairs: int = 3
-) -> float | None:
-    """:func:`pair_revisit_ratio` of ``registered`` (``register(first, second)``); None if it is None."""
-    if registered is None:
-        return None
-    return pair_revisit_ratio(first, second, registered[0], registered[1], min_pairs)
+def _measure(first: FloatArray, second: FloatArray, registered: Registration | None) -> tuple[float, int] | None:
+    """:func:`revisit_measure` of ``registered`` (``register(first, second)``); None if it is None."""
+    return None if registered is None else revisit_measure(first, second, registered[0], registered[1])
 
 
-def _ratio_under(first: FloatArray, second: FloatArray, registered: Registration | None, bound: float) -> bool:
-    """Whether ``registered`` (``register(first, second)``) has a revisit ratio under ``bound``."""
-    ratio = _revisit_ratio_of(first, second, registered)
-    return ratio is not None and ratio < bound
+def _revisiting_ratio(first: FloatArray, second: FloatArray, registered: Registration | None) -> float | None:
+    """The revisit ratio of ``registered`` (``register(first, second)``) when it is under ``REVISIT_RATIO``."""
+    measured = _measure(first, second, registered)
+    return measured[0] if measured is not None and measured[0] < REVISIT_RATIO else None
 
 
 def pair_residuals(first: FloatArray, second: FloatArray) -> FloatArray:
@@ -351,11 +335,13 @@ def _pair_estimate(residual: FloatArray, min_pairs: int) -> float | None:
 class ConsecutiveRegistrations:
     """The observations of at least three points and the registrations of each onto the one before
     (``register(previous, next)``, None where it failed): what both the noise and the acceleration
-    estimates chain, registered once. ``revisits[k]``: whether ``steps[k]`` brings the later
-    observation's points back onto the earlier one's (:func:`register_consecutive`)."""
+    estimates chain, registered once. ``ratios[k]``: the revisit ratio of ``steps[k]``
+    (:func:`revisit_measure`; None where it could not be told); ``revisits[k]``: whether it brings
+    the later observation's points back onto the earlier one's (:func:`register_consecutive`)."""
 
     observations: list[PointObservation]
     steps: list[Registration | None]
+    ratios: list[float | None]
     revisits: list[bool]
 
     @classmethod
@@ -366,17 +352,21 @@ class ConsecutiveRegistrations:
         usable = [o for o in observations if len(o) >= 3]
         rng = np.random.default_rng(seed)
         steps: list[Registration | None] = []
+        ratios: list[float | None] = []
         revisits: list[bool] = []
         for a, b in itertools.pairwise(usable):
             # Points that never come back (samples of surfaces) are searched for a few times only.
             if any(revisits) or len(revisits) < GLOBAL_ATTEMPTS:
                 previous = next((s for s, r in zip(reversed(steps), reversed(revisits), strict=True) if r), None)
-                step, revisited = register_consecutive(a.points, b.points, previous, rng)
+                step, ratio, revisited = register_consecutive(a.points, b.points, previous, rng)
             else:
-                step, revisited = register(a.points, b.points), False
+                step = register(a.points, b.points)
+                measured = _measure(a.points, b.points, step)
+                ratio, revisited = None if measured is None else measured[0], False
             steps.append(step)
+            ratios.append(ratio)
             revisits.append(revisited)
-        return cls(usable, steps, revisits)
+        return cls(usable, steps, ratios, revisits)
 
 
 def registration_noise(
@@ -699,14 +689,7 @@ def revisit_ratio(registrations: ConsecutiveRegistrations) -> float | None:
     point's distance to its nearest neighbour in its own observation; the median over the pairs of
     observations. About 0.01-0.06 for landmarks, about 0.5 for fresh samples of surfaces; None when no
     pair of observations could be registered."""
-    ratios = []
-    pairs = zip(itertools.pairwise(registrations.observations), registrations.steps, strict=True)
-    for (earlier, later), step in pairs:
-        if (
-            step is not None
-            and (ratio := pair_revisit_ratio(earlier.points, later.points, step[0], step[1])) is not None
-        ):
-            ratios.append(ratio)
+    ratios = [ratio for ratio in registrations.ratios if ratio is not None]
     return float(np.median(ratios)) if ratios else None
 
 

@@ -20,6 +20,7 @@ from relpoint.geometry.fitting import (
     fitted_parameters,
     information_basis,
     kabsch,
+    kabsch_batch,
     measured_basis,
     rigid_consensus,
     summed_information,
@@ -51,7 +52,7 @@ from relpoint.geometry.so3 import (
 __all__ = [
     "FloatArray", "RigidFit", "apply_transform", "body_twist", "check_points", "fit_rigid",
     "fit_rigid_on_axes", "fitted_parameters", "homogeneous", "information_basis", "integrate_twist",
-    "invert_pose", "kabsch", "matrix_to_position_quat", "measured_basis", "pose_matrix", "quat_to_matrix",
+    "invert_pose", "kabsch", "kabsch_batch", "matrix_to_position_quat", "measured_basis", "pose_matrix", "quat_to_matrix",
     "quaternion_xyzw", "rigid_consensus", "rigid_inverse", "skew", "smallest_rotation", "so3_exp",
     "so3_right_jacobian", "summed_information", "transform_points", "transform_soa32", "twist_step",
 ]  # fmt: skip

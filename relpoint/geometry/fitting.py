@@ -175,6 +175,17 @@ def kabsch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArr
     return R, ct - R @ cs
 
 
+def kabsch_batch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`kabsch` of each of H sets of point pairs at once: ``source``, ``target`` (H, n, 3) ->
+    ``(R (H, 3, 3), t (H, 3))`` with ``R[h] source[h] + t[h]`` nearest ``target[h]`` (one batched SVD)."""
+    ca, cb = source.mean(axis=1, keepdims=True), target.mean(axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(np.einsum("sni,snj->sij", source - ca, target - cb))
+    flip = np.linalg.det(np.einsum("sji,skj->sik", Vt, U)) < 0  # det(V U^T)
+    Vt[flip, 2] *= -1.0
+    R = np.einsum("sji,skj->sik", Vt, U)  # V U^T: takes source onto target
+    return R, cb[:, 0] - np.einsum("sij,sj->si", R, ca[:, 0])
+
+
 def rigid_consensus(
     source: npt.ArrayLike, target: npt.ArrayLike, tolerance: float | npt.ArrayLike, samples: int = 64, seed: int = 0
 ) -> npt.NDArray[np.bool_]:
@@ -193,13 +204,7 @@ def rigid_consensus(
     tolerance = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (n,))
     rng = np.random.default_rng(seed)
     picks = np.stack([rng.choice(n, 3, replace=False) for _ in range(samples)])  # (S, 3)
-    a, b = source[picks], target[picks]  # (S, 3, 3)
-    ca, cb = a.mean(axis=1, keepdims=True), b.mean(axis=1, keepdims=True)
-    U, _, Vt = np.linalg.svd(np.einsum("sni,snj->sij", a - ca, b - cb))
-    flip = np.linalg.det(np.einsum("sji,skj->sik", Vt, U)) < 0  # det(V U^T)
-    Vt[flip, 2] *= -1.0
-    R = np.einsum("sji,skj->sik", Vt, U)  # V U^T: takes source onto target
-    t = cb[:, 0] - np.einsum("sij,sj->si", R, ca[:, 0])
+    R, t = kabsch_batch(source[picks], target[picks])  # (S, 3, 3) pairs a draw
     residual = np.linalg.norm(np.einsum("sij,nj->sni", R, source) + t[:, None] - target[None], axis=2)
     best = int(np.argmax((residual <= tolerance).sum(axis=1)))
     inliers = residual[best] <= tolerance

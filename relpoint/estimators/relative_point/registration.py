@@ -40,7 +40,7 @@ from relpoint.estimators.relative_point._kernels import (
     transform_by_age,
 )
 from relpoint.estimators.relative_point.lsf import fit_transform
-from relpoint.geometry import FloatArray, body_twist, integrate_twist
+from relpoint.geometry import FloatArray, body_twist, integrate_twist, rigid_inverse
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -125,8 +125,7 @@ class MotionModel:
         if self.interval_s is None and self._starting_twist is not None:
             twist, self._starting_twist = self._starting_twist, None
             # T_prev_curr is where the sensor goes; T_curr_prev carries the previous frame's points into this one
-            T_prev_curr = integrate_twist(np.eye(4), twist[:3], twist[3:], seconds)
-            self.T_curr_prev = np.linalg.inv(T_prev_curr)
+            self.T_curr_prev = rigid_inverse(integrate_twist(np.eye(4), twist[:3], twist[3:], seconds))
         if self.interval_s is not None:
             ratio = min(max(seconds / self.interval_s, 1.0 / MAX_INTERVAL_RATIO), MAX_INTERVAL_RATIO)
             if abs(ratio - 1.0) > INTERVAL_TOLERANCE:
