@@ -36,6 +36,7 @@ when the file is the shorter of the two. Stamps that go back in time are an erro
 
 from __future__ import annotations
 
+import codecs
 import logging
 import os
 import re
@@ -62,18 +63,26 @@ _NS_PER_S = 1_000_000_000
 _INT64_MIN, _INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
 
 
-def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
-    """(line number, fields) of the non-comment, non-blank lines of ``path``."""
+def _data_lines(path: Path, *, comma_separated: bool = False) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of the non-comment, non-blank lines of ``path``.
+
+    Fields are separated by any run of blanks and commas; with ``comma_separated``, a line holding commas
+    by each comma (an empty value between two commas is a field, as a CSV writer means it), blanks
+    around them stripped.
+    """
     for number, stripped in text_lines(path):
         if not stripped or stripped.startswith("#"):
             continue
-        yield number, [f for f in _SEPARATORS.split(stripped) if f]
+        if comma_separated and "," in stripped:
+            yield number, [f.strip() for f in stripped.split(",")]
+        else:
+            yield number, [f for f in _SEPARATORS.split(stripped) if f]
 
 
 def text_lines(path: Path) -> list[tuple[int, str]]:
     """(line number, stripped text) of every line of ``path``; InputError if it cannot be read as text."""
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = _decode(path.read_bytes(), final=True)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
     except IsADirectoryError:
@@ -83,6 +92,22 @@ def text_lines(path: Path) -> list[tuple[int, str]]:
     except OSError as exc:
         raise unreadable_input(path, exc) from None
     return [(number, line.strip()) for number, line in enumerate(text.splitlines(), start=1)]
+
+
+def _decode(data: bytes, *, final: bool) -> str:
+    """The text of a file's bytes ``data``: UTF-8 (a BOM dropped), or UTF-16 after its BOM (what Windows
+    PowerShell's ``>`` writes). With ``final`` False, ``data`` is the file's beginning only, and a
+    character that its end cuts in two is left out.
+
+    Raises ``UnicodeDecodeError`` for bytes that are neither, and for UTF-16 that is not mostly ASCII:
+    numbers and column names are, and binary data behind those two bytes is not.
+    """
+    if data[:2] not in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        return codecs.getincrementaldecoder("utf-8-sig")().decode(data, final=final)
+    text = codecs.getincrementaldecoder("utf-16")().decode(data, final=final)
+    if sum(map(str.isascii, text)) < 0.9 * len(text):
+        raise UnicodeDecodeError("utf-16", data, 0, len(data), "not mostly ASCII text")
+    return text
 
 
 def parse_stamp_ns(text: str) -> int:
@@ -419,7 +444,7 @@ def _head(path: Path) -> tuple[list[tuple[int, str]], tuple[int, str]] | None:
     except OSError as error:
         raise unreadable_input(path, error) from None
     try:
-        text = head.decode("utf-8-sig")
+        text = _decode(head, final=len(head) < 1 << 16)
     except UnicodeDecodeError:
         return None
     comments = []
@@ -498,6 +523,7 @@ class ColumnLayout:
     line: the header's line number (1-based). commented: the header starts with ``#``. names: its column
     names. stamp: the stamp's column; position: x, y, z's; quaternion: x, y, z, w's (0-based).
     stamp_unit_ns: nanoseconds per stamp unit as the header names it, None when it names none.
+    comma_separated: the header separates its names with commas, so the rows' values are one per comma.
     """
 
     line: int
@@ -507,6 +533,7 @@ class ColumnLayout:
     position: tuple[int, int, int]
     quaternion: tuple[int, int, int, int]
     stamp_unit_ns: int | None
+    comma_separated: bool = False
 
     @property
     def is_tum(self) -> bool:
@@ -533,8 +560,19 @@ def _header_names(text: str) -> list[str]:
     return names
 
 
-def _layout_of(names: list[str], line: int, commented: bool) -> ColumnLayout | None:
-    """The layout that ``names`` give, or None unless they name one stamp, one x, y, z and one quaternion."""
+def _is_header_stamp(name: str) -> bool:
+    """Whether a stamp column ``name`` is a message's own ``header.stamp`` (``field.header.stamp``), not
+    the time it was recorded at (``rostopic echo -p``'s ``%time``)."""
+    return "header" in (w.lower() for w in _WORD.findall(name))
+
+
+def _layout_of(names: list[str], line: int, commented: bool, comma_separated: bool = False) -> ColumnLayout | None:
+    """The layout that ``names`` give, or None unless they name one stamp, one x, y, z and one quaternion.
+
+    Of two stamp columns, the message's ``header.stamp`` is taken over the other (``rostopic echo -p``
+    writes ``%time``, the receive time, and ``field.header.stamp``), as bag topics are read by their
+    ``header.stamp``; any other pair of columns for one value leaves the layout undecided.
+    """
     roles: dict[tuple[str, str], int] = {}
     stamp_unit = ""
     for column, name in enumerate(names):
@@ -542,6 +580,13 @@ def _layout_of(names: list[str], line: int, commented: bool) -> ColumnLayout | N
         if role is None:
             continue
         if role[0] == "t":
+            if ("t", "") in roles:
+                first_is_header = _is_header_stamp(names[roles[("t", "")]])
+                if first_is_header == _is_header_stamp(name):
+                    return None  # two stamps, neither the message's own: the names do not say which
+                if first_is_header:
+                    continue
+                del roles[("t", "")]
             role, stamp_unit = ("t", ""), role[1]
         if role in roles:
             return None  # two columns for one value: the names do not say which to take
@@ -557,6 +602,7 @@ def _layout_of(names: list[str], line: int, commented: bool) -> ColumnLayout | N
         position=(roles[("p", "x")], roles[("p", "y")], roles[("p", "z")]),
         quaternion=(roles[("q", "x")], roles[("q", "y")], roles[("q", "z")], roles[("q", "w")]),
         stamp_unit_ns=_STAMP_UNITS.get(stamp_unit),
+        comma_separated=comma_separated,
     )
 
 
@@ -596,7 +642,7 @@ def _layout_in(path: Path, head: tuple[list[tuple[int, str]], tuple[int, str]] |
     first = [f for f in _SEPARATORS.split(line) if f]
     if first and not _is_number(first[0]):
         names = _header_names(line)
-        layout = _layout_of(names, number, commented=False)
+        layout = _layout_of(names, number, commented=False, comma_separated="," in line)
         if layout is None:
             raise InputError(
                 f"{path}:{number}: a header line whose names do not say where the stamp, position and "
@@ -607,7 +653,7 @@ def _layout_in(path: Path, head: tuple[list[tuple[int, str]], tuple[int, str]] |
         return layout
     if comments:
         number, text = comments[-1]
-        return _layout_of(_header_names(text), number, commented=True)
+        return _layout_of(_header_names(text), number, commented=True, comma_separated="," in text)
     return None
 
 
@@ -633,9 +679,11 @@ def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None
     stamps_text: list[str] = []
     rows: list[list[str]] = []
     lines: list[int] = []
-    for number, fields in _data_lines(path):
+    for number, fields in _data_lines(path, comma_separated=layout.comma_separated):
         if number == layout.line:
             continue
+        if layout.comma_separated and len(fields) == width + 1 and not fields[-1]:
+            fields.pop()  # a comma ending every row (VINS-Mono's CSV)
         if len(fields) != width:
             raise InputError(f"{path}:{number}: expected {width} values, as the header on line {layout.line} names, "
                              f"got {len(fields)}")  # fmt: skip

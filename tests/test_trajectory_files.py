@@ -757,3 +757,69 @@ def test_evaluate_says_when_the_other_quaternion_order_fits(
     assert code == 0 and "would be" not in err, err
     rotation = next(line for line in stdout.splitlines() if line.startswith("APE rotation"))
     assert float(rotation.split()[3]) == pytest.approx(2.0577, abs=1e-4)  # evo's angle_deg rmse
+
+
+def test_rostopic_echo_csv_of_odometry_is_read_by_its_header_stamp(tmp_path: Path) -> None:
+    """``rostopic echo -p`` of a stamped message writes two stamps (``%time``, the receive time, and
+    ``field.header.stamp``), string columns that may be empty (``field.header.frame_id``) and the
+    covariances: the header stamp and the pose are taken, every value between two commas counted."""
+    from formats.reference_trajectories import load_trajectory
+
+    original = _trajectory(np.random.default_rng(5))
+    covariance = [f"field.pose.covariance{k}" for k in range(36)]
+    twist = [f"field.twist.twist.{kind}.{axis}" for kind in ("linear", "angular") for axis in "xyz"]
+    header = ["%time", "field.header.seq", "field.header.stamp", "field.header.frame_id", "field.child_frame_id",
+              *(f"field.pose.pose.position.{a}" for a in "xyz"), *(f"field.pose.pose.orientation.{a}" for a in "xyzw"),
+              *covariance, *twist]  # fmt: skip
+    rows = [",".join(header)]
+    for k, (stamp, p, q) in enumerate(zip(original.stamps_ns, original.positions, original.quats_xyzw, strict=True)):
+        received = int(stamp) + 40_000_000  # 40 ms after the stamp: the wrong clock by four matching windows
+        rows.append(",".join([str(received), str(k), str(int(stamp)), "", "", *map(repr, p.tolist()),
+                              *map(repr, q.tolist()), *["0.0"] * 42]))  # fmt: skip
+    path = tmp_path / "odom.csv"
+    path.write_text("\n".join(rows) + "\n")
+    assert detect_format(path) is TrajectoryFormat.NAMED_COLUMNS
+    _assert_same(load_trajectory(path), original)
+
+
+def test_a_trailing_comma_on_every_named_row_is_no_value(tmp_path: Path) -> None:
+    from formats.reference_trajectories import load_trajectory
+
+    original = _trajectory(np.random.default_rng(6))
+    for name, header in (
+        ("bare.csv", "timestamp,x,y,z,qw,qx,qy,qz,vx"),
+        ("ended.csv", "timestamp,x,y,z,qw,qx,qy,qz,vx,"),
+    ):
+        path = tmp_path / name
+        text = _columns_text(original, header, "wxyz").replace("\n", ",0.5,\n")
+        path.write_text(text.replace(header + ",0.5,", header, 1))  # every row ends with a comma, the header as named
+        _assert_same(load_trajectory(path), original)
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "utf-16"])
+def test_text_beyond_ascii_in_any_place_and_utf16_files_are_read(tmp_path: Path, encoding: str) -> None:
+    """Comments beyond ASCII, one character of which straddles the 64 KiB that format detection reads
+    (the detection found "not a text file with poses"), and UTF-16 with its BOM (Windows PowerShell's
+    ``>``), which was refused the same way."""
+    from formats.reference_trajectories import load_trajectory
+
+    original = _trajectory(np.random.default_rng(7), n=1200)
+    body = []
+    for k, (stamp, p, q) in enumerate(zip(original.stamps_ns, original.positions, original.quats_xyzw, strict=True)):
+        if k % 20 == 0:
+            body.append(f"# Schlüsselbild {k}")
+        body.append(" ".join([format_stamp(int(stamp)), *map(repr, p.tolist()), *map(repr, q.tolist())]))
+    text = "\n".join(body) + "\n"
+    if encoding == "utf-8":
+        data = text.encode()
+        last = data.rfind("ü".encode(), 0, 1 << 16)
+        assert last > 0 and len(data) > 1 << 16
+        text = "#" + "x" * ((1 << 16) - 3 - last) + "\n" + text  # an "ü" over the 64 KiB boundary
+        data = text.encode()
+        assert data[(1 << 16) - 1 : (1 << 16) + 1] == "ü".encode()
+    else:
+        data = text.encode("utf-16")
+    path = tmp_path / "estimate.txt"
+    path.write_bytes(data)
+    assert detect_format(path) is TrajectoryFormat.TUM
+    _assert_same(load_trajectory(path), original)
