@@ -9,8 +9,10 @@
 * a ``relpoint run`` output directory (its ``trajectory.tum``);
 * a log in any layout of :mod:`formats.layouts` (MCAP file, rosbag2 directory, ROS 1 bag): a relpoint
   log's ``/ground_truth/pose``, or any topic of any bag carrying
-  ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
-  ``nav_msgs/msg/Odometry`` (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
+  ``geometry_msgs/msg/PoseStamped``, ``geometry_msgs/msg/PoseWithCovarianceStamped``,
+  ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/TransformStamped`` (a motion-capture bridge's) or
+  ``geometry_msgs/msg/PointStamped`` (a position only: identity rotation, with a warning), as evo reads
+  them (stamps from ``header.stamp``), or a TF chain ``parent -> ... -> child``
   composed from ``/tf`` and ``/tf_static`` (:func:`tf_chain_trajectory`).
 
 Bag messages are sorted by stamp and, of messages with the same stamp, the first is kept (rosbag2
@@ -92,7 +94,8 @@ def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[Floa
 
 
 def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
-    """The trajectory of a PoseStamped, PoseWithCovarianceStamped or Odometry topic (``header.stamp``)."""
+    """The trajectory of a topic of :data:`POSE_TYPES` (PoseStamped, PoseWithCovarianceStamped, Odometry,
+    TransformStamped, PointStamped) at its ``header.stamp``s."""
     info = reader.topic_infos.get(topic)
     source = f"{reader.path} {topic}"
     if info is None or info.count == 0:
@@ -104,6 +107,9 @@ def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
     stamps: list[int] = []
     positions: list[FloatArray] = []
     quats: list[FloatArray] = []
+    if info.typename in ros2.POSITION_ONLY_TYPES:
+        log.warning("%s: %s has no orientation: read with the identity rotation, as evo does; only the APE "
+                    "translation (and RPE --pose-relation point_distance) means anything", source, info.typename)  # fmt: skip
     for _, _, _, message in reader.messages([topic]):
         pose = ros2.msg_to_pose(message)
         stamps.append(pose.stamp_ns)

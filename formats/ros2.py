@@ -38,8 +38,15 @@ POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
-#: Message types that carry a pose a trajectory can be read from (a reference or an estimate).
-POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, ODOMETRY)
+#: A motion-capture bridge's pose (vicon_bridge): ``transform`` is ``T_header.frame_id_child_frame_id``.
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+#: A position without orientation (a total station's prism, EuRoC's ``/leica/position``).
+POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+#: Message types that carry a pose a trajectory can be read from (a reference or an estimate): the
+#: types evo 1.38 reads from bags.
+POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, ODOMETRY, TRANSFORM_STAMPED, POINT_STAMPED)
+#: Of :data:`POSE_TYPES`, those without an orientation (read with the identity rotation, as evo does).
+POSITION_ONLY_TYPES = (POINT_STAMPED,)
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
@@ -430,9 +437,16 @@ def msg_to_landmarks(message: Any) -> GroundTruthLandmarks:
 
 
 def msg_to_pose(message: Any) -> Pose:
-    """A Pose from a PoseStamped, PoseWithCovarianceStamped or Odometry message's pose."""
-    pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
-    p, q = pose.position, pose.orientation
+    """A Pose from a message of :data:`POSE_TYPES`: a PoseStamped's, PoseWithCovarianceStamped's or Odometry's
+    pose, a TransformStamped's transform, a PointStamped's point with the identity rotation."""
+    if hasattr(message, "transform"):
+        p, q = message.transform.translation, message.transform.rotation
+    elif hasattr(message, "point"):
+        p = message.point
+        return Pose(stamp_ns_of(message), (float(p.x), float(p.y), float(p.z)), (0.0, 0.0, 0.0, 1.0))
+    else:
+        pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
+        p, q = pose.position, pose.orientation
     return Pose(
         stamp_ns_of(message), (float(p.x), float(p.y), float(p.z)), (float(q.x), float(q.y), float(q.z), float(q.w))
     )

@@ -51,7 +51,11 @@ Examples:
     "--format", "fmt", type=click.Choice([f.value for f in Format]),
     help="Output format [default: from the suffix: .tum/.txt tum, .kitti kitti, .csv csv, .ply ply].",
 )  # fmt: skip
-@click.option("--topic", help="MCAP pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry), or the TF topic.")
+@click.option(
+    "--topic",
+    help="MCAP pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry, TransformStamped, PointStamped), "
+    "or the TF topic.",
+)
 @click.option("--parent", help="Trajectory from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Trajectory from a TF chain: child frame (e.g. base_footprint).")
 @click.option("--times", type=input_path(dir_okay=False), help="Times file of KITTI SOURCE poses.")

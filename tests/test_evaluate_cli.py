@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import math
@@ -142,6 +143,95 @@ def test_bag_odom_against_amcl_pose(tmp_path: Path) -> None:
     # evo 1.38.1: `evo_ape bag2 nav2_turtlebot.mcap /amcl_pose /odom -a` prints rmse 0.512301, max 0.852349.
     assert summary["ate_rmse"] == pytest.approx(0.512301, abs=1e-6)
     assert summary["ate_max"] == pytest.approx(0.852349, abs=1e-6)
+
+
+def _motion_capture_bag(path: Path) -> Trajectory:
+    """A rosbag2 MCAP bag written by rosbags, as motion-capture and survey bridges record ground truth:
+    ``/vicon/robot/robot`` (TransformStamped), ``/leica/position`` (PointStamped, every other stamp) and an
+    estimate ``/pose`` (PoseStamped, centimetres off). Returns the true trajectory."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+    from scipy.spatial.transform import Rotation
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = store.types
+    n = 200
+    stamps = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
+    angle = np.linspace(0.0, 2.0 * np.pi, n)
+    positions = np.column_stack([3.0 * np.cos(angle), 2.0 * np.sin(2.0 * angle), 0.3 * np.sin(angle)])
+    quats = Rotation.from_euler("zyx", np.column_stack([angle, 0.1 * np.sin(angle), 0.05 * angle]).tolist()).as_quat()
+    point, quaternion, vector = (types[f"geometry_msgs/msg/{t}"] for t in ("Point", "Quaternion", "Vector3"))
+
+    def header(stamp: int, frame: str) -> object:
+        time = types["builtin_interfaces/msg/Time"](sec=int(stamp) // 10**9, nanosec=int(stamp) % 10**9)
+        return types["std_msgs/msg/Header"](stamp=time, frame_id=frame)
+
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        topics = {"/vicon/robot/robot": "TransformStamped", "/leica/position": "PointStamped", "/pose": "PoseStamped"}
+        connections = {
+            t: writer.add_connection(t, f"geometry_msgs/msg/{kind}", typestore=store) for t, kind in topics.items()
+        }
+        for k, (stamp, p, q) in enumerate(zip(stamps.tolist(), positions, quats, strict=True)):
+            rotation = quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
+            transform = types["geometry_msgs/msg/Transform"](
+                translation=vector(x=p[0], y=p[1], z=p[2]), rotation=rotation
+            )
+            messages = {
+                "/vicon/robot/robot": types["geometry_msgs/msg/TransformStamped"](
+                    header=header(stamp, "world"), child_frame_id="robot", transform=transform
+                ),
+                "/pose": types["geometry_msgs/msg/PoseStamped"](
+                    header=header(stamp, "world"),
+                    pose=types["geometry_msgs/msg/Pose"](
+                        position=point(x=p[0] + 0.01 * np.sin(k), y=p[1], z=p[2]), orientation=rotation
+                    ),
+                ),
+            }
+            if k % 2 == 0:
+                messages["/leica/position"] = types["geometry_msgs/msg/PointStamped"](
+                    header=header(stamp, "leica"), point=point(x=p[0], y=p[1], z=p[2])
+                )
+            for topic, message in messages.items():
+                writer.write(connections[topic], stamp, store.serialize_cdr(message, message.__msgtype__))
+    return Trajectory(stamps, positions, quats)
+
+
+def test_motion_capture_topics_are_read_as_evo_reads_them(tmp_path: Path) -> None:
+    """TransformStamped (vicon_bridge) and PointStamped (a total station) topics were refused as "not a
+    pose type"; evo 1.38 reads both (PointStamped with the identity rotation) and gives these figures."""
+    from evo.core import sync
+    from evo.core.metrics import PoseRelation
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.main_ape import ape
+    from evo.tools import file_interface
+    from rosbags.rosbag2 import Reader
+
+    bag = tmp_path / "mocap"
+    truth = _motion_capture_bag(bag)
+    vicon = load_trajectory(bag, topic="/vicon/robot/robot")
+    np.testing.assert_array_equal(vicon.stamps_ns, truth.stamps_ns)
+    np.testing.assert_array_equal(vicon.positions, truth.positions)
+    np.testing.assert_array_equal(vicon.quats_xyzw, truth.quats_xyzw)
+    with Reader(bag) as reader:
+        evo_trajectories = {t: file_interface.read_bag_trajectory(reader, t) for t in ("/vicon/robot/robot",
+                                                                                      "/leica/position", "/pose")}  # fmt: skip
+    for reference in ("/vicon/robot/robot", "/leica/position"):
+        code, _, err = invoke("evaluate", bag, "--estimate-topic", "/pose", "-r", bag, "--reference-topic", reference,
+                              "--align", "se3", "--json", tmp_path / "summary.json", "--overwrite")  # fmt: skip
+        assert code == 0, err
+        assert ("has no orientation" in err) == (reference == "/leica/position"), err
+        summary = json.loads((tmp_path / "summary.json").read_text())["summary"]
+        ref, est = sync.associate_trajectories(evo_trajectories[reference], copy.deepcopy(evo_trajectories["/pose"]))
+        assert isinstance(ref, PoseTrajectory3D)
+        expected = ape(ref, est, PoseRelation.translation_part, align=True).stats
+        assert summary["matched_poses"] == len(ref.timestamps)
+        for key in ("rmse", "mean", "median", "max"):
+            assert summary[f"ate_{key}"] == pytest.approx(expected[key], rel=1e-9, abs=1e-12)
+    code, _, err = invoke("export", bag, "--topic", "/leica/position", "-o", tmp_path / "leica.tum")
+    assert code == 0 and "has no orientation" in err, err
+    leica = load_trajectory(tmp_path / "leica.tum")
+    np.testing.assert_array_equal(leica.positions, truth.positions[::2])
+    np.testing.assert_array_equal(leica.quats_xyzw, np.tile([0.0, 0.0, 0.0, 1.0], (len(leica), 1)))
 
 
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
