@@ -95,7 +95,8 @@ def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[Floa
 
 def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
     """The trajectory of a topic of :data:`POSE_TYPES` (PoseStamped, PoseWithCovarianceStamped, Odometry,
-    TransformStamped, PointStamped) at its ``header.stamp``s."""
+    TransformStamped, PointStamped) at its ``header.stamp``s; at the recording times (``log_time``), with a
+    warning, when every ``header.stamp`` is zero (never set by the publisher)."""
     info = reader.topic_infos.get(topic)
     source = f"{reader.path} {topic}"
     if info is None or info.count == 0:
@@ -110,11 +111,18 @@ def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
     if info.typename in ros2.POSITION_ONLY_TYPES:
         log.warning("%s: %s has no orientation: read with the identity rotation, as evo does; only the APE "
                     "translation (and RPE --pose-relation point_distance) means anything", source, info.typename)  # fmt: skip
-    for _, _, _, message in reader.messages([topic]):
+    log_times: list[int] = []
+    for _, _, log_time, message in reader.messages([topic]):
         pose = ros2.msg_to_pose(message)
         stamps.append(pose.stamp_ns)
+        log_times.append(log_time)
         positions.append(np.asarray(pose.position))
         quats.append(np.asarray(pose.quat_xyzw))
+    if len(stamps) > 1 and not any(stamps) and len(set(log_times)) > 1:
+        # A publisher that never set header.stamp: one pose per stamp would keep one pose of the topic.
+        log.warning("%s: header.stamp is 0 (unset) in every message; the poses are timed by when they were "
+                    "recorded (log_time) instead", source)  # fmt: skip
+        stamps = log_times
     return _from_poses(stamps, positions, quats, source)
 
 

@@ -234,6 +234,36 @@ def test_motion_capture_topics_are_read_as_evo_reads_them(tmp_path: Path) -> Non
     np.testing.assert_array_equal(leica.quats_xyzw, np.tile([0.0, 0.0, 0.0, 1.0], (len(leica), 1)))
 
 
+def test_a_pose_topic_without_header_stamps_is_timed_by_its_log_times(tmp_path: Path) -> None:
+    """A publisher that never sets header.stamp: every message at stamp 0 made one pose of 600 (exported
+    with exit 0, and no match against the truth); the recording times time them instead, with a warning."""
+    from mcap_ros2.writer import Writer
+
+    from formats import ros2
+
+    full = load_trajectory(shared_data(*FR1) / "freiburg1_xyz-groundtruth.txt")
+    truth = Trajectory(full.stamps_ns[:600], full.positions[:600], full.quats_xyzw[:600])
+    bag = tmp_path / "unstamped.mcap"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
+        for stamp, p, q in zip(truth.stamps_ns.tolist(), truth.positions, truth.quats_xyzw, strict=True):
+            pose = {"position": dict(zip("xyz", p.tolist(), strict=True)),
+                    "orientation": dict(zip("xyzw", q.tolist(), strict=True))}  # fmt: skip
+            message = {"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": "map"}, "pose": pose}
+            writer.write_message("/pose", schema, message, log_time=stamp)
+        writer.finish()
+    code, _, err = invoke("export", bag, "--topic", "/pose", "-o", tmp_path / "pose.tum")
+    assert code == 0 and "header.stamp is 0 (unset) in every message" in err, err
+    exported = load_trajectory(tmp_path / "pose.tum")
+    np.testing.assert_array_equal(exported.stamps_ns, truth.stamps_ns)
+    np.testing.assert_array_equal(exported.positions, truth.positions)
+    summary = summary_of(
+        tmp_path, bag, "--estimate-topic", "/pose", "-r", shared_data(*FR1) / "freiburg1_xyz-groundtruth.txt"
+    )
+    assert summary["matched_poses"] == 600 and summary["ate_max"] == 0.0
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
