@@ -5,10 +5,11 @@ What can be exported, from which SOURCE, as which format:
 ============ ============================================================ ====================
 ``--what``   SOURCE                                                       formats
 ============ ============================================================ ====================
-trajectory   relpoint log (``/ground_truth/pose``), run directory         tum, kitti, csv
+trajectory   relpoint log (``/ground_truth/pose``), run directory         tum, kitti, csv, ply
              (``trajectory.tum``), TUM/EuRoC/KITTI file, any MCAP bag topic
-             (PoseStamped, PoseWithCovarianceStamped, Odometry) or TF
-             chain (``--parent/--child``)
+             (PoseStamped, PoseWithCovarianceStamped, Odometry,
+             TransformStamped, PointStamped) or TF chain
+             (``--parent/--child``)
 landmarks    relpoint log (``/ground_truth/landmarks``), run directory    ply, csv
              (``map.csv``)
 map          run directory (``map.ply``: landmarks or a dense cloud with  ply, csv
@@ -70,7 +71,7 @@ SUFFIX_FORMATS = {
 }
 #: Formats each kind of data can be written as.
 ALLOWED = {
-    What.TRAJECTORY: (Format.TUM, Format.KITTI, Format.CSV),
+    What.TRAJECTORY: (Format.TUM, Format.KITTI, Format.CSV, Format.PLY),
     What.LANDMARKS: (Format.PLY, Format.CSV),
     What.MAP: (Format.PLY, Format.CSV),
 }
@@ -103,16 +104,19 @@ def _is_run_directory(path: Path) -> bool:
     return path.is_dir() and not is_log(path)
 
 
-def default_what(source: Path, fmt: Format) -> What:
-    """``map`` for a PLY source or PLY output from a run directory, ``landmarks`` for PLY output from a log, else
-    ``trajectory``."""
+def default_what(source: Path, fmt: Format, *, selects_trajectory: bool = False) -> What:
+    """``map`` for a PLY source or PLY output from a run directory, ``landmarks`` for PLY output from a log
+    without a trajectory selected (``selects_trajectory``: ``--topic``, ``--parent``/``--child``), else
+    ``trajectory`` (a trajectory file or a bag topic as PLY too)."""
     if _is_ply(source) or (_is_run_directory(source) and fmt is Format.PLY):
         return What.MAP
-    return What.LANDMARKS if fmt is Format.PLY else What.TRAJECTORY
+    if fmt is Format.PLY and is_log(source) and not selects_trajectory:
+        return What.LANDMARKS
+    return What.TRAJECTORY
 
 
 def check_combination(what: What, fmt: Format) -> None:
-    """:class:`UsageError` for data that the format cannot hold (a trajectory as PLY, landmarks as TUM)."""
+    """:class:`UsageError` for data that the format cannot hold (landmarks or a map as TUM or KITTI)."""
     if fmt not in ALLOWED[what]:
         raise UsageError(
             f"{what.value} cannot be written as {fmt.value}",
@@ -144,7 +148,10 @@ def landmark_source(source: Path) -> tuple[np.ndarray, str]:
     if is_log(source):
         truth = load_ground_truth_landmarks(source)
         if truth is None:
-            raise InputError(f"{source}: no /ground_truth/landmarks messages", "landmarks come from relpoint logs")
+            raise InputError(
+                f"{source}: no /ground_truth/landmarks messages",
+                "landmarks come from relpoint logs; a pose topic exports as PLY points with --topic",
+            )
         return ground_truth_vertices(truth), f"ground-truth landmarks of {source.name}, frame world"
     raise InputError(f"{source}: landmarks come from a relpoint log or a run directory, not this file")
 
@@ -189,12 +196,26 @@ def vertices_csv_text(vertices: np.ndarray) -> str:
     return buffer.getvalue()
 
 
+def trajectory_vertices(trajectory: Trajectory) -> np.ndarray:
+    """A trajectory as PLY vertices, one per pose: x, y, z (m), timestamp (s) and the quaternion qx, qy, qz,
+    qw of ``T_world_frame``, all float64 (PLY has no 64-bit integer for the nanoseconds)."""
+    fields = [(name, "<f8") for name in ("x", "y", "z", "timestamp", "qx", "qy", "qz", "qw")]
+    vertices = np.empty(len(trajectory), dtype=fields)
+    vertices["x"], vertices["y"], vertices["z"] = trajectory.positions.T
+    vertices["timestamp"] = trajectory.timestamps
+    vertices["qx"], vertices["qy"], vertices["qz"], vertices["qw"] = trajectory.quats_xyzw.T
+    return vertices
+
+
 def write_trajectory(out: Path, trajectory: Trajectory, fmt: Format, out_times: Path | None, header: str) -> None:
-    """``trajectory`` as TUM, KITTI (with ``out_times`` if given) or relpoint's trajectory CSV."""
+    """``trajectory`` as TUM, KITTI (with ``out_times`` if given), relpoint's trajectory CSV or PLY (a point
+    per pose, :func:`trajectory_vertices`)."""
     if fmt is Format.TUM:
         write_tum(out, trajectory, header=header)
     elif fmt is Format.KITTI:
         write_kitti(out, trajectory, out_times)
+    elif fmt is Format.PLY:
+        write_ply(out, trajectory_vertices(trajectory), comments=[header])
     else:
         write_trajectory_csv(out, trajectory)
 

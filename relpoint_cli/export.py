@@ -89,7 +89,8 @@ def export(ctx: click.Context, source: Path, out: Path, what: str | None, fmt: s
     if out_times is not None and resolve_output(out_times) == resolve_output(out):
         raise UsageError(f"--out-times {out_times} is the output file itself", "give the times file another name")
     out_format = output_format(out, fmt)
-    kind = What(what) if what is not None else default_what(source, out_format)
+    selects_trajectory = topic is not None or parent is not None
+    kind = What(what) if what is not None else default_what(source, out_format, selects_trajectory=selects_trajectory)
     description = export_file(
         source,
         out,

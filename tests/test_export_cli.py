@@ -141,6 +141,28 @@ def test_nav2_bag_odom_to_tum(tmp_path: Path) -> None:
     np.testing.assert_array_equal(odom.positions[0], [p.x, p.y, p.z])
 
 
+def test_trajectories_export_as_ply_points_with_their_stamps_and_rotations(tmp_path: Path) -> None:
+    """A bag topic, a TF chain and a trajectory file as PLY, a point per pose: `export --topic /odom -o
+    odom.ply` was a usage error ("select a trajectory, not landmarks"), and a TUM file to PLY an input
+    error ("landmarks come from a relpoint log")."""
+    bag = shared_data("ros2-bags", "nav2_turtlebot.mcap")
+    export_ok(bag, "--topic", "/odom", "-o", tmp_path / "odom.tum")
+    odom = read_tum(tmp_path / "odom.tum")
+    sources = {"topic": [bag, "--topic", "/odom"], "file": [tmp_path / "odom.tum"]}
+    for name, source in sources.items():
+        out = tmp_path / f"{name}.ply"
+        assert "2639 poses" in export_ok(*source, "-o", out)
+        cloud = open3d().io.read_point_cloud(str(out))
+        np.testing.assert_array_equal(np.asarray(cloud.points), odom.positions)
+        vertices = read_ply(out)
+        assert vertices.dtype.names == ("x", "y", "z", "timestamp", "qx", "qy", "qz", "qw")
+        np.testing.assert_array_equal(vertices["timestamp"], odom.stamps_ns * 1e-9)
+        quats = np.column_stack([vertices[a] for a in ("qx", "qy", "qz", "qw")])
+        np.testing.assert_allclose(quats, odom.quats_xyzw, rtol=0, atol=1e-15)  # renormalised once more on reading
+    assert "2611 poses" in export_ok(bag, "--parent", "map", "--child", "base_footprint", "-o", tmp_path / "tf.ply")
+    assert len(read_ply(tmp_path / "tf.ply")) == 2611
+
+
 # --- landmarks and maps ------------------------------------------------------------------------------------
 
 
@@ -250,16 +272,16 @@ def empty_run(tmp_path: Path) -> Path:
     ("source", "args", "code", "fragment"),
     [
         ("run", ["-o", "x.dat"], 2, "cannot tell the output format"),
-        ("run", ["-o", "x.ply", "--what", "trajectory"], 2, "trajectory cannot be written as ply"),
+        ("run", ["-o", "x.ply", "--what", "trajectory", "--out-times", "t.txt"], 2, "only to KITTI"),
         ("run", ["-o", "x.tum", "--what", "landmarks"], 2, "landmarks cannot be written as tum"),
         ("run", ["-o", "x.txt", "--format", "bogus"], 2, "bogus"),
-        ("log", ["-o", "x.ply", "--topic", "/odom"], 2, "select a trajectory"),
+        ("log", ["-o", "x.ply", "--what", "landmarks", "--topic", "/odom"], 2, "select a trajectory"),
         ("run", ["-o", "x.csv", "--out-times", "t.txt"], 2, "only to KITTI"),
         ("run", ["-o", "DIR"], 2, "is a directory"),
         ("missing", ["-o", "x.tum"], 3, "no such file or directory"),
         ("log", ["-o", "x.ply", "--what", "map"], 3, "a log holds no map"),
         ("log", ["-o", "x.tum", "--topic", "/points"], 3, "not a pose type"),
-        ("tum", ["-o", "x.ply"], 3, "landmarks come from a relpoint log or a run directory"),
+        ("tum", ["-o", "x.ply", "--what", "landmarks"], 3, "landmarks come from a relpoint log or a run directory"),
         ("empty", ["-o", "x.ply", "--what", "landmarks"], 3, "no landmarks to export"),
         ("empty", ["-o", "x.csv", "--what", "landmarks"], 3, "no landmarks to export"),
     ],
