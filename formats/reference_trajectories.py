@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,12 +113,17 @@ def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
         log.warning("%s: %s has no orientation: read with the identity rotation, as evo does; only the APE "
                     "translation (and RPE --pose-relation point_distance) means anything", source, info.typename)  # fmt: skip
     log_times: list[int] = []
+    frames: Counter[str] = Counter()
     for _, _, log_time, message in reader.messages([topic]):
         pose = ros2.msg_to_pose(message)
         stamps.append(pose.stamp_ns)
         log_times.append(log_time)
         positions.append(np.asarray(pose.position))
         quats.append(np.asarray(pose.quat_xyzw))
+        frames[_frame(message.header.frame_id)] += 1
+    if len(frames) > 1:
+        log.warning("%s: the poses are in %d frames (%s); they are read as one trajectory, as evo reads them",
+                    source, len(frames), ", ".join(f"{name or repr(name)}: {count}" for name, count in frames.most_common()))  # fmt: skip
     if len(stamps) > 1 and not any(stamps) and len(set(log_times)) > 1:
         # A publisher that never set header.stamp: one pose per stamp would keep one pose of the topic.
         log.warning("%s: header.stamp is 0 (unset) in every message; the poses are timed by when they were "

@@ -264,6 +264,35 @@ def test_a_pose_topic_without_header_stamps_is_timed_by_its_log_times(tmp_path: 
     assert summary["matched_poses"] == 600 and summary["ate_max"] == 0.0
 
 
+def test_a_pose_topic_in_several_frames_is_pointed_out(tmp_path: Path) -> None:
+    """Poses of one topic in different frames (a localiser that restarted in odom) are not one trajectory;
+    they were read as one without a word. The figures stay evo's (it reads them as one too)."""
+    from mcap_ros2.writer import Writer
+
+    from formats import ros2
+
+    bag = tmp_path / "frames.mcap"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
+        for k in range(30):
+            stamp = 1_000_000_000 + k * 100_000_000
+            pose = {
+                "position": {"x": 0.1 * k, "y": 0.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            }
+            header = {
+                "stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9},
+                "frame_id": "map" if k < 20 else "odom",
+            }
+            writer.write_message("/pose", schema, {"header": header, "pose": pose}, log_time=stamp)
+        writer.finish()
+    code, _, err = invoke("export", bag, "--topic", "/pose", "-o", tmp_path / "pose.tum")
+    assert code == 0, err
+    assert f"{bag} /pose: the poses are in 2 frames (map: 20, odom: 10)" in err, err
+    assert len(load_trajectory(tmp_path / "pose.tum")) == 30
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
