@@ -107,6 +107,7 @@ def _from_saved_evaluation(label: str, path: Path, estimate: Path | None, docume
             evaluation = evaluate_files(
                 estimate, reference, settings, reference_topic=inputs.get("reference_topic"),
                 estimate_topic=inputs.get("estimate_topic"), parent=inputs.get("parent"), child=inputs.get("child"),
+                estimate_parent=inputs.get("estimate_parent"), estimate_child=inputs.get("estimate_child"),
                 times=_existing(inputs.get("times")), reference_times=_existing(inputs.get("reference_times")),
                 window=_saved_window(inputs),
             )  # fmt: skip

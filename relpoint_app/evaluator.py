@@ -73,6 +73,8 @@ def evaluate_files(
     estimate_topic: str | None = None,
     parent: str | None = None,
     child: str | None = None,
+    estimate_parent: str | None = None,
+    estimate_child: str | None = None,
     reference_times: Path | None = None,
     times: Path | None = None,
     window: TimeWindow | None = None,
@@ -80,9 +82,11 @@ def evaluate_files(
 ) -> FileEvaluation:
     """Read ESTIMATE and the reference as ``relpoint evaluate`` does and evaluate them (trajectory, and
     landmarks when ESTIMATE is a run directory with map.csv and the reference a log with true landmarks,
-    on ``landmarks_topic`` if given)."""
+    on ``landmarks_topic`` if given). ``parent``/``child`` read the reference, ``estimate_parent``/
+    ``estimate_child`` the estimate, from a TF chain of a bag (its TF topic: ``reference_topic``,
+    ``estimate_topic``)."""
     ref = load_trajectory(reference, topic=reference_topic, parent=parent, child=child, times=reference_times)
-    est = load_trajectory(estimate, topic=estimate_topic, times=times)
+    est = load_trajectory(estimate, topic=estimate_topic, parent=estimate_parent, child=estimate_child, times=times)
     check_index_pairing(
         (reference, ref, is_index_stamped(reference, reference_times)),
         (estimate, est, is_index_stamped(estimate, times)),

@@ -62,6 +62,7 @@ Examples:
   relpoint evaluate out/fig8 -r sample_logs/figure8.mcap --save-results ape.zip --plot plots/ --plot-format pdf
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --reference-topic /amcl_pose
   relpoint evaluate bag.mcap --estimate-topic /odom --reference bag.mcap --parent map --child base_footprint
+  relpoint evaluate slam.mcap --estimate-parent map --estimate-child base_link -r groundtruth.txt --align se3
   relpoint evaluate out/run --reference run.mcap --fail-above ate_rmse=0.5 --fail-above lm_err_rmse=1
 """
 
@@ -158,6 +159,9 @@ def _refuse_shared_outputs(named: list[tuple[str, Path | None]]) -> None:
 )  # fmt: skip
 @click.option("--parent", help="Reference from a TF chain: parent frame (e.g. map).")
 @click.option("--child", help="Reference from a TF chain: child frame (e.g. base_footprint).")
+@click.option("--estimate-parent", help="Estimate from a TF chain of an MCAP ESTIMATE: parent frame (e.g. map).")
+@click.option("--estimate-child", help="Estimate from a TF chain: child frame (e.g. base_link); --estimate-topic "
+              "names its TF topic.")  # fmt: skip
 @click.option("--reference-times", type=input_path(dir_okay=False), help="Times file of KITTI reference poses.")
 @click.option("--times", type=input_path(dir_okay=False), help="Times file of KITTI estimate poses.")
 @click.option(
@@ -244,7 +248,8 @@ def _refuse_shared_outputs(named: list[tuple[str, Path | None]]) -> None:
 @click.pass_context
 @handle_errors
 def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topic: str | None,
-             estimate_topic: str | None, landmarks_topic: str | None, parent: str | None, child: str | None, reference_times: Path | None,
+             estimate_topic: str | None, landmarks_topic: str | None, parent: str | None, child: str | None,
+             estimate_parent: str | None, estimate_child: str | None, reference_times: Path | None,
              times: Path | None, json_path: Path | None, csv_path: Path | None, plot_dir: Path | None,
              plot_format: str, save_results: Path | None, save_rpe_results: Path | None,
              reference_cloud: Path | None, dense_threshold: float, fail_above: tuple[str, ...],
@@ -253,7 +258,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
 
     ESTIMATE is a `relpoint run` output directory, a TUM file, a EuRoC ground-truth CSV, KITTI poses
     (--times; without it pose i is at i s and pairs by index with KITTI poses of equal count) or an MCAP file
-    (--estimate-topic). Text files are recognised by content: 8 values per line TUM, 12 KITTI, a header
+    (--estimate-topic, or --estimate-parent/--estimate-child for a TF chain). Text files are recognised by content: 8 values per line TUM, 12 KITTI, a header
     naming p_RS_R_x or ns stamps with 8+ comma-separated values EuRoC, and a header line naming the columns
     (timestamp,x,y,z,qw,qx,qy,qz in any order) sets them. When ESTIMATE is a run directory with map.csv and the reference is a relpoint log
     with /ground_truth/landmarks, the landmark metrics (lm_*, dyn_*) are added to the summary. When
@@ -262,6 +267,7 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
     trajectories to seconds after the reference's first pose.
     """
     check_tf_chain(parent, child)
+    check_tf_chain(estimate_parent, estimate_child, ("--estimate-parent", "--estimate-child"))
     window = time_window(t_start, t_end)
     gates = parse_gates(fail_above)
     settings = EvaluationSettings.from_mapping(options)
@@ -280,8 +286,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
             check_output_file(path, inputs=read, overwrite=overwrite)
     evaluation = evaluate_files(
         estimate, reference, settings, reference_topic=reference_topic, estimate_topic=estimate_topic,
-        parent=parent, child=child, reference_times=reference_times, times=times, window=window,
-        landmarks_topic=landmarks_topic,
+        parent=parent, child=child, estimate_parent=estimate_parent, estimate_child=estimate_child,
+        reference_times=reference_times, times=times, window=window, landmarks_topic=landmarks_topic,
     )  # fmt: skip
     result, summary = evaluation.result, evaluation.summary
     quiet = bool(ctx.find_root().obj.get("quiet"))
@@ -309,6 +315,8 @@ def evaluate(ctx: click.Context, estimate: Path, reference: Path, reference_topi
         "landmarks_topic": landmarks_topic,
         "parent": parent,
         "child": child,
+        "estimate_parent": estimate_parent,
+        "estimate_child": estimate_child,
         "times": None if times is None else shown_path(os.path.abspath(times)),
         "reference_times": None if reference_times is None else shown_path(os.path.abspath(reference_times)),
         "t_start": t_start,

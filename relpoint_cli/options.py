@@ -102,12 +102,13 @@ def read_paths(*paths: Any) -> list[Any]:
     return found
 
 
-def check_tf_chain(parent: str | None, child: str | None) -> None:
-    """``--parent`` and ``--child`` come together (exit 2 before any input is read)."""
+def check_tf_chain(parent: str | None, child: str | None, options: tuple[str, str] = ("--parent", "--child")) -> None:
+    """``--parent`` and ``--child`` (or the two ``options`` named) come together (exit 2 before any input
+    is read)."""
     from relpoint.errors import UsageError
 
     if (parent is None) != (child is None):
-        given, missing = ("--parent", "--child") if child is None else ("--child", "--parent")
+        given, missing = options if child is None else options[::-1]
         raise UsageError(f"{given} without {missing}: a TF chain needs both", f"add {missing} FRAME")
 
 

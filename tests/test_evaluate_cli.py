@@ -293,6 +293,35 @@ def test_a_pose_topic_in_several_frames_is_pointed_out(tmp_path: Path) -> None:
     assert len(load_trajectory(tmp_path / "pose.tum")) == 30
 
 
+def test_an_estimate_from_a_tf_chain(tmp_path: Path) -> None:
+    """A SLAM node that publishes its pose only as TF (map -> base_link) could be a reference but not an
+    estimate (--parent/--child name the reference's chain). --estimate-parent/--estimate-child read it,
+    and `compare` re-evaluates the saved evaluation from its inputs."""
+    bag = shared_data(*BAG)
+    # odom -> base_footprint is /odom's pose, published beside it: every pose matched, no error.
+    summary = summary_of(tmp_path, bag, "--estimate-parent", "odom", "--estimate-child", "base_footprint",
+                         "-r", bag, "--reference-topic", "/odom")  # fmt: skip
+    assert summary["matched_poses"] == 2639 and summary["ate_max"] == 0.0
+    # map -> base_footprint against AMCL gives what its export to a file gives.
+    code, _, err = invoke("export", bag, "--parent", "map", "--child", "base_footprint", "-o", tmp_path / "tf.tum")
+    assert code == 0, err
+    against_amcl = ["-r", bag, "--reference-topic", "/amcl_pose", "--align", "se3"]
+    from_file = summary_of(tmp_path, tmp_path / "tf.tum", *against_amcl)
+    out = tmp_path / "tf.json"
+    code, _, err = invoke("evaluate", bag, "--estimate-parent", "map", "--estimate-child", "base_footprint",
+                          *against_amcl, "--json", out)  # fmt: skip
+    assert code == 0, err
+    document = json.loads(out.read_text())
+    assert document["summary"]["ate_rmse"] == from_file["ate_rmse"] and from_file["matched_poses"] == 83
+    assert (document["inputs"]["estimate_parent"], document["inputs"]["estimate_child"]) == ("map", "base_footprint")
+    code, stdout, err = invoke("compare", out, "--format", "json")
+    assert code == 0 and "cannot re-evaluate" not in err, err
+    (run,) = json.loads(stdout)["runs"]
+    assert "re-evaluated" in run["source"] and run["summary"]["ate_rmse"] == from_file["ate_rmse"]
+    code, _, err = invoke("evaluate", bag, "--estimate-parent", "map", "-r", bag, "--reference-topic", "/amcl_pose")
+    assert code == 2 and "--estimate-parent without --estimate-child" in err, err
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
