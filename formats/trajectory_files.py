@@ -206,9 +206,18 @@ def _build(
     if not stamps:
         raise InputError(f"{path}: no poses in file")
     stamps_arr = _increasing_stamps(path, stamps, lines)
-    norms = np.linalg.norm(quats, axis=1)
-    if np.any(norms < 1e-9):
-        raise InputError(f"{path}:{lines[int(np.argmax(norms < 1e-9))]}: zero quaternion")
+    zero = np.linalg.norm(quats, axis=1) < 1e-9
+    if zero.all():  # positions only (a total station, GNSS): evo reads the zeros as the identity
+        logger.warning("%s: every quaternion is zero, a trajectory without orientation: read with the identity "
+                       "rotation, as evo does; only the APE translation (and RPE --pose-relation point_distance) "
+                       "means anything", path)  # fmt: skip
+        quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(stamps), 1))
+    elif zero.any():
+        raise InputError(
+            f"{path}:{lines[int(np.argmax(zero))]}: zero quaternion",
+            "give the pose its orientation or leave the line out (a file without any orientation has zeros in "
+            "every line)",
+        )
     return Trajectory(stamps_arr, np.array(positions, dtype=np.float64).reshape(-1, 3), quats)
 
 

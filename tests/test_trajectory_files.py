@@ -104,7 +104,7 @@ def test_reads_the_shared_tum_files_like_evo() -> None:
         ("inf 0 0 0 0 0 0 1\n", r":1: bad timestamp"),
         ("2 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r":3: timestamp goes back in time .*line 2"),
         ("1e30 0 0 0 0 0 0 1\n", r":1: timestamp out of range"),
-        ("1 0 0 0 0 0 0 0\n", r":1: zero quaternion"),
+        ("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 0\n", r":2: zero quaternion"),  # one pose without its orientation
         ("# only comments\n\n", r"no poses"),
     ],
 )
@@ -294,7 +294,7 @@ def test_euroc_round_trip_and_extra_columns(tmp_path: Path) -> None:
         ("1,0,0,0,1,0,0\n", r":1: expected at least 8 values"),
         ("1.5,0,0,0,1,0,0,0\n", r":1: bad timestamp '1.5', expected integer nanoseconds"),
         ("#h\n1,0,0,x,1,0,0,0\n", r":2: non-numeric value"),
-        ("1,0,0,0,0,0,0,0\n", r":1: zero quaternion"),
+        ("1,0,0,0,1,0,0,0\n2,0,0,0,0,0,0,0\n", r":2: zero quaternion"),
         ("2,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n", r":2: timestamp goes back in time"),
         ("\u00b2,0,0,0,1,0,0,0\n", r":1: bad timestamp"),
         ("#h\n99999999999999999999,0,0,0,1,0,0,0\n", r":2: timestamp out of range"),
@@ -823,3 +823,32 @@ def test_text_beyond_ascii_in_any_place_and_utf16_files_are_read(tmp_path: Path,
     path.write_bytes(data)
     assert detect_format(path) is TrajectoryFormat.TUM
     _assert_same(load_trajectory(path), original)
+
+
+def test_a_trajectory_without_orientation_is_read_with_the_identity_as_evo_does(
+    tmp_path: Path, fr1: dict[str, list[str]], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Positions only, every quaternion 0 0 0 0 (a total station's or GNSS track written as TUM): refused
+    as "zero quaternion"; evo reads the zeros as the identity and gives the translation figures."""
+    from evo.core import sync
+    from evo.core.metrics import PoseRelation
+    from evo.main_ape import ape
+    from evo.tools import file_interface
+
+    from formats.reference_trajectories import load_trajectory
+    from relpoint.evaluation import EvaluationSettings, evaluate_trajectory
+
+    estimate = tmp_path / "positions.txt"
+    estimate.write_text("".join(" ".join([*row.split()[:4], "0", "0", "0", "0"]) + "\n" for row in fr1["est"]))
+    with caplog.at_level(logging.WARNING):
+        trajectory = load_trajectory(estimate)
+    assert "every quaternion is zero" in caplog.text
+    np.testing.assert_array_equal(trajectory.quats_xyzw, np.tile([0.0, 0.0, 0.0, 1.0], (len(fr1["est"]), 1)))
+    reference_path = shared_data(FR1) / GT
+    result = evaluate_trajectory(load_trajectory(reference_path), trajectory, EvaluationSettings(align="se3"))
+    ref, est = sync.associate_trajectories(
+        file_interface.read_tum_trajectory_file(reference_path), file_interface.read_tum_trajectory_file(estimate)
+    )
+    expected = ape(ref, est, PoseRelation.translation_part, align=True).stats
+    assert result.summary["ate_rmse"] == pytest.approx(expected["rmse"], rel=1e-9)
+    assert expected["rmse"] == pytest.approx(0.013470, abs=1e-6)  # REFERENCE.md's figure: the rotations do not enter
