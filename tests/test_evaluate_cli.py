@@ -322,6 +322,32 @@ def test_an_estimate_from_a_tf_chain(tmp_path: Path) -> None:
     assert code == 2 and "--estimate-parent without --estimate-child" in err, err
 
 
+def test_a_pose_topic_without_orientations_is_read_with_the_identity(tmp_path: Path) -> None:
+    """PoseStamped messages whose orientation was never set (0 0 0 0) were all dropped: 'no valid poses'."""
+    from mcap_ros2.writer import Writer
+
+    from formats import ros2
+
+    bag = tmp_path / "positions.mcap"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
+        for k in range(30):
+            stamp = 1_000_000_000 + k * 100_000_000
+            pose = {
+                "position": {"x": 0.1 * k, "y": 0.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0},
+            }
+            header = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "map"}
+            writer.write_message("/gnss", schema, {"header": header, "pose": pose}, log_time=stamp)
+        writer.finish()
+    code, _, err = invoke("export", bag, "--topic", "/gnss", "-o", tmp_path / "gnss.tum")
+    assert code == 0 and "every quaternion is zero" in err, err
+    gnss = load_trajectory(tmp_path / "gnss.tum")
+    np.testing.assert_array_equal(gnss.positions[:, 0], 0.1 * np.arange(30))
+    np.testing.assert_array_equal(gnss.quats_xyzw, np.tile([0.0, 0.0, 0.0, 1.0], (30, 1)))
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
