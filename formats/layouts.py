@@ -115,6 +115,22 @@ def detect_layout(path: str | os.PathLike[str]) -> Layout:
     raise InputError(f"{path} is not an MCAP file, nor a rosbag2 directory or ROS 1 bag", f"give {_LOG_KINDS}")
 
 
+def is_rosbag2_part(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a file of a rosbag2 bag rather than the bag: its ``metadata.yaml``, or a sqlite3
+    or zstd-compressed storage file (:func:`detect_layout` names the bag directory to give instead)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    if path.name == ROSBAG2_METADATA:
+        return True
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(16)
+    except OSError:
+        return False
+    return head.startswith(SQLITE_MAGIC) or head.startswith(ZSTD_MAGIC)
+
+
 def _check_suffix(path: Path, suffix: str) -> None:
     # AnyReader chooses its reader by the name, so a mis-named file would fail in a confusing way.
     if path.suffix != suffix:

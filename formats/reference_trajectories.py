@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from formats import ros2
+from formats.layouts import detect_layout, is_rosbag2_part
 from formats.log import LogReader
 from formats.ply import read_ply
 from formats.signatures import MCAP_MAGIC, is_log
@@ -354,6 +355,8 @@ def load_trajectory(
         return read_tum(tum)
     if is_log(path):
         return mcap_trajectory(path, topic, parent, child)
+    if is_rosbag2_part(path):
+        detect_layout(path)  # raises: give the bag directory that holds this file
     if topic is not None or parent is not None or child is not None:
         raise InputError(f"{path} is not an MCAP file; topics and TF frames apply only to MCAP inputs")
     fmt = detect_format(path)

@@ -348,6 +348,43 @@ def test_a_pose_topic_without_orientations_is_read_with_the_identity(tmp_path: P
     np.testing.assert_array_equal(gnss.quats_xyzw, np.tile([0.0, 0.0, 0.0, 1.0], (30, 1)))
 
 
+def test_a_file_of_a_rosbag2_bag_is_named_for_its_bag_directory(tmp_path: Path) -> None:
+    """The .db3 or metadata.yaml of a rosbag2 bag given instead of its directory: evaluate said "is not an
+    MCAP file; topics and TF frames apply only to MCAP inputs" (or, without a topic, "unknown trajectory
+    format"), where `info` names the directory to give."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = store.types
+    bag = tmp_path / "recording"
+    with Writer(bag, version=9) as writer:  # the sqlite3 storage, rosbag2's former default
+        connection = writer.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=store)
+        for k in range(5):
+            header = types["std_msgs/msg/Header"](
+                stamp=types["builtin_interfaces/msg/Time"](sec=k, nanosec=0), frame_id="map"
+            )
+            pose = types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](x=float(k), y=0.0, z=0.0),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+            )
+            message = types["geometry_msgs/msg/PoseStamped"](header=header, pose=pose)
+            writer.write(connection, k * 10**9, store.serialize_cdr(message, message.__msgtype__))
+    (storage,) = bag.glob("*.db3")
+    for part, kind in ((storage, "sqlite3 storage file"), (bag / "metadata.yaml", "metadata file")):
+        for args in (["evaluate", part, "--estimate-topic", "/pose", "-r", bag, "--reference-topic", "/pose"],
+                     ["evaluate", bag, "--estimate-topic", "/pose", "-r", part],
+                     ["export", part, "-o", tmp_path / "pose.tum"]):  # fmt: skip
+            code, _, err = invoke(*args)
+            assert code == 3, err
+            assert_one_error_line(
+                err, f"{part} is a rosbag2 {kind}, not a log on its own; give the bag directory {bag}"
+            )
+    assert (
+        summary_of(tmp_path, bag, "--estimate-topic", "/pose", "-r", bag, "--reference-topic", "/pose")["ate_max"] == 0
+    )
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
