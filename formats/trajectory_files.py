@@ -163,12 +163,23 @@ def separate_repeated_stamps(stamps_ns: npt.ArrayLike) -> IntArray:
     return np.minimum.accumulate((stamps - offsets)[::-1])[::-1] + offsets
 
 
+#: Stamps are nanoseconds from this value up (in seconds, year 3e9): integers under a header that names no
+#: unit, and any stamp of a file whose every stamp is this large.
+_NANOSECOND_STAMP = 10**17
 #: A median step between poses above this (a day, in ns) says the stamps are nanoseconds read as seconds.
 NANOSECOND_LIKE_STEP_NS = 86_400 * 10**9
 
 
 def _increasing_stamps(path: Path, stamps: list[int], lines: list[int]) -> IntArray:
-    """``stamps`` as strictly increasing int64 ns: repeats separated (one warning), going back refused."""
+    """``stamps`` as strictly increasing int64 ns: repeats separated (one warning), going back refused.
+
+    Stamps of seconds that are all :data:`_NANOSECOND_STAMP` or more (beyond year 3e9) are nanoseconds
+    written where seconds belong (ORB-SLAM3 writes EuRoC's into TUM files): read as such, with a warning.
+    """
+    if stamps and min(stamps) >= _NANOSECOND_STAMP * _NS_PER_S:
+        logger.warning("%s: its stamps are %.4g s, beyond year 3e9: read as nanoseconds, which they are",
+                       path, stamps[0] / _NS_PER_S)  # fmt: skip
+        stamps = [(stamp + _NS_PER_S // 2) // _NS_PER_S for stamp in stamps]  # to the nearest nanosecond
     out_of_range = [k for k, stamp in enumerate(stamps) if not _INT64_MIN <= stamp <= _INT64_MAX]
     if out_of_range:
         raise InputError(f"{path}:{lines[out_of_range[0]]}: timestamp out of range (beyond year 2262)",
@@ -492,8 +503,6 @@ _QUATERNION_WORDS = frozenset({"q", "quat", "quaternion", "orientation", "rotati
 _UNIT = re.compile(r"[\[(]([^\])]*)[\])]")
 #: A name's words: runs of letters and digits.
 _WORD = re.compile(r"[A-Za-z0-9]+")
-#: Integer stamps with a header that names no unit are nanoseconds from this value up (year 5e9 in seconds).
-_NANOSECOND_STAMP = 10**17
 
 
 def _column_role(name: str) -> tuple[str, str] | None:

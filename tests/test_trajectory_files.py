@@ -639,11 +639,20 @@ def test_nanosecond_stamps_in_a_seconds_format_are_named(tmp_path: Path, caplog:
     with caplog.at_level("WARNING"):
         read_tum(tmp_path / "zero.txt")
     assert "are the stamps nanoseconds?" in caplog.text
+    # From an epoch they cannot be seconds (year 4e10): they are read as nanoseconds (ORB-SLAM3's EuRoC
+    # output, "1403636580838555648.000000"), where they were refused ("divide them by 1e9").
+    caplog.clear()
     (tmp_path / "epoch.txt").write_text(
-        "".join(f"{1305031102175304000 + k * 33_333_333} {k} 0 0 0 0 0 1\n" for k in range(3))
+        "".join(f"{1305031102175304000 + k * 33_333_333}.000000 {k} 0 0 0 0 0 1\n" for k in range(3))
     )
-    with pytest.raises(InputError, match="nanoseconds"):
-        read_tum(tmp_path / "epoch.txt")
+    with caplog.at_level("WARNING"):
+        epoch = read_tum(tmp_path / "epoch.txt")
+    assert "read as nanoseconds" in caplog.text
+    assert epoch.stamps_ns.tolist() == [1305031102175304000 + k * 33_333_333 for k in range(3)]
+    # One stamp in seconds among them: not a file of nanoseconds, and out of range.
+    (tmp_path / "mixed.txt").write_text("1305031102.175304 0 0 0 0 0 0 1\n1305031102208637333 1 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match=r":2: timestamp out of range .*nanoseconds"):
+        read_tum(tmp_path / "mixed.txt")
 
 
 # --- files whose header names the columns --------------------------------------------------------------
