@@ -214,4 +214,5 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
             f"  pose topics that can serve as --reference-topic or --estimate-topic: {', '.join(reference_topics)}"
         )
     if tf_topics:
-        click.echo(f"  transforms on {', '.join(tf_topics)}: a reference from a frame chain with --parent/--child")
+        click.echo(f"  transforms on {', '.join(tf_topics)}: a reference from a frame chain with --parent/--child, "
+                   "an estimate with --estimate-parent/--estimate-child")  # fmt: skip
