@@ -527,6 +527,23 @@ def _tum(path: Path, stamps: list[float]) -> Path:
     return path
 
 
+def test_no_matching_stamps_says_what_would_match_them(tmp_path: Path) -> None:
+    """An estimate stamped from its own start against an epoch reference, and stamps that interleave
+    beyond the tolerance: the error gave the two spans and no way out."""
+    ref = _tum(tmp_path / "ref.txt", [1000.0 + 0.1 * k for k in range(50)])
+    relative = _tum(tmp_path / "relative.txt", [0.1 * k for k in range(50)])
+    code, _, err = invoke("evaluate", relative, "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "they do not overlap: if both start together")
+    offset = err.split("--t-offset ")[1].split()[0]
+    assert float(offset) == pytest.approx(1000.0)
+    assert summary_of(tmp_path, relative, "-r", ref, "--t-offset", offset)["matched_poses"] == 50
+    between = _tum(tmp_path / "between.txt", [1000.05 + 0.1 * k for k in range(49)])
+    code, _, err = invoke("evaluate", between, "-r", ref)
+    assert code == 3
+    assert_one_error_line(err, "their stamps interleave without a pair close enough: a larger --t-max-diff")
+
+
 def test_bad_inputs_exit_3_with_one_line(tmp_path: Path) -> None:
     ref = _tum(tmp_path / "ref.txt", [0.0, 1.0, 2.0, 3.0, 4.0])
     unknown = tmp_path / "poses.txt"

@@ -171,6 +171,20 @@ def _interpolate(trajectory: Trajectory, stamps_s: FloatArray) -> tuple[FloatArr
     return positions, quat_to_matrix(quats)
 
 
+def _no_match_advice(reference: Trajectory, estimate: Trajectory, offset: float) -> str:
+    """What to change when no stamps matched: the offset that starts both together when their spans (the
+    estimate's moved by ``offset``, s) do not overlap, else a wider tolerance or interpolation."""
+    ref_t, est_t = stamps_to_seconds(reference.stamps_ns), stamps_to_seconds(estimate.stamps_ns) + offset
+    if est_t[-1] < ref_t[0] or est_t[0] > ref_t[-1]:
+        start_together = offset + float(ref_t[0] - est_t[0])
+        return (
+            f"they do not overlap: if both start together (an estimate stamped from its own start, or on "
+            f"another clock), --t-offset {start_together:.6f} moves the estimate's first stamp onto the "
+            "reference's"
+        )
+    return "their stamps interleave without a pair close enough: a larger --t-max-diff, or --interpolate"
+
+
 def associate(
     reference: Trajectory,
     estimate: Trajectory,
@@ -216,7 +230,8 @@ def associate(
         raise EvaluationError(
             f"found no matching timestamps between reference and estimate with max. time diff {max_diff} s "
             f"and time offset {offset} s",
-            hint=f"reference spans {time_span(reference)}, estimate spans {time_span(estimate)}",
+            hint=f"reference spans {time_span(reference)}, estimate spans {time_span(estimate)}; "
+            + _no_match_advice(reference, estimate, offset),
         )
     short_p = short.positions[idx_short]
     short_R = quat_to_matrix(short.quats_xyzw[idx_short])
