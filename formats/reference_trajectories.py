@@ -177,13 +177,14 @@ class _Edge:
         return stamps[order], T
 
 
-def _collect_tf(reader: LogReader, topics: Iterable[str]) -> dict[str, _Edge]:
+def _collect_tf(reader: LogReader, topics: Iterable[str], static_topic: str = TF_STATIC_TOPIC) -> dict[str, _Edge]:
+    """Every edge of the TF tree on ``topics``, those of ``static_topic`` marked static."""
     edges: dict[str, _Edge] = {}
     conflicts = 0
     for topic, typename, _, message in reader.messages(topics):
         if typename != ros2.TF_MESSAGE:
             raise InputError(f"{reader.path} {topic} carries {typename}, not {ros2.TF_MESSAGE}")
-        static = topic == TF_STATIC_TOPIC
+        static = topic == static_topic
         for transform in message.transforms:
             parent, child = _frame(transform.header.frame_id), _frame(transform.child_frame_id)
             edge = edges.get(child)
@@ -222,7 +223,8 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
     ancestor of ``child``). The dynamic edge of the chain with the most transforms drives the output:
     one pose per transform of it, at its ``header.stamp``, composed with the latest transform of every
     other dynamic edge whose stamp is not after it (poses before every edge has one are dropped) and
-    with the last value of every static edge (``/tf_static``).
+    with the last value of every static edge (``/tf_static``, or for a namespaced ``tf_topic`` such as
+    ``/robot1/tf`` its own ``/robot1/tf_static`` when the log has it).
 
     Raises
     ------
@@ -232,10 +234,11 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
     from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
 
     parent, child = _frame(parent), _frame(child)
-    topics = [tf_topic] + ([TF_STATIC_TOPIC] if TF_STATIC_TOPIC in reader.topic_infos else [])
     if tf_topic not in reader.topic_infos:
         raise InputError(f"{reader.path}: no {tf_topic} topic", _topics_hint(reader))
-    edges = _collect_tf(reader, topics)
+    static_topic = f"{tf_topic}_static" if f"{tf_topic}_static" in reader.topic_infos else TF_STATIC_TOPIC
+    topics = [tf_topic] + ([static_topic] if static_topic in reader.topic_infos and static_topic != tf_topic else [])
+    edges = _collect_tf(reader, topics, static_topic)
     frames = set(edges) | {e.parent for e in edges.values()}
     for name, option in ((parent, "--parent"), (child, "--child")):
         if name not in frames:

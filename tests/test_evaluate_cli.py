@@ -385,6 +385,35 @@ def test_a_file_of_a_rosbag2_bag_is_named_for_its_bag_directory(tmp_path: Path) 
     )
 
 
+def test_a_namespaced_tf_topic_takes_its_own_static_transforms(tmp_path: Path) -> None:
+    """A robot under a namespace records /robot1/tf and /robot1/tf_static (Nav2's multi-robot remapping);
+    the chain read /tf_static only, so a frame on the robot's static tree was 'not in the TF tree'."""
+    from mcap_ros2.writer import Writer
+
+    from formats import ros2
+
+    def transform(stamp: int, parent: str, child: str, x: float) -> dict:
+        return {"header": {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": parent},
+                "child_frame_id": child,
+                "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0},
+                              "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}  # fmt: skip
+
+    bag = tmp_path / "robots.mcap"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(ros2.TF_MESSAGE, ros2.message_definition(ros2.TF_MESSAGE))
+        start = 1_000_000_000
+        writer.write_message("/robot1/tf_static", schema, {"transforms": [transform(start, "base_link", "laser", 0.25)]},
+                             log_time=start)  # fmt: skip
+        for k in range(20):
+            stamp = start + k * 100_000_000
+            writer.write_message("/robot1/tf", schema, {"transforms": [transform(stamp, "odom", "base_link", 0.1 * k)]},
+                                 log_time=stamp)  # fmt: skip
+        writer.finish()
+    trajectory = load_trajectory(bag, topic="/robot1/tf", parent="odom", child="laser")
+    np.testing.assert_allclose(trajectory.positions[:, 0], 0.1 * np.arange(20) + 0.25, rtol=0, atol=1e-12)
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
