@@ -119,6 +119,7 @@ def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
                     "translation (and RPE --pose-relation point_distance) means anything", source, info.typename)  # fmt: skip
     log_times: list[int] = []
     frames: Counter[str] = Counter()
+    moving = False  # an Odometry message's twist is not zero
     for _, _, log_time, message in reader.messages([topic]):
         pose = ros2.msg_to_pose(message)
         stamps.append(pose.stamp_ns)
@@ -126,6 +127,19 @@ def pose_topic_trajectory(reader: LogReader, topic: str) -> Trajectory:
         positions.append(np.asarray(pose.position))
         quats.append(np.asarray(pose.quat_xyzw))
         frames[_frame(message.header.frame_id)] += 1
+        if info.typename == ros2.ODOMETRY and not moving:
+            twist = message.twist.twist
+            moving = any(float(getattr(v, a)) != 0.0 for v in (twist.linear, twist.angular) for a in "xyz")
+    if (
+        moving
+        and len(positions) > 1
+        and all(np.array_equal(p, positions[0]) for p in positions)
+        and all(np.array_equal(q, quats[0]) for q in quats)
+    ):
+        raise InputError(
+            f"{source}: every message holds the same pose while its twist moves: odometry with velocities only",
+            "its pose fields are unset (as in a relpoint log's /odom), so it is no trajectory; name a pose topic",
+        )
     if len(frames) > 1:
         log.warning("%s: the poses are in %d frames (%s); they are read as one trajectory, as evo reads them",
                     source, len(frames), ", ".join(f"{name or repr(name)}: {count}" for name, count in frames.most_common()))  # fmt: skip

@@ -414,6 +414,20 @@ def test_a_namespaced_tf_topic_takes_its_own_static_transforms(tmp_path: Path) -
     np.testing.assert_allclose(trajectory.positions[:, 0], 0.1 * np.arange(20) + 0.25, rtol=0, atol=1e-12)
 
 
+def test_odometry_with_velocities_only_is_no_trajectory(tmp_path: Path) -> None:
+    """A relpoint log's /odom carries velocities, its pose fields the identity: exported as 50 poses at the
+    origin and evaluated as a robot standing still, without a word."""
+    log = tmp_path / "odometry.mcap"
+    code, _, err = invoke("simulate", "-o", log, "--iterations", "50", "--odometry-noise", "0.05", "--seed", "2")
+    assert code == 0, err
+    code, _, err = invoke("export", log, "--topic", "/odom", "-o", tmp_path / "odom.tum")
+    assert code == 3
+    assert_one_error_line(err, f"{log} /odom: every message holds the same pose while its twist moves")
+    code, _, err = invoke("evaluate", log, "--estimate-topic", "/odom", "-r", log)
+    assert code == 3 and "odometry with velocities only" in err, err
+    assert not (tmp_path / "odom.tum").exists()
+
+
 def test_trajectories_in_different_frames_are_pointed_out() -> None:
     bag = shared_data(*BAG)
     args = ["evaluate", bag, "--estimate-topic", "/odom", "--reference", bag, "--reference-topic", "/amcl_pose"]
