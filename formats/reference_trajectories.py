@@ -219,6 +219,32 @@ def _collect_tf(reader: LogReader, topics: Iterable[str], static_topic: str = TF
     return edges
 
 
+def _tf_tree(reader: LogReader, tf_topic: str) -> dict[str, _Edge]:
+    """The edges of ``tf_topic`` and of its static topic (``/robot1/tf_static`` for ``/robot1/tf`` when the
+    log has it, else ``/tf_static``), by child frame."""
+    static_topic = f"{tf_topic}_static" if f"{tf_topic}_static" in reader.topic_infos else TF_STATIC_TOPIC
+    topics = [tf_topic] + ([static_topic] if static_topic in reader.topic_infos and static_topic != tf_topic else [])
+    return _collect_tf(reader, topics, static_topic)
+
+
+@dataclass(frozen=True)
+class TfEdge:
+    """One edge of a log's TF tree: ``T_parent_child``, from the static topic or not, with its transform count."""
+
+    parent: str
+    child: str
+    static: bool
+    count: int
+
+
+def tf_edges(reader: LogReader, tf_topic: str = TF_TOPIC) -> list[TfEdge]:
+    """The edges of the TF tree on ``tf_topic`` and its static topic (as a chain reads them), dynamic ones
+    first, each group by parent and child."""
+    edges = _tf_tree(reader, tf_topic)
+    found = [TfEdge(edge.parent, child, edge.static, len(edge.stamps)) for child, edge in edges.items()]
+    return sorted(found, key=lambda e: (e.static, e.parent, e.child))
+
+
 def _ancestors(frame: str, edges: dict[str, _Edge]) -> list[str]:
     """``frame``, its parent, grandparent, ... up to the root of its TF tree."""
     chain = [frame]
@@ -250,9 +276,7 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
     parent, child = _frame(parent), _frame(child)
     if tf_topic not in reader.topic_infos:
         raise InputError(f"{reader.path}: no {tf_topic} topic", _topics_hint(reader))
-    static_topic = f"{tf_topic}_static" if f"{tf_topic}_static" in reader.topic_infos else TF_STATIC_TOPIC
-    topics = [tf_topic] + ([static_topic] if static_topic in reader.topic_infos and static_topic != tf_topic else [])
-    edges = _collect_tf(reader, topics, static_topic)
+    edges = _tf_tree(reader, tf_topic)
     frames = set(edges) | {e.parent for e in edges.values()}
     for name, option in ((parent, "--parent"), (child, "--child")):
         if name not in frames:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from formats import ros2
 from formats.layouts import Storage
 from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, may_serve, role_accepts
 from formats.outputs import json_text
+from formats.reference_trajectories import tf_edges
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
@@ -133,6 +135,12 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         topic for topic, item in reader.topic_infos.items() if item.typename in ros2.POSE_TYPES and item.count
     ]
     tf_topics = [topic for topic, item in reader.topic_infos.items() if item.typename == ros2.TF_MESSAGE and item.count]
+    # The frames a chain can join (--parent/--child): each TF topic with its static one.
+    tf_trees = {
+        topic: [dataclasses.asdict(edge) for edge in tf_edges(reader, topic)]
+        for topic in tf_topics
+        if not (topic.endswith("_static") and topic.removesuffix("_static") in tf_topics)
+    }
     document = {
         "path": str(log),
         "size_bytes": storage.size_bytes,
@@ -145,6 +153,7 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
         ),
         "reference_topics": reference_topics,
         "tf_topics": tf_topics,
+        "tf_edges": tf_trees,
     }
     missing = sorted({role for cap in document["estimators"].values() for role in cap["missing"]})
     named = set(reader.topics.roles().values())
@@ -216,3 +225,9 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     if tf_topics:
         click.echo(f"  transforms on {', '.join(tf_topics)}: a reference from a frame chain with --parent/--child, "
                    "an estimate with --estimate-parent/--estimate-child")  # fmt: skip
+        for topic, edges in document["tf_edges"].items():
+            moving = [f"{e['parent']} -> {e['child']} ({e['count']})" for e in edges if not e["static"]]
+            fixed = [f"{e['parent']} -> {e['child']}" for e in edges if e["static"]]
+            shown = ", ".join(fixed[:8]) + (f", ... ({len(fixed)} in all; --json lists them)" if len(fixed) > 8 else "")
+            click.echo(f"  {topic} frames: {', '.join(moving) or 'no dynamic transform'}"
+                       + (f"; static: {shown}" if fixed else ""))  # fmt: skip

@@ -634,6 +634,22 @@ def test_info_names_the_pose_topics_a_bag_can_be_evaluated_against() -> None:
     assert "trajectory with --reference-topic" in out and "/amcl_pose" in out
 
 
+def test_info_names_the_tf_frames_a_chain_can_join() -> None:
+    """`info` said a bag has transforms but not which frames, the one thing --parent/--child need (the
+    nav2 bag's robot is base_link under odom, base_footprint hangs below it statically)."""
+    bag = shared_data(*BAG)
+    code, out, _ = invoke("info", bag, "--json")
+    assert code == 0
+    edges = {(e["parent"], e["child"]): e for e in json.loads(out)["tf_edges"]["/tf"]}
+    assert edges[("map", "odom")]["count"] == 921 and not edges[("map", "odom")]["static"]
+    assert edges[("odom", "base_link")]["count"] == 2639
+    assert edges[("base_link", "base_footprint")]["static"]
+    assert len(edges) == 33  # every frame but the root, map, is a child once
+    code, out, _ = invoke("info", bag)
+    line = next(line for line in out.splitlines() if line.startswith("  /tf frames:"))
+    assert "map -> odom (921), odom -> base_link (2639); static: base_link -> base_footprint" in line
+
+
 def test_an_estimate_too_short_for_the_rpe_still_gets_its_ape(tmp_path: Path, small_log: Path) -> None:
     from formats.reference_trajectories import load_trajectory
     from formats.trajectory_files import write_tum
