@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -15,11 +16,14 @@ from formats.layouts import Storage
 from formats.log import ROLE_OPTIONS, ROLE_TYPES, LogReader, TopicInfo, may_serve, role_accepts
 from formats.outputs import json_text
 from formats.reference_trajectories import tf_edges
+from relpoint.errors import RelpointError
 from relpoint.estimators import ESTIMATORS
 from relpoint_app.roles import NEED_ROLES
 from relpoint_cli.errors import handle_errors
 from relpoint_cli.options import input_path
 from relpoint_cli.topics import topic_options, topics_from
+
+logger = logging.getLogger(__name__)
 
 
 def capabilities(available: set[str], unusable: frozenset[str] = frozenset()) -> dict[str, Any]:
@@ -136,11 +140,14 @@ def info(log: Path, as_json: bool, **topic_names: str) -> None:
     ]
     tf_topics = [topic for topic, item in reader.topic_infos.items() if item.typename == ros2.TF_MESSAGE and item.count]
     # The frames a chain can join (--parent/--child): each TF topic with its static one.
-    tf_trees = {
-        topic: [dataclasses.asdict(edge) for edge in tf_edges(reader, topic)]
-        for topic in tf_topics
-        if not (topic.endswith("_static") and topic.removesuffix("_static") in tf_topics)
-    }
+    tf_trees: dict[str, list[dict[str, Any]]] = {}
+    for topic in tf_topics:
+        if topic.endswith("_static") and topic.removesuffix("_static") in tf_topics:
+            continue  # read with its dynamic topic
+        try:
+            tf_trees[topic] = [dataclasses.asdict(edge) for edge in tf_edges(reader, topic)]
+        except RelpointError as error:  # a transform that cannot be decoded: the rest of info still holds
+            logger.warning("%s: its TF tree cannot be read (%s)", topic, error)
     document = {
         "path": str(log),
         "size_bytes": storage.size_bytes,

@@ -650,6 +650,24 @@ def test_info_names_the_tf_frames_a_chain_can_join() -> None:
     assert "map -> odom (921), odom -> base_link (2639); static: base_link -> base_footprint" in line
 
 
+def test_info_on_a_bag_with_an_undecodable_transform_still_describes_it(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    from formats import ros2
+
+    bag = tmp_path / "broken_tf.mcap"
+    with bag.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(ros2.TF_MESSAGE, "ros2msg", ros2.message_definition(ros2.TF_MESSAGE).encode())
+        channel = writer.register_channel("/tf", "cdr", schema)
+        writer.add_message(channel, log_time=1, data=b"\x00\x01\x00\x00\xff\xff\xff\x7f", publish_time=1)
+        writer.finish()
+    code, out, err = invoke("info", bag)
+    assert code == 0, err
+    assert "/tf: its TF tree cannot be read" in err and "tf2_msgs/msg/TFMessage" in out
+
+
 def test_an_estimate_too_short_for_the_rpe_still_gets_its_ape(tmp_path: Path, small_log: Path) -> None:
     from formats.reference_trajectories import load_trajectory
     from formats.trajectory_files import write_tum
