@@ -37,6 +37,7 @@ when the file is the shorter of the two. Stamps that go back in time are an erro
 from __future__ import annotations
 
 import codecs
+import csv
 import logging
 import os
 import re
@@ -67,14 +68,14 @@ def _data_lines(path: Path, *, comma_separated: bool = False) -> Iterator[tuple[
     """(line number, fields) of the non-comment, non-blank lines of ``path``.
 
     Fields are separated by any run of blanks and commas; with ``comma_separated``, a line holding commas
-    by each comma (an empty value between two commas is a field, as a CSV writer means it), blanks
-    around them stripped.
+    is read as CSV: each comma separates a value (an empty one between two commas included), quotes
+    keep commas inside a value (``"(0.0, 0.0)"``), blanks around values are stripped.
     """
     for number, stripped in text_lines(path):
         if not stripped or stripped.startswith("#"):
             continue
         if comma_separated and "," in stripped:
-            yield number, [f.strip() for f in stripped.split(",")]
+            yield number, [f.strip() for f in next(csv.reader([stripped]))]
         else:
             yield number, [f for f in _SEPARATORS.split(stripped) if f]
 
@@ -542,6 +543,8 @@ class ColumnLayout:
     names. stamp: the stamp's column; position: x, y, z's; quaternion: x, y, z, w's (0-based).
     stamp_unit_ns: nanoseconds per stamp unit as the header names it, None when it names none.
     comma_separated: the header separates its names with commas, so the rows' values are one per comma.
+    stamp_nanoseconds: the column of the stamp's nanoseconds when the stamp is split in two
+    (``header.stamp.secs``, ``header.stamp.nsecs``), whole seconds then in ``stamp``; None otherwise.
     """
 
     line: int
@@ -552,6 +555,7 @@ class ColumnLayout:
     quaternion: tuple[int, int, int, int]
     stamp_unit_ns: int | None
     comma_separated: bool = False
+    stamp_nanoseconds: int | None = None
 
     @property
     def is_tum(self) -> bool:
@@ -576,6 +580,24 @@ def _header_names(text: str) -> list[str]:
         else:
             names.append(word)
     return names
+
+
+#: Last words of the column holding a split stamp's nanoseconds (ROS 1 ``nsecs``, ROS 2 ``nanosec``).
+_NANOSECOND_WORDS = frozenset({"nsec", "nsecs", "nanosec", "nanosecs"})
+
+
+def _nanoseconds_column(names: list[str], stamp: int) -> int | None:
+    """The column holding the nanoseconds of the stamp in column ``stamp`` when that one holds its whole
+    seconds (``header.stamp.secs`` beside ``header.stamp.nsecs``, ``header.stamp.sec`` beside
+    ``header.stamp.nanosec``), else None."""
+    words = [w.lower() for w in _WORD.findall(names[stamp])]
+    if not words or words[-1] not in ("sec", "secs"):
+        return None
+    for column, name in enumerate(names):
+        other = [w.lower() for w in _WORD.findall(name)]
+        if other[:-1] == words[:-1] and other[-1:] and other[-1] in _NANOSECOND_WORDS:
+            return column
+    return None
 
 
 def _is_header_stamp(name: str) -> bool:
@@ -621,6 +643,7 @@ def _layout_of(names: list[str], line: int, commented: bool, comma_separated: bo
         quaternion=(roles[("q", "x")], roles[("q", "y")], roles[("q", "z")], roles[("q", "w")]),
         stamp_unit_ns=_STAMP_UNITS.get(stamp_unit),
         comma_separated=comma_separated,
+        stamp_nanoseconds=_nanoseconds_column(names, roles[("t", "")]),
     )
 
 
@@ -695,6 +718,7 @@ def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None
         raise InputError(f"{path}: no header line naming the columns (timestamp, x, y, z, qx, qy, qz, qw)")
     width = len(layout.names)
     stamps_text: list[str] = []
+    nanoseconds_text: list[str] = []
     rows: list[list[str]] = []
     lines: list[int] = []
     for number, fields in _data_lines(path, comma_separated=layout.comma_separated):
@@ -706,9 +730,14 @@ def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None
             raise InputError(f"{path}:{number}: expected {width} values, as the header on line {layout.line} names, "
                              f"got {len(fields)}")  # fmt: skip
         stamps_text.append(fields[layout.stamp])
+        if layout.stamp_nanoseconds is not None:
+            nanoseconds_text.append(fields[layout.stamp_nanoseconds])
         rows.append([fields[k] for k in (*layout.position, *layout.quaternion)])
         lines.append(number)
-    unit = layout.stamp_unit_ns
+    if layout.stamp_nanoseconds is not None:  # whole seconds and nanoseconds in two columns
+        stamps_text = [_joined_stamp(sec, nsec, path, number)
+                       for sec, nsec, number in zip(stamps_text, nanoseconds_text, lines, strict=True)]  # fmt: skip
+    unit = layout.stamp_unit_ns if layout.stamp_nanoseconds is None else _NS_PER_S
     if unit is None and stamps_text and all(t.isascii() and t.isdigit() for t in stamps_text):
         unit = 1 if int(stamps_text[0]) >= _NANOSECOND_STAMP else None
     stamps: list[int] = []
@@ -721,6 +750,15 @@ def read_named_columns(path: str | os.PathLike[str], layout: ColumnLayout | None
         except (ValueError, InvalidOperation):
             raise InputError(f"{path}:{number}: bad timestamp {text!r}") from None
     return _pose_rows(path, stamps, rows, lines)
+
+
+def _joined_stamp(seconds: str, nanoseconds: str, path: Path, number: int) -> str:
+    """Decimal seconds text of a stamp split into whole ``seconds`` and ``nanoseconds`` (both integers)."""
+    if not (seconds.isascii() and seconds.isdigit() and nanoseconds.isascii() and nanoseconds.isdigit()):
+        raise InputError(
+            f"{path}:{number}: bad timestamp {seconds!r}, {nanoseconds!r}, expected whole seconds and nanoseconds"
+        )
+    return format_stamp(int(seconds) * _NS_PER_S + int(nanoseconds))
 
 
 def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat | None:

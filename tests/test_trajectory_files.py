@@ -791,6 +791,29 @@ def test_rostopic_echo_csv_of_odometry_is_read_by_its_header_stamp(tmp_path: Pat
     _assert_same(load_trajectory(path), original)
 
 
+@pytest.mark.parametrize(("seconds", "nanoseconds"), [("header.stamp.secs", "header.stamp.nsecs"),
+                                                     ("header.stamp.sec", "header.stamp.nanosec")])  # fmt: skip
+def test_a_stamp_split_in_seconds_and_nanoseconds_is_joined(tmp_path: Path, seconds: str, nanoseconds: str) -> None:
+    """bagpy's CSV of a ROS 1 bag topic (and such CSVs of ROS 2 topics): a receive ``Time``, the header
+    stamp split in whole seconds and nanoseconds, tuples quoted with their commas. The seconds column
+    alone was taken for the stamp (every pose of a second at one stamp: 761 of 788 'repeated', ATE
+    0.173 m against 0.013 m), and a quoted covariance tuple counted as several values."""
+    from formats.reference_trajectories import load_trajectory
+
+    original = _trajectory(np.random.default_rng(8))
+    header = ["Time", "header.seq", seconds, nanoseconds, "header.frame_id", "child_frame_id",
+              *(f"pose.pose.position.{a}" for a in "xyz"), *(f"pose.pose.orientation.{a}" for a in "xyzw"),
+              "pose.covariance", "twist.twist.linear.x"]  # fmt: skip
+    rows = [",".join(header)]
+    for k, (stamp, p, q) in enumerate(zip(original.stamps_ns, original.positions, original.quats_xyzw, strict=True)):
+        received = f"{(int(stamp) + 40_000_000) * 1e-9:.9f}"
+        rows.append(",".join([received, str(k), str(int(stamp) // 10**9), str(int(stamp) % 10**9), "odom", "base",
+                              *map(repr, p.tolist()), *map(repr, q.tolist()), '"(0.0, 0.0, 0.0)"', "0.1"]))  # fmt: skip
+    path = tmp_path / "_odom.csv"
+    path.write_text("\n".join(rows) + "\n")
+    _assert_same(load_trajectory(path), original)
+
+
 def test_a_trailing_comma_on_every_named_row_is_no_value(tmp_path: Path) -> None:
     from formats.reference_trajectories import load_trajectory
 
