@@ -261,8 +261,9 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
 
     The chain may pass through any number of frames, up and down the tree (``parent`` need not be an
     ancestor of ``child``). The dynamic edge of the chain with the most transforms drives the output:
-    one pose per transform of it, at its ``header.stamp``, composed with the latest transform of every
-    other dynamic edge whose stamp is not after it (poses before every edge has one are dropped) and
+    one pose per transform of it, at its ``header.stamp``, composed with every other dynamic edge
+    interpolated at that stamp as tf2 does (:func:`_edge_at`; poses before every edge has one are
+    dropped) and
     with the last value of every static edge (``/tf_static``, or for a namespaced ``tf_topic`` such as
     ``/robot1/tf`` its own ``/robot1/tf_static`` when the log has it).
 
@@ -308,9 +309,8 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
         elif edges[frame].static:
             selected[frame] = np.broadcast_to(T[-1], (len(stamps), 4, 4))
         else:
-            index = np.searchsorted(edge_stamps, stamps, side="right") - 1
-            valid &= index >= 0
-            selected[frame] = T[np.maximum(index, 0)]
+            valid &= stamps >= edge_stamps[0]
+            selected[frame] = _edge_at(edge_stamps, T, stamps)
     T_common_child = np.tile(np.eye(4), (len(stamps), 1, 1))
     for frame in down:  # child first: T_common_child = T_common_a @ ... @ T_b_child
         T_common_child = selected[frame] @ T_common_child
@@ -325,6 +325,27 @@ def tf_chain_trajectory(reader: LogReader, parent: str, child: str, tf_topic: st
     quats = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     log.debug("%s: %d poses driven by the %s edge", source, len(T), driver)
     return _from_poses(list(stamps[valid]), list(T[:, :3, 3]), list(quats), source)
+
+
+def _edge_at(edge_stamps: np.ndarray, T: FloatArray, stamps: np.ndarray) -> FloatArray:
+    """One TF edge's transforms (n, 4, 4) at its sorted ``edge_stamps`` (ns), looked up at ``stamps`` (ns)
+    as tf2 does: between two of its transforms, translation linear and rotation by slerp; of several at
+    one stamp, the last. After its last transform the last is held (tf2 would refuse to extrapolate);
+    before its first, the first (the caller drops those stamps)."""
+    from scipy.spatial.transform import Rotation, Slerp  # here, not at import: scipy costs start-up time
+
+    last_of_stamp = np.append(edge_stamps[1:] != edge_stamps[:-1], True)
+    edge_stamps, T = edge_stamps[last_of_stamp], T[last_of_stamp]
+    if len(edge_stamps) == 1:
+        return np.broadcast_to(T[0], (len(stamps), 4, 4))
+    # Relative to the first stamp: int64 nanoseconds of epoch stamps lose precision as float64 seconds.
+    times = (edge_stamps - edge_stamps[0]).astype(np.float64)
+    query = np.clip(stamps - edge_stamps[0], 0, edge_stamps[-1] - edge_stamps[0]).astype(np.float64)
+    out = np.tile(np.eye(4), (len(stamps), 1, 1))
+    out[:, :3, :3] = Slerp(times, Rotation.from_matrix(T[:, :3, :3]))(query).as_matrix()
+    for axis in range(3):
+        out[:, axis, 3] = np.interp(query, times, T[:, axis, 3])
+    return out
 
 
 # --- any input ----------------------------------------------------------------------------------------
