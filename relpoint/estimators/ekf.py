@@ -48,6 +48,7 @@ from relpoint.estimators._association import (
     nearest_neighbour,
     widening_scales,
 )
+from relpoint.estimators._dropouts import DropoutRegistration, rotation_errors
 from relpoint.estimators._fix_frame import FixFrame, FrameFit, frame_summary, placed_in_one_frame
 from relpoint.estimators._fix_gate import FixGate
 from relpoint.estimators._landmark_motion import (
@@ -106,6 +107,8 @@ class EkfSlam(Estimator[PointObservation]):
         del rng  # the EKF draws no random numbers
         self.config = config or EkfConfig()
         self._gaps = GapBridge()
+        self._dropouts = DropoutRegistration()
+        self._last_pose: tuple[FloatArray, FloatArray, FloatArray] | None = None  # p, R, their covariance (6, 6)
         cv = self.config.motion == "constant_velocity"
         self._nv = 12 if cv else 6
         sigma = self.config.observation_sigma if self.config.observation_sigma is not None else SIMULATOR_SIGMA
@@ -191,6 +194,7 @@ class EkfSlam(Estimator[PointObservation]):
         points = np.asarray(observation.points)
         pairs: tuple[FloatArray, npt.NDArray[np.int64]] | None = None
         if len(points):
+            self._measure_dropout(observation.stamp_ns, points)
             if self._mover_test is not None:
                 self._widen(np.flatnonzero(self._moving))
             assignment, may_start = self._associate_or_widen(observation)
@@ -238,7 +242,27 @@ class EkfSlam(Estimator[PointObservation]):
             else:
                 self._local_poses.append((observation.stamp_ns, self._local_pose()))
         self._recent.add(observation.stamp_ns, self._position)
+        self._dropouts.remember(observation.stamp_ns, points)
+        if len(points) >= 3:
+            self._last_pose = (self._position.copy(), self._rotation.copy(), self._P[:6, :6].copy())
         return self.pose()
+
+    def _measure_dropout(self, stamp_ns: int, points: FloatArray) -> None:
+        """After dropped observations, fuse the motion the points register into since the last one
+        (:mod:`relpoint.estimators._dropouts`) as a measurement of the pose: the last pose composed with
+        it, its covariance the last pose's plus the registration's."""
+        if self._last_pose is None:
+            return
+        p0, R0, P0 = self._last_pose
+        predicted = (R0.T @ self._rotation, R0.T @ (self._position - p0))
+        motion = self._dropouts.motion_since_last(stamp_ns, points, predicted, float(np.sqrt(self._R_obs[0, 0])))
+        if motion is None:
+            return
+        R, t, C = motion
+        innovation = np.r_[p0 + R0 @ t - self._position, rotation_errors(self._rotation, R0 @ R)]
+        C_world = C.copy()
+        C_world[:3, :3] = R0 @ C[:3, :3] @ R0.T
+        self._kalman_update(np.arange(6), np.eye(6), innovation, P0 + C_world)
 
     def add_odometry(self, odometry: OdometryMeasurement) -> None:
         """Hold a body-frame twist from its stamp until the next one (process model eq. 3-7); the
@@ -333,6 +357,8 @@ class EkfSlam(Estimator[PointObservation]):
             "angular_acceleration_noise": self.config.angular_noise,
             "state_size": int(self._P.shape[0]),
             "time_gaps_bridged": self._gaps.bridged,
+            "dropouts_registered": self._dropouts.registered,
+            "dropouts_unregistered": self._dropouts.unregistered,
             "odometry_stale": self._hold.stale,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),

@@ -50,6 +50,7 @@ from scipy.special import logsumexp
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators._association import COLLAPSE_FRACTION, widening_scales
 from relpoint.estimators._drift_rate import DRIFT_PRIOR, DriftRate
+from relpoint.estimators._dropouts import DropoutRegistration, rotation_errors
 from relpoint.estimators._fix_frame import (
     FixFrame,
     FrameFit,
@@ -178,6 +179,8 @@ class FastSlam(Estimator[PointObservation]):
         self.config = cfg = config or FastSlamConfig()
         self._rng = rng
         self._gaps = GapBridge()
+        self._dropouts = DropoutRegistration()
+        self._last_poses: tuple[FloatArray, FloatArray] | None = None  # each particle's (N, 3), (N, 3, 3)
         n = cfg.particles
         sigma = cfg.observation_sigma if cfg.observation_sigma is not None else SIMULATOR_SIGMA
         self._search_radius = cfg.search_radius if cfg.search_radius is not None else SEARCH_RADIUS_SIGMAS * sigma
@@ -291,6 +294,9 @@ class FastSlam(Estimator[PointObservation]):
         if self._predicted:  # once per iteration, however many records split the prediction
             Sigma[:, :6, :6] += np.eye(6) * self.config.pose_noise**2
             self._predicted = False
+        points = np.asarray(observation.points)
+        if len(points):
+            Sigma = self._measure_dropout(observation.stamp_ns, points, Sigma)
         # 1.0 samples the motion model, except while the initial twist is unknown: a blind draw from
         # its wide prior (initial_speed_sigma) leaves most particles metres off after one step.
         proposal = self.config.variant == "2.0" or self._twist_unknown
@@ -346,7 +352,35 @@ class FastSlam(Estimator[PointObservation]):
         if self._frame_fit is not None and self._frame_fit.covariance.any():  # draws only from an uncertain fit
             self._draw_means.append((observation.stamp_ns, self.mean_frame_draw))
         self._recent.add(observation.stamp_ns, self.weights @ self.positions)
+        self._dropouts.remember(observation.stamp_ns, points)
+        if len(points) >= 3:
+            self._last_poses = (self.positions.copy(), self.rotations.copy())
         return self.pose()
+
+    def _measure_dropout(self, stamp_ns: int, points: FloatArray, Sigma: FloatArray) -> FloatArray:
+        """After dropped observations, fuse the motion the points register into since the last one
+        (:mod:`relpoint.estimators._dropouts`) into each particle's prior ``Sigma`` (N, 12, 12) as a
+        measurement of its pose: its pose at the last observation composed with the motion. Moves the
+        particles' nominal state; returns the prior given that measurement."""
+        if self._last_poses is None:
+            return Sigma
+        p0, R0 = self._last_poses
+        best = int(np.argmax(self.weights))  # its predicted motion is one of the registration's starts
+        predicted = (R0[best].T @ self.rotations[best], R0[best].T @ (self.positions[best] - p0[best]))
+        motion = self._dropouts.motion_since_last(stamp_ns, points, predicted, float(np.sqrt(self._Q[0, 0])))
+        if motion is None:
+            return Sigma
+        R, t, C = motion
+        innovation = np.concatenate(
+            [p0 + R0 @ t - self.positions, rotation_errors(self.rotations, R0 @ R)], axis=1
+        )  # (N, 6)
+        C_world = np.broadcast_to(C, (len(p0), 6, 6)).copy()
+        C_world[:, :3, :3] = R0 @ C[:3, :3] @ np.swapaxes(R0, 1, 2)
+        S = Sigma[:, :6, :6] + C_world
+        gain = np.swapaxes(np.linalg.solve(S, Sigma[:, :6, :]), 1, 2)  # (N, 12, 6): Sigma H^T S^-1
+        self._inject(np.einsum("pij,pj->pi", gain, innovation))
+        Sigma = Sigma - gain @ Sigma[:, :6, :]
+        return 0.5 * (Sigma + np.swapaxes(Sigma, 1, 2))
 
     def add_fix(self, fix: PositionFix) -> None:
         """Fuse an absolute position fix (``fix_alignment="rigid"``; ignored with ``ignore``).
@@ -596,6 +630,8 @@ class FastSlam(Estimator[PointObservation]):
             "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             "time_gaps_bridged": self._gaps.bridged,
+            "dropouts_registered": self._dropouts.registered,
+            "dropouts_unregistered": self._dropouts.unregistered,
             "odometry_stale": self._hold.stale,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),

@@ -88,6 +88,8 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators._dropouts import DropoutRegistration
+from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.base import POINTS, Estimator
 from relpoint.estimators.relative_point import _kernels
 from relpoint.estimators.relative_point.charting import PointCharting
@@ -109,7 +111,7 @@ from relpoint.estimators.relative_point.registration import (
 )
 from relpoint.estimators.relative_point.tally import IdTally
 from relpoint.estimators.spec import EstimatorSpec
-from relpoint.geometry import FloatArray, apply_transform, quaternion_xyzw
+from relpoint.geometry import FloatArray, apply_transform, quaternion_xyzw, rigid_inverse
 from relpoint.types import LandmarkMap, PointObservation, Pose
 
 logger = logging.getLogger(__name__)
@@ -153,6 +155,7 @@ class RelativePointEstimator(
             consensus=config.consensus_bound,
         )
         self.motion = MotionModel()
+        self._dropouts = DropoutRegistration()
         self.index = GlobalIndex(max(config.global_match_bound, config.merge_bound, 1e-3))
         self.ungrouped = UngroupedList()
         self.tally = IdTally()
@@ -230,6 +233,8 @@ class RelativePointEstimator(
             return self._finish(k, observation.stamp_ns, self._T_world_sensor)
 
         self._motion_measured = False
+        self._measure_dropout(observation.stamp_ns, points)
+        self._dropouts.remember(observation.stamp_ns, points)
         ids = self._register(points, k)
         if self.config.global_matching:
             self._match_globally(points, ids, k)
@@ -257,6 +262,18 @@ class RelativePointEstimator(
         self._housekeeping(k)
         self._refresh_index()
         return self._finish(k, observation.stamp_ns, T_world_sensor)
+
+    def _measure_dropout(self, stamp_ns: int, points: FloatArray) -> None:
+        """After dropped observations, the local matching predicts the motion the points register into
+        since the last observation (:mod:`relpoint.estimators._dropouts`) rather than the last motion
+        stretched over the interval (at most ``MAX_INTERVAL_RATIO`` times)."""
+        T_prev_curr = rigid_inverse(self.motion.T_curr_prev)
+        sigma = self.config.observation_sigma if self.config.observation_sigma is not None else SIMULATOR_SIGMA
+        motion = self._dropouts.motion_since_last(stamp_ns, points, (T_prev_curr[:3, :3], T_prev_curr[:3, 3]), sigma)
+        if motion is not None:
+            T_prev_curr = np.eye(4)
+            T_prev_curr[:3, :3], T_prev_curr[:3, 3] = motion[0], motion[1]
+            self.motion.measured_over(rigid_inverse(T_prev_curr))
 
     def landmark_map(self) -> LandmarkMap:
         """Mapped points (static: least-squares global position) and points reported moving (mean position);
@@ -316,6 +333,8 @@ class RelativePointEstimator(
             "groups_removed": self.groups.removed,
             "group_fit_failures": self.groups.failed_fits,
             "map_restarts": len(self._map_restarts),
+            "dropouts_registered": self._dropouts.registered,
+            "dropouts_unregistered": self._dropouts.unregistered,
             **({"final_adjustment": self.adjustment_report} if self.adjustment_report else {}),
         }
 

@@ -133,6 +133,12 @@ class MotionModel:
                 self.T_curr_prev = scaled_motion(self.T_curr_prev, ratio)
         self.interval_s = seconds
 
+    def measured_over(self, T_curr_prev: FloatArray) -> None:
+        """Predict this iteration with ``T_curr_prev`` (4, 4), measured otherwise over its whole interval
+        (a registration after dropped observations), instead of the last motion rescaled."""
+        self.T_curr_prev = np.asarray(T_curr_prev, dtype=np.float64)
+        self._unscaled = None
+
     def predict(self, points: FloatArray, age: IntArray) -> FloatArray:
         """Carry points (N, 3) last observed ``age`` (N,) iterations ago (1 or more) into the current frame."""
         return transform_by_age(self.T_curr_prev, points, age)

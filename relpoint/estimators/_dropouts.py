@@ -1,0 +1,100 @@
+"""The motion over dropped observations, measured from the points rather than predicted.
+
+A recorder that drops frames (a full disk buffer, a sensor restarting, a link lost for a few
+seconds) leaves an interval of several typical ones while the sensor keeps moving. The filters'
+constant-velocity prediction over it may be right on average, but its uncertainty grows as the cube
+of the interval: after 3 s of the vehicle's 0.5 rad/s^2 of angular acceleration noise the heading is
+uncertain by several radians and the position by metres, every landmark in view lies inside every
+point's gate, and the association pairs points with the wrong landmarks (an independent simulator's
+circle at 2 m/s with 3 s dropped: ATE 0.007 -> 2.4 m for the EKF, 0.009 -> 2.8 m and 140 deg for
+FastSLAM, every landmark seen after the gap mapped twice).
+
+After such an interval the observation is registered onto the last one
+(:func:`relpoint.estimators._noise.register_consecutive`: ICP from the identity, from the predicted
+motion, then the global search), and where its points come back onto the last observation's (the
+revisit test), the registered motion takes the prediction's place, with the uncertainty of a
+registration of those points: a point's noise in position, and that over the points' spread in
+rotation. Where the observations share nothing (the gap was too long to see the same landmarks), the
+prediction stands as before.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from relpoint.estimators._noise import register_consecutive
+from relpoint.types import FloatArray
+
+#: An interval this many times the log's typical one (its median so far) follows dropped observations:
+#: at least two missing. Stamps jittered by up to half an interval never reach it.
+DROPOUT_INTERVALS = 3.0
+
+#: Intervals remembered for the typical one.
+_HISTORY = 64
+
+
+class DropoutRegistration:
+    """Keeps the last observation's points and tells, after a dropout, the motion since it.
+
+    ``motion_since_last`` returns ``(R, t, covariance)``: the last observation's sensor frame to this
+    one's (``x_last = R x_now + t``) and the covariance (6, 6) of its error ``(dt, dtheta)``, in the
+    last observation's frame (``dtheta`` of ``R_true = R Exp(dtheta)``), or None when the interval is a
+    regular one or the registration does not hold. ``registered`` and ``unregistered`` count the
+    dropouts whose motion was measured and those where it could not be.
+    """
+
+    def __init__(self) -> None:
+        self._intervals: deque[float] = deque(maxlen=_HISTORY)
+        self._points: FloatArray | None = None
+        self._stamp_ns: int | None = None
+        self._rng = np.random.default_rng(0)
+        self.registered = 0
+        self.unregistered = 0
+
+    def remember(self, stamp_ns: int, points: FloatArray) -> None:
+        """The observation just processed (its points in the sensor frame, m); empty ones are not kept."""
+        points = np.asarray(points, dtype=np.float64)
+        if self._stamp_ns is not None and stamp_ns > self._stamp_ns and not self.is_dropout(stamp_ns):
+            self._intervals.append((stamp_ns - self._stamp_ns) * 1e-9)
+        if len(points) >= 3:
+            self._points, self._stamp_ns = points[np.all(np.isfinite(points), axis=1)], stamp_ns
+
+    def is_dropout(self, stamp_ns: int) -> bool:
+        """Whether the interval from the last kept observation to ``stamp_ns`` follows dropped ones."""
+        if self._stamp_ns is None or len(self._intervals) < 3:
+            return False
+        typical = float(np.median(self._intervals))
+        return (stamp_ns - self._stamp_ns) * 1e-9 > DROPOUT_INTERVALS * typical
+
+    def motion_since_last(
+        self, stamp_ns: int, points: FloatArray, predicted: tuple[FloatArray, FloatArray], sigma: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """After a dropout, the registered motion from the last observation to this one's ``points``
+        (sensor frame, m), ICP started from ``predicted`` ``(R, t)`` among others; ``sigma`` is a
+        point's noise (m). None when the interval is regular or the registration does not revisit."""
+        if self._points is None or not self.is_dropout(stamp_ns):
+            return None
+        points = np.asarray(points, dtype=np.float64)
+        points = points[np.all(np.isfinite(points), axis=1)]
+        if len(points) < 3:
+            return None
+        registered, _, revisits = register_consecutive(self._points, points, predicted, self._rng)
+        if registered is None or not revisits:
+            self.unregistered += 1
+            return None
+        R, t, residual = registered
+        spread = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+        noise = max(sigma, float(np.sqrt(np.mean(residual**2))) if len(residual) else sigma)
+        covariance = np.diag(np.r_[np.full(3, noise**2), np.full(3, (noise / max(spread, noise)) ** 2)])
+        self.registered += 1
+        return R, t, covariance
+
+
+def rotation_errors(predicted: FloatArray, measured: FloatArray) -> FloatArray:
+    """``dtheta`` (..., 3) of ``measured = predicted Exp(dtheta)`` for rotation matrices (..., 3, 3)."""
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy costs start-up time
+
+    between = np.swapaxes(predicted, -1, -2) @ measured
+    return np.asarray(Rotation.from_matrix(between.reshape(-1, 3, 3)).as_rotvec()).reshape((*between.shape[:-2], 3))
