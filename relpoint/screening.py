@@ -89,10 +89,17 @@ class InputScreen:
             keep = ranges <= MAX_POINT_RANGE
         self._remember(ranges[keep])
         dropped = int(len(keep) - keep.sum())
+        if dropped:
+            self._count("points: implausible range (far beyond the data's own)", dropped,
+                        f"beyond {limit:.4g} m, {RANGE_FACTOR:g} times the median range {median:.4g} m")  # fmt: skip
+        repeated = _repeated_points(observation.points, keep)
+        if repeated.any():
+            self._count("points: repeated within their cloud (the same coordinates twice)", int(repeated.sum()),
+                        "a sensor measures a point once; a second copy would start a second landmark")  # fmt: skip
+            keep &= ~repeated
+            dropped += int(repeated.sum())
         if dropped == 0:
             return observation
-        self._count("points: implausible range (far beyond the data's own)", dropped,
-                    f"beyond {limit:.4g} m, {RANGE_FACTOR:g} times the median range {median:.4g} m")  # fmt: skip
         ids = observation.ids[keep] if observation.ids is not None else None
         return PointObservation(observation.stamp_ns, observation.points[keep], ids, observation.frame_id)
 
@@ -191,6 +198,20 @@ class InputScreen:
                             "the motion model's noise is used for them", ", ".join(np.array(TWIST_AXES)[unset]),
                             UNMEASURED_TWIST_VARIANCE)  # fmt: skip
         return odometry
+
+
+def _repeated_points(points: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """(N,) True for each of ``points`` (N, 3) among ``kept`` that repeats the coordinates of an earlier
+    kept one, bit for bit (a front-end that published one point twice, a buffer written twice)."""
+    repeated = np.zeros(len(points), dtype=bool)
+    index = np.flatnonzero(kept)
+    if len(index) < 2:
+        return repeated
+    _, first = np.unique(points[index], axis=0, return_index=True)
+    if len(first) < len(index):
+        repeated[index] = True
+        repeated[index[first]] = False
+    return repeated
 
 
 def is_positive_semidefinite(covariance: np.ndarray) -> bool:
