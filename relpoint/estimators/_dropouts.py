@@ -15,7 +15,9 @@ motion, then the global search), and where its points come back onto the last ob
 revisit test), the registered motion takes the prediction's place, with the uncertainty of a
 registration of those points: a point's noise in position, and that over the points' spread in
 rotation. Where the observations share nothing (the gap was too long to see the same landmarks), the
-prediction stands as before.
+prediction stands as before. The observation after it is registered onto it too: a motion measured over
+the gap places the pose but not the twist, which the platform may have changed meanwhile (a drone
+turning back and forth: FastSLAM placed right after the gap, lost 0.5 s later, ATE 5.5 m).
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ class DropoutRegistration:
         self._rng = np.random.default_rng(0)
         self.registered = 0
         self.unregistered = 0
+        self._after_dropout = False  # the observation after a dropout is registered too
 
     def remember(self, stamp_ns: int, points: FloatArray) -> None:
         """The observation just processed (its points in the sensor frame, m); empty ones are not kept."""
@@ -71,10 +74,15 @@ class DropoutRegistration:
     def motion_since_last(
         self, stamp_ns: int, points: FloatArray, predicted: tuple[FloatArray, FloatArray], sigma: float
     ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
-        """After a dropout, the registered motion from the last observation to this one's ``points``
-        (sensor frame, m), ICP started from ``predicted`` ``(R, t)`` among others; ``sigma`` is a
-        point's noise (m). None when the interval is regular or the registration does not revisit."""
-        if self._points is None or not self.is_dropout(stamp_ns):
+        """After a dropout (and for the observation that follows it), the registered motion from the last
+        observation to this one's ``points`` (sensor frame, m), ICP started from ``predicted`` ``(R, t)``
+        among others; ``sigma`` is a point's noise (m). None otherwise or when the registration does not
+        revisit. Called once for every observation with points, in order."""
+        if self._points is None:
+            return None
+        dropout, after_dropout = self.is_dropout(stamp_ns), self._after_dropout
+        self._after_dropout = dropout
+        if not (dropout or after_dropout):
             return None
         points = np.asarray(points, dtype=np.float64)
         points = points[np.all(np.isfinite(points), axis=1)]
@@ -82,13 +90,13 @@ class DropoutRegistration:
             return None
         registered, _, revisits = register_consecutive(self._points, points, predicted, self._rng)
         if registered is None or not revisits:
-            self.unregistered += 1
+            self.unregistered += dropout
             return None
         R, t, residual = registered
         spread = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
         noise = max(sigma, float(np.sqrt(np.mean(residual**2))) if len(residual) else sigma)
         covariance = np.diag(np.r_[np.full(3, noise**2), np.full(3, (noise / max(spread, noise)) ** 2)])
-        self.registered += 1
+        self.registered += dropout
         return R, t, covariance
 
 
