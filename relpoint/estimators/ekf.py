@@ -359,6 +359,7 @@ class EkfSlam(Estimator[PointObservation]):
             "time_gaps_bridged": self._gaps.bridged,
             "dropouts_registered": self._dropouts.registered,
             "dropouts_unregistered": self._dropouts.unregistered,
+            "dropouts_predicted": self._dropouts.predicted,
             "odometry_stale": self._hold.stale,
             **{k: int(v) for k, v in sorted(self._stats.items())},
             **frame_summary(self.config.fix_alignment == "rigid", self._frame_fit),

@@ -335,6 +335,7 @@ class RelativePointEstimator(
             "map_restarts": len(self._map_restarts),
             "dropouts_registered": self._dropouts.registered,
             "dropouts_unregistered": self._dropouts.unregistered,
+            "dropouts_predicted": self._dropouts.predicted,
             **({"final_adjustment": self.adjustment_report} if self.adjustment_report else {}),
         }
 
