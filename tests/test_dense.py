@@ -741,10 +741,36 @@ def test_a_log_without_usable_depth_fails_naming_its_depths(scale: float, cause:
     from relpoint.errors import EstimatorError
 
     sim = simulate_rgbd(RgbdConfig(frames=3, seed=2))
-    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    estimator = SPEC.factory(DenseConfig(max_depth=4.0), np.random.default_rng(0))
     poses = [estimator.step(dataclasses.replace(f, depth=f.depth * np.float32(scale))) for f in sim.frames()]
     with pytest.raises(EstimatorError, match=cause):
         estimator.finish(Trajectory.from_poses(poses))
+
+
+def test_a_room_three_times_as_large_is_tracked_on_its_far_depth() -> None:
+    # The simulated room scaled by 3 (depths about 3-15 m, median 6.5 m: a hall seen by a long-range camera)
+    # ended 0.64 m off after 40 frames with the earlier fixed 4 m depth cap, which left the map a corner.
+    scale = 3.0
+    sim = simulate_rgbd(RgbdConfig(frames=40, seed=2))
+    estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+    poses = [estimator.step(dataclasses.replace(f, depth=f.depth * np.float32(scale))) for f in sim.frames()]
+    assert estimator.summary()["lost_frames"] == 0 and not estimator.run_warnings()
+    for pose, T_world_camera in zip(poses, sim.poses, strict=True):
+        truth = invert_pose(sim.poses[0]) @ T_world_camera
+        assert np.linalg.norm(pose.as_matrix()[:3, 3] - scale * truth[:3, 3]) < 0.05
+
+
+def test_depth_in_another_unit_is_warned_of(caplog: pytest.LogCaptureFixture) -> None:
+    # Without a fixed depth cap, a 16UC1 image of TUM's 5000 per metre read as millimetres is tracked at five
+    # times the scale: the far first frame (median 10.9 m for the room's 2.2 m) is named as the likely cause.
+    sim = simulate_rgbd(RgbdConfig(frames=3, seed=2))
+    for scale, warned in ((5.0, True), (1.0, False)):
+        estimator = SPEC.factory(DenseConfig(), np.random.default_rng(0))
+        for frame in sim.frames():
+            estimator.step(dataclasses.replace(frame, depth=frame.depth * np.float32(scale)))
+        warnings = [w for w in estimator.run_warnings() if "far for a depth camera" in w]
+        assert bool(warnings) == warned
+        assert not warned or "5000 per metre" in caplog.text
 
 
 def test_undistortion_moves_a_distorted_pixel_to_its_pinhole_place() -> None:
