@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -134,6 +135,15 @@ def config_command(estimator_name: str) -> None:
         comment = f"  # {help_text}" if help_text else ""
         if default is None:
             click.echo(f"# {f.name} =  (unset){comment}")
-        else:  # JSON scalars and arrays are valid TOML values
-            value = json.dumps(list(default) if isinstance(default, tuple) else default)
-            click.echo(f"{f.name} = {value}{comment}")
+        else:
+            click.echo(f"{f.name} = {_toml_value(default)}{comment}")
+
+
+def _toml_value(value: object) -> str:
+    """A default as a TOML value: JSON's scalars and arrays are TOML's, except the infinities (and NaN), which
+    JSON writes as ``Infinity`` and TOML as ``inf``."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    return json.dumps(value)
