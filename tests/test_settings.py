@@ -134,7 +134,7 @@ def test_cross_field_rules_run_after_the_field_checks() -> None:
         (lambda: EkfConfig(gate_probability=0.999, new_landmark_probability=0.99), "new_landmark_probability"),
         (lambda: FastSlamConfig(start_landmark_probability=0.99), "start_landmark_probability"),
         (lambda: DenseConfig(pyramid_levels=2), "icp_iterations"),
-        (lambda: DenseConfig(min_depth=5.0), "min_depth"),
+        (lambda: DenseConfig(min_depth=5.0, max_depth=4.0), "min_depth"),
         (lambda: FusionConfig(local_sigma=0.0, drift_fraction=0.0), "local_sigma"),
         (lambda: SimulationConfig(min_range=80.0), "min_range"),
         (lambda: RgbdConfig(min_range=6.0), "min_range"),
@@ -161,7 +161,7 @@ def test_ranges_open_and_closed() -> None:
         FusionConfig(max_position_error=0.0)
     with pytest.raises(UsageError, match="delta_tol must be a finite number at least 0, got inf"):
         EvaluationSettings(delta_tol=math.inf)
-    with pytest.raises(UsageError, match="downsample must be one of 1, 2, 4, got 3"):
+    with pytest.raises(UsageError, match="downsample must be one of 0, 1, 2, 4, got 3"):
         DenseConfig(downsample=3)
     with pytest.raises(UsageError, match=r"icp_iterations\[1\] must be an integer, got 2.5"):
         DenseConfig(icp_iterations=(1, 2.5, 3))  # type: ignore[arg-type]
