@@ -368,8 +368,9 @@ def tum_frames(
     ----------
     folder: holds ``depth.txt``, ``rgb.txt`` (optional) and ``groundtruth.txt`` (optional); without
         ``depth.txt``, an ``associate.py`` output (``associations.txt``) gives the depth and colour images.
-    intrinsics: the depth camera's intrinsics (default: those of the Freiburg camera the folder's name gives,
-        else Freiburg 1's; see :func:`tum_camera_number`); the size is taken from the images.
+    intrinsics: the depth camera's intrinsics (default: the folder's ``calibration.txt``, ``fx fy cx cy`` as
+        ETH3D's SLAM datasets hold it, else those of the Freiburg camera the folder's name gives, else
+        Freiburg 1's; see :func:`tum_camera_number`); the size is taken from the images.
     tolerance: largest stamp difference (s) when pairing depth with colour and ground truth.
     depth_scale: depth PNG units per metre (the benchmark's 5000; 1000 for millimetres).
     skipped: counts depth images skipped (``depth`` key) because their stamp repeats the previous one,
@@ -391,6 +392,7 @@ def tum_frames(
         values = _read_groundtruth(folder / "groundtruth.txt")
         order = np.argsort(values[:, 0], kind="stable")
         truth = values[order]
+    calibration = None if intrinsics else folder_calibration(folder)  # the images' own, as ETH3D's folders hold
     base = intrinsics or TUM_CAMERAS.get(tum_camera_number(folder) or 1, TUM_DEFAULT_INTRINSICS)
     camera = None
     previous = None
@@ -413,7 +415,10 @@ def tum_frames(
         h, w = depth.shape
         if camera is None:
             # given intrinsics are the user's images'; the defaults are a 640x480 camera's
-            camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy) if intrinsics else resized(base, w, h)
+            if calibration is not None:
+                camera = Intrinsics(w, h, *calibration)
+            else:
+                camera = Intrinsics(w, h, base.fx, base.fy, base.cx, base.cy) if intrinsics else resized(base, w, h)
             _check_depth_scale(depth, depth_scale, fields[0])
         elif (w, h) != (camera.width, camera.height):
             if skipped is not None:
@@ -562,6 +567,32 @@ def seven_scenes_frames(
         log.warning("%d frames have no pose file and no ground truth", missing_poses)
 
 
+#: The calibration file TUM-layout datasets other than TUM's own keep beside the lists (ETH3D's SLAM
+#: benchmark: one line ``fx fy cx cy`` of the images' pinhole camera, pixels).
+TUM_CALIBRATION_FILE = "calibration.txt"
+
+
+def folder_calibration(folder: str | os.PathLike[str]) -> tuple[float, float, float, float] | None:
+    """``(fx, fy, cx, cy)`` (pixels, of the folder's images) from a TUM-layout folder's ``calibration.txt``,
+    or None without the file; :class:`InputError` naming the file when it holds anything else or focal
+    lengths that are not positive."""
+    path = Path(folder) / TUM_CALIBRATION_FILE
+    if not path.is_file():
+        return None
+    hint = f"{TUM_CALIBRATION_FILE} holds the pinhole camera as one line fx fy cx cy (pixels); or give --intrinsics"
+    lines = [line for _, line in text_lines(path) if line and not line.startswith("#")]
+    try:
+        values = [float(v) for v in lines[0].replace(",", " ").split()] if len(lines) == 1 else []
+    except ValueError:
+        values = []
+    if len(values) != 4:
+        raise InputError(f"{path}: not one line of the four numbers fx fy cx cy", hint)
+    fx, fy, cx, cy = values
+    if not all(math.isfinite(v) for v in values) or fx <= 0 or fy <= 0:
+        raise InputError(f"{path}: the focal lengths fx = {fx:g}, fy = {fy:g} are not positive numbers", hint)
+    return fx, fy, cx, cy
+
+
 def _read_camera_matrix(path: Path) -> FloatArray:
     """A 7-Scenes ``camera-intrinsics.txt``: the 3x3 camera matrix K, nine numbers; :class:`InputError`
     naming the file when it holds anything else or focal lengths that are not positive."""
@@ -637,7 +668,9 @@ def import_tum(
     metadata = {
         "relpoint.import": metadata_json({
             "layout": "tum", "source": Path(folder).name, "tolerance": tolerance, "depth_scale": depth_scale,
-            "camera": "given" if intrinsics else f"freiburg{tum_camera_number(folder) or 1}",
+            "camera": "given" if intrinsics else (
+                TUM_CALIBRATION_FILE if folder_calibration(folder) else f"freiburg{tum_camera_number(folder) or 1}"
+            ),
         })
     }  # fmt: skip
     counts = write_rgbd_log(

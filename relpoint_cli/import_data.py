@@ -39,8 +39,12 @@ def parse_intrinsics(text: str | None, width: int = 640, height: int = 480) -> I
 
 def _tum_camera_note(folder: Path) -> str:
     """What the user is told of the camera a TUM import without ``--intrinsics`` assumes."""
-    from formats.rgbd_import import TUM_CAMERAS, tum_camera_number
+    from formats.rgbd_import import TUM_CALIBRATION_FILE, TUM_CAMERAS, folder_calibration, tum_camera_number
 
+    calibration = folder_calibration(folder)
+    if calibration is not None:
+        return (f"relpoint: the folder's {TUM_CALIBRATION_FILE} gives the intrinsics "
+                f"({','.join(f'{v:g}' for v in calibration)}; --intrinsics sets others)")  # fmt: skip
     number = tum_camera_number(folder)
     if number is None:
         return ("relpoint: warning: no --intrinsics, and the folder's name does not say which TUM camera (freiburg1, "
@@ -70,7 +74,8 @@ def _dataset_files(folder: Path) -> list[Path]:
 )
 @click.option(
     "--intrinsics",
-    help="TUM: camera fx,fy,cx,cy in pixels (default: the Freiburg camera the folder is named after, else Freiburg 1).",
+    help="TUM: camera fx,fy,cx,cy in pixels (default: the folder's calibration.txt, as ETH3D's, else the Freiburg "
+    "camera the folder is named after, else Freiburg 1).",
 )
 @click.option(
     "--tolerance",

@@ -79,6 +79,33 @@ def test_a_freiburg3_folder_is_imported_with_the_freiburg3_camera_and_says_so(tm
     assert (info.fx, info.cx) == (600.0, 320.0)
 
 
+def test_a_folder_calibration_file_gives_the_intrinsics(tmp_path: Path) -> None:
+    # ETH3D's SLAM datasets (TUM lists, 5000 per metre, 739x458 images) keep their camera in calibration.txt
+    # as "fx fy cx cy": it was ignored and Freiburg 1's intrinsics were scaled to the images (fx 597 for 726),
+    # with a warning only that the folder's name did not say which Freiburg camera it was.
+    folder = tmp_path / "sofa_1"
+    _tum_folder(folder, [1341847980.722988], [(1341847980.72, 0, 0, 0, 0, 0, 0, 1)])
+    (folder / "calibration.txt").write_text("726.21081542969 726.21081542969 359.2048034668 202.47247314453\n")
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "eth3d.mcap")])
+    assert result.exit_code == 0, result.output
+    assert "calibration.txt" in result.output and "warning" not in result.output
+    (info,) = [r.value for r in LogReader(tmp_path / "eth3d.mcap").records(["camera_info"])]
+    assert (info.width, info.height) == (64, 48)  # the images' size; the file's numbers are theirs, not scaled
+    assert (info.fx, info.fy, info.cx, info.cy) == pytest.approx((726.21081542969, 726.21081542969, 359.2048034668,
+                                                                 202.47247314453))  # fmt: skip
+
+    given = ["--intrinsics", "600,600,32,24"]
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "given.mcap"), *given])
+    assert result.exit_code == 0, result.output
+    (info,) = [r.value for r in LogReader(tmp_path / "given.mcap").records(["camera_info"])]
+    assert (info.fx, info.cx) == (600.0, 32.0)
+
+    (folder / "calibration.txt").write_text("726.2 726.2 359.2\n")
+    result = CliRunner().invoke(cli, ["import", "tum", str(folder), "-o", str(tmp_path / "bad.mcap")])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert "calibration.txt: not one line of the four numbers fx fy cx cy" in result.output
+
+
 def test_ground_truth_is_interpolated_to_each_depth_stamp(tmp_path: Path) -> None:
     # The mocap's 100 Hz samples fall between the camera's frames: each frame took the nearest sample's pose at
     # its own stamp, up to 5 ms of motion off (2 mm at 0.4 m/s).
