@@ -792,6 +792,19 @@ def test_depth_in_another_unit_is_warned_of(caplog: pytest.LogCaptureFixture) ->
         assert not warned or "5000 per metre" in caplog.text
 
 
+def test_depth_no_camera_measures_is_refused_naming_the_unit() -> None:
+    # Millimetres in a 32FC1 image (a median of about 2200 m for the room): the fixed 4 m cap had refused the run; without
+    # it the camera was tracked as standing still (a frame's motion is far below the 1000 times larger noise).
+    from relpoint.errors import EstimatorError
+
+    frames = list(simulate_rgbd(RgbdConfig(frames=2, seed=2)).frames())
+    millimetres = [dataclasses.replace(f, depth=f.depth * np.float32(1000.0)) for f in frames]
+    with pytest.raises(EstimatorError, match="another unit"):
+        SPEC.factory(DenseConfig(), np.random.default_rng(0)).step(millimetres[0])
+    capped = SPEC.factory(DenseConfig(max_depth=5000.0), np.random.default_rng(0))  # asked for: taken as it is
+    assert capped.step(millimetres[0]).as_matrix()[:3, 3].tolist() == [0.0, 0.0, 0.0]
+
+
 def test_undistortion_moves_a_distorted_pixel_to_its_pinhole_place() -> None:
     import cv2
 

@@ -66,6 +66,11 @@ PROCESSED_PIXELS = 460_800
 accuracy hardly (the 7-Scenes kitchen upsampled to 1280x720, 150 frames: 1.34 cm ATE at full size, 1.04 s
 a frame and 4.5 million map points; at 640x360 1.35 cm, 0.31 s and 0.77 million)."""
 
+IMPOSSIBLE_MEDIAN_DEPTH = 100.0
+"""Without a ``max_depth``, a run whose first usable frame's median depth lies beyond this (metres) is refused:
+no depth camera measures a scene that far, and such depth is in another unit (32FC1 holding millimetres:
+the kitchen's then tracked as a camera standing still, without a word but the far-depth warning)."""
+
 STABLE_SHARE = 0.25
 """Finer ICP levels track against the stable map points only when they are at least this share of the
 points rendered there (fewer, and they would pin the pose to a corner of the view)."""
@@ -415,6 +420,13 @@ class DenseFusion(Estimator[DepthFrame]):
         """Warn of a first frame whose median depth is beyond ``FAR_MEDIAN_DEPTH``: most likely depth in
         another unit than the log format's, which scales the path and the map and nothing else shows."""
         median = float(np.median(level.depth[level.valid]))
+        if median > IMPOSSIBLE_MEDIAN_DEPTH and math.isinf(self.config.max_depth):
+            raise EstimatorError(
+                f"the first frame with depth has a median depth of {median:.0f} m, farther than any depth camera "
+                "measures: its depth is most likely in another unit than the log format's (16UC1 millimetres, "
+                "32FC1 metres; e.g. millimetres in a 32FC1 image); convert the unit when writing the log, or set "
+                "--param max_depth to take it as it is"
+            )
         if median > FAR_MEDIAN_DEPTH:
             self._far_depth = (
                 f"the map's first frame has a median depth of {median:.1f} m, far for a depth camera: if its "
