@@ -312,6 +312,12 @@ def _break_ids(k: int) -> np.ndarray:
     return np.arange(100, 110) if k < 16 else np.arange(200, 210)
 
 
+def _apart(ids: np.ndarray) -> np.ndarray:
+    """Points (n, 3) for the stub estimators, one a metre apart per id: a cloud holding one point twice
+    is screened down to one copy before any estimator sees it."""
+    return np.column_stack([np.asarray(ids, dtype=np.float64), np.zeros(len(ids)), np.ones(len(ids))])
+
+
 def test_run_segmented_starts_a_fresh_local_map_at_every_break() -> None:
     # Iteration 16 is a one-off: its landmarks are seen nowhere else.
     ids = _break_ids
@@ -320,7 +326,7 @@ def test_run_segmented_starts_a_fresh_local_map_at_every_break() -> None:
     for k in range(17):
         if k % 4 == 0:
             inputs.append(PositionFix(k * 100_000_000, np.full(3, float(k)), np.eye(3)))
-        inputs.append(PointObservation(k * 100_000_000, np.zeros((len(ids(k)), 3)), ids(k)))
+        inputs.append(PointObservation(k * 100_000_000, _apart(ids(k)), ids(k)))
     run = run_segmented(inputs, _IdMapper, min_matches=5, min_length=4)
     np.testing.assert_array_equal(run.labels, [0] * 6 + [-1] * 2 + [1] * 8 + [-1])
     # Each local map starts at the identity of its own frame.
@@ -345,7 +351,7 @@ class _FinishingMapper(_IdMapper):
 def test_run_segmented_finishes_every_local_map_it_keeps() -> None:
     # Maps of 6 and 8 iterations are kept, the 2-iteration gap and the one-off are not (:func:`_break_ids`).
     _FinishingMapper.finished = []
-    inputs = [PointObservation(k * 100_000_000, np.zeros((len(_break_ids(k)), 3)), _break_ids(k)) for k in range(17)]
+    inputs = [PointObservation(k * 100_000_000, _apart(_break_ids(k)), _break_ids(k)) for k in range(17)]
     run = run_segmented(inputs, _FinishingMapper, min_matches=5, min_length=4)
     np.testing.assert_array_equal(run.labels, [0] * 6 + [-1] * 2 + [1] * 8 + [-1])
     assert _FinishingMapper.finished == [7, 9]  # each map's poses and the pose of the step that broke it
@@ -384,7 +390,7 @@ def test_run_segmented_counts_matches_from_started_features_when_reported() -> N
     # map growth, the burst when features are first mapped (iteration 3: 10 of 10 points) is a break.
     def inputs() -> list[object]:
         ids = [np.arange(10) if k < 10 else np.arange(15) for k in range(30)]
-        return [PointObservation(k * 100_000_000, np.zeros((len(i), 3)), i) for k, i in enumerate(ids)]
+        return [PointObservation(k * 100_000_000, _apart(i), i) for k, i in enumerate(ids)]
 
     run = run_segmented(inputs(), lambda: _GroupingMapper(counts=True), min_matches=5, min_length=4)
     np.testing.assert_array_equal(run.labels, np.zeros(30))
