@@ -48,6 +48,9 @@ DROPOUT_MIN_PAIRS = 2 * GLOBAL_MIN_PAIRS
 
 #: Intervals remembered for the typical one.
 _HISTORY = 64
+#: The typical interval is taken again after this many new intervals (a median costs more than the
+#: rest of the bookkeeping of an observation, and a log's rate does not change from one to the next).
+_REFRESH = 8
 
 
 class DropoutRegistration:
@@ -70,21 +73,29 @@ class DropoutRegistration:
         self.unregistered = 0
         self.predicted = 0
         self._after_dropout = False  # the observation after a dropout is registered too
+        self._typical = 0.0  # the median of the intervals (s), taken again every _REFRESH new ones
+        self._since_typical = 0
 
     def remember(self, stamp_ns: int, points: FloatArray) -> None:
         """The observation just processed (its points in the sensor frame, m); empty ones are not kept."""
-        points = np.asarray(points, dtype=np.float64)
         if self._stamp_ns is not None and stamp_ns > self._stamp_ns and not self.is_dropout(stamp_ns):
             self._intervals.append((stamp_ns - self._stamp_ns) * 1e-9)
+            self._since_typical += 1
+            if len(self._intervals) <= _REFRESH or self._since_typical >= _REFRESH:
+                self._typical, self._since_typical = float(np.median(self._intervals)), 0
         if len(points) >= 3:
-            self._points, self._stamp_ns = points[np.all(np.isfinite(points), axis=1)], stamp_ns
+            self._points, self._stamp_ns = points, stamp_ns
 
     def is_dropout(self, stamp_ns: int) -> bool:
         """Whether the interval from the last kept observation to ``stamp_ns`` follows dropped ones."""
         if self._stamp_ns is None or len(self._intervals) < 3:
             return False
-        typical = float(np.median(self._intervals))
-        return (stamp_ns - self._stamp_ns) * 1e-9 > DROPOUT_INTERVALS * typical
+        return (stamp_ns - self._stamp_ns) * 1e-9 > DROPOUT_INTERVALS * self._typical
+
+    def pending(self, stamp_ns: int) -> bool:
+        """Whether :meth:`motion_since_last` may measure a motion for the observation at ``stamp_ns`` (it
+        follows a dropout, or the observation that did): callers skip building its prediction otherwise."""
+        return self._points is not None and (self._after_dropout or self.is_dropout(stamp_ns))
 
     def motion_since_last(
         self, stamp_ns: int, points: FloatArray, predicted: tuple[FloatArray, FloatArray], sigma: float
@@ -92,7 +103,8 @@ class DropoutRegistration:
         """After a dropout (and for the observation that follows it), the registered motion from the last
         observation to this one's ``points`` (sensor frame, m), ICP started from ``predicted`` ``(R, t)``
         among others; ``sigma`` is a point's noise (m). None otherwise or when the registration does not
-        revisit. Called once for every observation with points, in order."""
+        revisit. Called in order for every observation with points, or at least for each one
+        :meth:`pending` holds for."""
         if self._points is None:
             return None
         dropout, after_dropout = self.is_dropout(stamp_ns), self._after_dropout
@@ -103,12 +115,16 @@ class DropoutRegistration:
         points = points[np.all(np.isfinite(points), axis=1)]
         if len(points) < 3:
             return None
-        predicted_measure = revisit_measure(self._points, points, *predicted)
+        last = np.asarray(self._points, dtype=np.float64)
+        last = last[np.all(np.isfinite(last), axis=1)]
+        if len(last) < 3:
+            return None
+        predicted_measure = revisit_measure(last, points, *predicted)
         if _holds(predicted_measure):  # the prediction lays the points back onto the last ones already
             self.predicted += dropout
             return None
-        registered, _, revisits = register_consecutive(self._points, points, predicted, self._rng)
-        measured = None if registered is None else revisit_measure(self._points, points, *registered[:2])
+        registered, _, revisits = register_consecutive(last, points, predicted, self._rng)
+        measured = None if registered is None else revisit_measure(last, points, *registered[:2])
         if registered is None or not revisits or not _holds(measured):
             self.unregistered += dropout
             return None

@@ -251,7 +251,7 @@ class EkfSlam(Estimator[PointObservation]):
         """After dropped observations, fuse the motion the points register into since the last one
         (:mod:`relpoint.estimators._dropouts`) as a measurement of the pose: the last pose composed with
         it, its covariance the last pose's plus the registration's."""
-        if self._last_pose is None:
+        if self._last_pose is None or not self._dropouts.pending(stamp_ns):
             return
         p0, R0, P0 = self._last_pose
         predicted = (R0.T @ self._rotation, R0.T @ (self._position - p0))

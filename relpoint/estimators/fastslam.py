@@ -362,7 +362,7 @@ class FastSlam(Estimator[PointObservation]):
         (:mod:`relpoint.estimators._dropouts`) into each particle's prior ``Sigma`` (N, 12, 12) as a
         measurement of its pose: its pose at the last observation composed with the motion. Moves the
         particles' nominal state; returns the prior given that measurement."""
-        if self._last_poses is None:
+        if self._last_poses is None or not self._dropouts.pending(stamp_ns):
             return Sigma
         p0, R0 = self._last_poses
         best = int(np.argmax(self.weights))  # its predicted motion is one of the registration's starts

@@ -267,6 +267,8 @@ class RelativePointEstimator(
         """After dropped observations, the local matching predicts the motion the points register into
         since the last observation (:mod:`relpoint.estimators._dropouts`) rather than the last motion
         stretched over the interval (at most ``MAX_INTERVAL_RATIO`` times)."""
+        if not self._dropouts.pending(stamp_ns):
+            return
         T_prev_curr = rigid_inverse(self.motion.T_curr_prev)
         sigma = self.config.observation_sigma if self.config.observation_sigma is not None else SIMULATOR_SIGMA
         motion = self._dropouts.motion_since_last(stamp_ns, points, (T_prev_curr[:3, :3], T_prev_curr[:3, 3]), sigma)
