@@ -264,29 +264,32 @@ def test_a_pose_topic_without_header_stamps_is_timed_by_its_log_times(tmp_path: 
     assert summary["matched_poses"] == 600 and summary["ate_max"] == 0.0
 
 
-def test_a_pose_topic_in_several_frames_is_pointed_out(tmp_path: Path) -> None:
-    """Poses of one topic in different frames (a localiser that restarted in odom) are not one trajectory;
-    they were read as one without a word. The figures stay evo's (it reads them as one too)."""
+def _line_of_poses(path: Path, topic: str, frames: list[str], w: float = 1.0) -> Path:
+    """A bag of PoseStamped on ``topic``: one pose per entry of ``frames`` (its header's frame_id), 10 Hz
+    from 1 s, 0.1 m apart along x, orientation ``(0, 0, 0, w)`` (0: never set)."""
     from mcap_ros2.writer import Writer
 
     from formats import ros2
 
-    bag = tmp_path / "frames.mcap"
-    with bag.open("wb") as stream:
+    with path.open("wb") as stream:
         writer = Writer(stream)
         schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
-        for k in range(30):
+        for k, frame in enumerate(frames):
             stamp = 1_000_000_000 + k * 100_000_000
             pose = {
                 "position": {"x": 0.1 * k, "y": 0.0, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": w},
             }
-            header = {
-                "stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9},
-                "frame_id": "map" if k < 20 else "odom",
-            }
-            writer.write_message("/pose", schema, {"header": header, "pose": pose}, log_time=stamp)
+            header = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": frame}
+            writer.write_message(topic, schema, {"header": header, "pose": pose}, log_time=stamp)
         writer.finish()
+    return path
+
+
+def test_a_pose_topic_in_several_frames_is_pointed_out(tmp_path: Path) -> None:
+    """Poses of one topic in different frames (a localiser that restarted in odom) are not one trajectory;
+    they were read as one without a word. The figures stay evo's (it reads them as one too)."""
+    bag = _line_of_poses(tmp_path / "frames.mcap", "/pose", ["map"] * 20 + ["odom"] * 10)
     code, _, err = invoke("export", bag, "--topic", "/pose", "-o", tmp_path / "pose.tum")
     assert code == 0, err
     assert f"{bag} /pose: the poses are in 2 frames (map: 20, odom: 10)" in err, err
@@ -324,23 +327,7 @@ def test_an_estimate_from_a_tf_chain(tmp_path: Path) -> None:
 
 def test_a_pose_topic_without_orientations_is_read_with_the_identity(tmp_path: Path) -> None:
     """PoseStamped messages whose orientation was never set (0 0 0 0) were all dropped: 'no valid poses'."""
-    from mcap_ros2.writer import Writer
-
-    from formats import ros2
-
-    bag = tmp_path / "positions.mcap"
-    with bag.open("wb") as stream:
-        writer = Writer(stream)
-        schema = writer.register_msgdef(ros2.POSE_STAMPED, ros2.message_definition(ros2.POSE_STAMPED))
-        for k in range(30):
-            stamp = 1_000_000_000 + k * 100_000_000
-            pose = {
-                "position": {"x": 0.1 * k, "y": 0.0, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0},
-            }
-            header = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "map"}
-            writer.write_message("/gnss", schema, {"header": header, "pose": pose}, log_time=stamp)
-        writer.finish()
+    bag = _line_of_poses(tmp_path / "positions.mcap", "/gnss", ["map"] * 30, w=0.0)
     code, _, err = invoke("export", bag, "--topic", "/gnss", "-o", tmp_path / "gnss.tum")
     assert code == 0 and "every quaternion is zero" in err, err
     gnss = load_trajectory(tmp_path / "gnss.tum")
