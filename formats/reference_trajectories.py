@@ -43,6 +43,7 @@ from formats.trajectory_files import (
     describe_unknown,
     detect_format,
     header_layout,
+    identity_where_never_set,
     read_euroc_csv,
     read_kitti,
     read_named_columns,
@@ -87,10 +88,7 @@ def _from_poses(stamps: list[int], positions: list[FloatArray], quats: list[Floa
     stamps_arr = stamps_arr[keep]
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)[index]
     quat = np.asarray(quats, dtype=np.float64).reshape(-1, 4)[index]
-    if not np.any(quat):  # positions only (orientation never set): evo reads the zeros as the identity
-        log.warning("%s: every quaternion is zero, poses without orientation: read with the identity rotation, "
-                    "as evo does; only the APE translation means anything", source)  # fmt: skip
-        quat = np.tile([0.0, 0.0, 0.0, 1.0], (len(quat), 1))
+    quat = identity_where_never_set(quat, source)
     finite = np.isfinite(pos).all(axis=1) & np.isfinite(quat).all(axis=1) & (np.linalg.norm(quat, axis=1) > 1e-9)
     if not finite.all():
         log.warning("%s: dropped %d poses with non-finite values or zero quaternions", source, int((~finite).sum()))

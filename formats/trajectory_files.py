@@ -55,7 +55,7 @@ from formats.atomic import write_text
 from formats.outputs import unreadable_input
 from relpoint.errors import InputError
 from relpoint.geometry import matrix_to_position_quat
-from relpoint.types import IntArray, Trajectory
+from relpoint.types import FloatArray, IntArray, Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +109,18 @@ def _decode(data: bytes, *, final: bool) -> str:
     if sum(map(str.isascii, text)) < 0.9 * len(text):
         raise UnicodeDecodeError("utf-16", data, 0, len(data), "not mostly ASCII text")
     return text
+
+
+def identity_where_never_set(quats: FloatArray, source: object) -> FloatArray:
+    """``quats`` (n, 4), or the identity for each when every one is zero: a trajectory without orientation
+    (a total station, GNSS, a pose whose orientation was never set), read as evo reads it, with a warning
+    naming ``source``."""
+    if len(quats) == 0 or np.any(quats):
+        return quats
+    logger.warning("%s: every quaternion is zero, a trajectory without orientation: read with the identity "
+                   "rotation, as evo does; only the APE translation (and RPE --pose-relation point_distance) "
+                   "means anything", source)  # fmt: skip
+    return np.tile([0.0, 0.0, 0.0, 1.0], (len(quats), 1))
 
 
 def parse_stamp_ns(text: str) -> int:
@@ -218,13 +230,9 @@ def _build(
     if not stamps:
         raise InputError(f"{path}: no poses in file")
     stamps_arr = _increasing_stamps(path, stamps, lines)
+    quats = identity_where_never_set(np.asarray(quats, dtype=np.float64).reshape(-1, 4), path)
     zero = np.linalg.norm(quats, axis=1) < 1e-9
-    if zero.all():  # positions only (a total station, GNSS): evo reads the zeros as the identity
-        logger.warning("%s: every quaternion is zero, a trajectory without orientation: read with the identity "
-                       "rotation, as evo does; only the APE translation (and RPE --pose-relation point_distance) "
-                       "means anything", path)  # fmt: skip
-        quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(stamps), 1))
-    elif zero.any():
+    if zero.any():
         raise InputError(
             f"{path}:{lines[int(np.argmax(zero))]}: zero quaternion",
             "give the pose its orientation or leave the line out (a file without any orientation has zeros in "
