@@ -27,6 +27,7 @@ CORE = "relpoint/_aot_kernels.py"
 KERNEL_SOURCES = (
     "relpoint/estimators/relative_point/_kernels.py",
     "relpoint/estimators/_fastslam_kernels.py",
+    "relpoint/estimators/dense/_kernels.py",
 )
 EXTENSIONS = {source.removesuffix(".py").replace("/", ".") + "_aot": source for source in KERNEL_SOURCES}
 """Dotted name of each prebuilt extension module: its kernel source."""

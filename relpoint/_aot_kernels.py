@@ -37,7 +37,13 @@ import numpy as np
 MODE_VARIABLE = "RELPOINT_KERNELS"
 """Environment variable: ``jit`` refuses the prebuilt modules (``auto``, the default, takes them)."""
 
-_DTYPES = {"f8": np.dtype(np.float64), "i8": np.dtype(np.int64), "b1": np.dtype(np.bool_)}
+_DTYPES = {
+    "f8": np.dtype(np.float64),
+    "f4": np.dtype(np.float32),
+    "i8": np.dtype(np.int64),
+    "u1": np.dtype(np.uint8),
+    "b1": np.dtype(np.bool_),
+}
 _ARGUMENT = re.compile(r"(\w+)(?:\[([^\]]*)\])?")
 
 
@@ -121,7 +127,12 @@ def checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument
     def call(*arguments: Any) -> Any:
         for position, dtype, ndim in arrays:
             array = arguments[position]
-            if array.__class__ is not np.ndarray or array.dtype != dtype or array.ndim != ndim or not array.flags.c_contiguous:
+            if (
+                array.__class__ is not np.ndarray
+                or array.dtype != dtype
+                or array.ndim != ndim
+                or not array.flags.c_contiguous
+            ):
                 raise TypeError(f"{function.__name__}: argument {position} must be a C-ordered {ndim}-d {dtype} array")
         return prebuilt(*arguments)
 

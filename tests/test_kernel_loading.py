@@ -1,4 +1,4 @@
-"""How the compiled kernels (Relative Point's and FastSLAM's) are loaded, and compile time kept out of the iterations."""
+"""How the compiled kernels (Relative Point's, FastSLAM's and the dense estimator's) are loaded, and compile time kept out of the iterations."""
 
 from __future__ import annotations
 
@@ -15,11 +15,12 @@ from relpoint import pipeline
 from relpoint._aot_kernels import KernelSet
 from relpoint.estimators import _fastslam_kernels
 from relpoint.estimators.base import Estimator
+from relpoint.estimators.dense import _kernels as _dense_kernels
 from relpoint.estimators.relative_point import _kernels
 from relpoint.geometry import so3_exp
 from relpoint.types import LandmarkMap, PointObservation, Pose, Trajectory
 
-KERNEL_MODULES = {"relative_point": _kernels, "fastslam": _fastslam_kernels}
+KERNEL_MODULES = {"relative_point": _kernels, "fastslam": _fastslam_kernels, "dense": _dense_kernels}
 """Every kernel source, by a short name: each one's kernels are prebuilt into its own extension module."""
 
 
@@ -46,7 +47,7 @@ def _jit_kernels(monkeypatch: pytest.MonkeyPatch, cache: Path) -> ModuleType:
     return _jit_copy(monkeypatch, cache, _kernels.__file__, "relpoint_kernels_jit_copy")
 
 
-@pytest.mark.parametrize(("name", "count"), [("relative_point", 52), ("fastslam", 7)])
+@pytest.mark.parametrize(("name", "count"), [("relative_point", 52), ("fastslam", 7), ("dense", 10)])
 def test_every_kernel_declares_its_argument_types(name: str, count: int) -> None:
     module = KERNEL_MODULES[name]
     source = inspect.getsource(module)
@@ -217,7 +218,9 @@ class _Recording(Estimator):
         return Pose(observation.stamp_ns, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
     def landmark_map(self) -> LandmarkMap:
-        return LandmarkMap(np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64))
+        return LandmarkMap(
+            np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64)
+        )
 
     def finish(self, trajectory: Trajectory) -> Trajectory:
         return trajectory

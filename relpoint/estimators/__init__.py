@@ -58,6 +58,7 @@ BUILTIN = {
         "relpoint.estimators.dense.estimator:DenseConfig",
         frozenset({DEPTH}),
         frozenset({"color"}),
+        kernels="relpoint.estimators.dense._kernels",
     ),
 }
 

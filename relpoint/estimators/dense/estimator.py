@@ -24,6 +24,7 @@ import numpy.typing as npt
 
 from relpoint.errors import EstimatorError, UsageError
 from relpoint.estimators.base import DEPTH, Estimator
+from relpoint.estimators.dense import _kernels
 from relpoint.estimators.dense.fusion import PointMap, colors_filled
 from relpoint.estimators.dense.icp import SIGMA_1M, IcpSettings, alignment_cost, depth_sigma, track
 from relpoint.estimators.dense.maps import Level, build_pyramid
@@ -194,14 +195,9 @@ class DenseConfig(Settings):
 
 
 def _downsample_color(color: npt.NDArray[np.uint8], factor: int) -> npt.NDArray[np.uint8]:
-    """Mean of each ``factor x factor`` block of an (H, W, 3) uint8 image, rounded (strided sums, no reshape)."""
-    h, w = color.shape[0] // factor * factor, color.shape[1] // factor * factor
-    total = np.zeros((h // factor, w // factor, 3), dtype=np.uint16)
-    for r in range(factor):
-        for c in range(factor):
-            total += color[r:h:factor, c:w:factor]
-    n = factor * factor
-    return ((total + n // 2) // n).astype(np.uint8)
+    """Mean of each ``factor x factor`` block of an (H, W, 3) uint8 image, rounded (one compiled pass:
+    :func:`_kernels.downsample_color`)."""
+    return _kernels.downsample_color(np.ascontiguousarray(color, dtype=np.uint8), int(factor))
 
 
 class DenseFusion(Estimator[DepthFrame]):
@@ -251,6 +247,12 @@ class DenseFusion(Estimator[DepthFrame]):
         # Frames before the map could start (too few depths in range), and what their depths were.
         self.frames_before_map = 0
         self._unused_depths: list[float] = []
+
+    @classmethod
+    def compile(cls) -> None:
+        """Compile or load the per-pixel loops (:mod:`relpoint.estimators.dense._kernels`); nothing to do
+        when they were built ahead of time at install."""
+        _kernels.prepare()
 
     # -- frames ------------------------------------------------------------------------------------
 

@@ -25,12 +25,16 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.dense import _kernels
 from relpoint.estimators.dense.icp import project
 from relpoint.estimators.dense.maps import Level
 from relpoint.geometry import FloatArray, transform_soa32
 
 F32 = npt.NDArray[np.float32]
 I64 = npt.NDArray[np.int64]
+
+_NO_COLOUR = np.zeros((0, 3), dtype=np.uint8)
+_NO_CONFIDENCE = np.zeros(0, dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -183,110 +187,48 @@ class PointMap:
         """
         R = T_world_camera[:3, :3].astype(np.float32)
         t = T_world_camera[:3, 3].astype(np.float32)[:, None]
-        cos = np.float32(normal_cos_threshold)
         planes = level.planes
         h, w_img = index_map.shape
-        ids = index_map.reshape(-1)
+        ids = np.ascontiguousarray(index_map.reshape(-1))
         filled = _fill_from_neighbours(index_map).reshape(-1)
 
-        # Filter: the map point rendered at (or, for pinholes, next to) each valid pixel, within the gates.
+        # Filter and merge: the map point rendered at (or, for pinholes, next to) each valid pixel, within
+        # the gates; weighted averages into the points rendered at their own pixels (compiled: one pass).
         pixels = np.flatnonzero(planes[6] > 0)
         frame = np.take(planes[:6], pixels, axis=1)
         q = R @ frame[:3] + t
         n_q = R @ frame[3:6]
-        j = filled[pixels]
-        has = j >= 0
-        jj = np.where(has, j, 0)
-        p = np.take(self._positions, jj, axis=1)
-        n_p = np.take(self._normals, jj, axis=1)
-        diff = q - p
-        depth = frame[2]
-        limit = np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth
-        limit *= limit
-        diff *= diff
-        ok = diff.sum(axis=0) < limit
-        ok &= (n_q * n_p).sum(axis=0) > cos
-        ok &= has
-        direct = ids[pixels] >= 0
-        sel = np.flatnonzero(ok & direct)
-        j = j[sel]
-        merged_pixels = pixels[sel]
-
-        # Merge: weighted averages; normals rotated only, then renormalised.
-        w = self._weights[j]
-        alpha = np.float32(1.0) if confidence is None else confidence[merged_pixels]
-        w1 = w + alpha
-        inv = np.float32(1.0) / w1
-        a = alpha * inv
-        b = w * inv
-        self._positions[:, j] = np.take(p, sel, axis=1) * b + np.take(q, sel, axis=1) * a
-        n = np.take(n_p, sel, axis=1) * b + np.take(n_q, sel, axis=1) * a
-        n /= np.maximum(np.sqrt((n * n).sum(axis=0)), np.float32(1e-12))
-        self._normals[:, j] = n
-        rgb = None if colors is None else colors.reshape(-1, 3).T.astype(np.float32)  # (3, H*W)
-        if rgb is not None:
-            cw = self._color_weights[j]
-            cw1 = cw + alpha
-            self._colors[:, j] = (
-                np.take(self._colors, j, axis=1) * cw + np.take(rgb, merged_pixels, axis=1) * alpha
-            ) / cw1
-            self._color_weights[j] = np.minimum(cw1, np.float32(max_weight))
-        self._weights[j] = np.minimum(w1, np.float32(max_weight))
+        depth = np.ascontiguousarray(frame[2])
+        rgb = _NO_COLOUR if colors is None else np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
+        pixel_confidence = _NO_CONFIDENCE if confidence is None else np.ascontiguousarray(confidence, dtype=np.float32)
+        ok, merged = _kernels.fuse_gates_and_merge(
+            pixels, q, n_q, depth, filled, ids, self._positions, self._normals, self._colors, self._weights,
+            self._color_weights, rgb, pixel_confidence, float(distance_threshold), float(distance_quadratic),
+            float(np.float32(normal_cos_threshold)), float(max_weight),
+        )  # fmt: skip
 
         # Add: valid pixels neither merged nor covered by a point rendered next to them.
         failed = np.flatnonzero(~ok)
-        covered = self._covered(
-            pixels[failed], index_map, np.take(q, failed, axis=1), np.take(n_q, failed, axis=1),
-            depth[failed], distance_threshold, distance_quadratic, cos,
+        covered = _kernels.covered(
+            failed, pixels, q, n_q, depth, np.ascontiguousarray(index_map, dtype=np.int64), self._positions,
+            self._normals, float(distance_threshold), float(distance_quadratic),
+            float(np.float32(normal_cos_threshold)),
         )  # fmt: skip
         keep = failed[~covered]
         added_pixels = pixels[keep]
         rgb_new = (
-            np.take(rgb, added_pixels, axis=1) if rgb is not None else np.zeros((3, len(added_pixels)), np.float32)
+            np.take(rgb, added_pixels, axis=0).T.astype(np.float32)
+            if colors is not None
+            else np.zeros((3, len(added_pixels)), np.float32)
         )
         new_ids = self.append(np.take(q, keep, axis=1), np.take(n_q, keep, axis=1), rgb_new, frame_index)
         if confidence is not None:
             self._weights[new_ids] = confidence[added_pixels]
-        if rgb is not None:
+        if colors is not None:
             self._color_weights[new_ids] = self._weights[new_ids]
         after = ids.copy()
         after[added_pixels] = new_ids
-        return after.reshape(h, w_img), FusionStats(int(len(j)), int(len(new_ids)))
-
-    def _covered(
-        self,
-        pixels: I64,
-        index_map: I64,
-        q: F32,
-        n_q: F32,
-        depth: F32,
-        distance_threshold: float,
-        distance_quadratic: float,
-        cos: np.float32,
-    ) -> npt.NDArray[np.bool_]:
-        """Whether a map point rendered in the 3x3 neighbourhood of each pixel passes the fusion gates."""
-        h, w = index_map.shape
-        covered = np.zeros(len(pixels), dtype=bool)
-        if len(pixels) == 0:
-            return covered
-        padded = np.full((h + 2, w + 2), -1, dtype=np.int64)
-        padded[1:-1, 1:-1] = index_map
-        flat = padded.reshape(-1)
-        row, col = np.divmod(pixels, w)
-        base = (row + 1) * (w + 2) + col + 1
-        limit = (np.float32(distance_threshold) + np.float32(distance_quadratic) * depth * depth) ** 2
-        for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
-            open_ = np.flatnonzero(~covered)
-            j = flat[base[open_] + dr * (w + 2) + dc]
-            has = j >= 0
-            test = open_[has]
-            j = j[has]
-            diff = np.take(q, test, axis=1) - np.take(self._positions, j, axis=1)
-            ok = ((diff * diff).sum(axis=0) < limit[test]) & (
-                (np.take(n_q, test, axis=1) * np.take(self._normals, j, axis=1)).sum(axis=0) > cos
-            )
-            covered[test[ok]] = True
-        return covered
+        return after.reshape(h, w_img), FusionStats(int(merged), int(len(new_ids)))
 
     def remove(self, drop: npt.NDArray[np.bool_]) -> I64:
         """Delete the points flagged in ``drop`` (M,); returns the old-id -> new-id map (-1 for deleted)."""

@@ -4,8 +4,9 @@ A *vertex map* holds, per pixel, the 3D point ``v = d K^-1 [u, v, 1]`` in the ca
 y down, z forward, metres); a *normal map* the unit surface normal there, from the cross product of the
 differences of the vertex map along rows and columns (central where both sides have depth, one-sided
 otherwise), facing the camera. Pixels without a usable measurement are marked
-by ``valid`` (their vertex/normal entries are zero). Everything is numpy-vectorised and kept channel-first
-(``(3, H, W)``) internally so that every arithmetic operation runs over contiguous memory.
+by ``valid`` (their vertex/normal entries are zero). Arrays are kept channel-first (``(3, H, W)``)
+internally so that every operation runs over contiguous memory; the per-pixel filters (downsampling,
+smoothing, normals) are compiled loops (:mod:`relpoint.estimators.dense._kernels`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from relpoint.estimators.dense import _kernels
 from relpoint.types import Intrinsics
 
 F32 = npt.NDArray[np.float32]
@@ -73,26 +75,9 @@ def downsample_depth(depth: F32, max_jump: float = 0.03) -> F32:
 
     A block whose valid depths spread more than ``max_jump`` times their minimum (relative; a depth
     discontinuity) takes the nearest depth instead of a mean that would float between two surfaces.
-    Blocks without any valid depth are 0.
+    Blocks without any valid depth are 0. (One compiled pass: :func:`_kernels.downsample_depth`.)
     """
-    h, w = depth.shape[0] // 2 * 2, depth.shape[1] // 2 * 2
-    depth = np.asarray(depth, dtype=np.float32)
-    a, b, c, d = (depth[r:h:2, s:w:2] for r in (0, 1) for s in (0, 1))
-    total = a + b
-    total += c
-    total += d
-    count = (a > 0).astype(np.float32)
-    count += b > 0
-    count += c > 0
-    count += d > 0
-    inf = np.float32(np.inf)
-    nearest = np.minimum(np.where(a > 0, a, inf), np.where(b > 0, b, inf))
-    np.minimum(nearest, np.where(c > 0, c, inf), out=nearest)
-    np.minimum(nearest, np.where(d > 0, d, inf), out=nearest)
-    farthest = np.maximum(np.maximum(a, b), np.maximum(c, d))
-    mean = total / np.maximum(count, np.float32(1.0))
-    jump = farthest - nearest > np.float32(max_jump) * nearest  # False where no depth (inf on the right)
-    return np.where(jump, nearest, mean).astype(np.float32, copy=False)
+    return _kernels.downsample_depth(np.ascontiguousarray(depth, dtype=np.float32), float(max_jump))
 
 
 def smooth_depth(depth: F32, max_jump: float = 0.03) -> F32:
@@ -100,26 +85,10 @@ def smooth_depth(depth: F32, max_jump: float = 0.03) -> F32:
 
     Each valid pixel becomes the mean of the valid pixels of its 3x3 neighbourhood whose depth lies within
     ``max_jump`` (relative) of its own; invalid pixels stay 0. Averaging nine samples reduces the noise
-    and the quantisation steps that would otherwise tilt the normals.
+    and the quantisation steps that would otherwise tilt the normals. (One compiled pass:
+    :func:`_kernels.smooth_depth`.)
     """
-    h, w = depth.shape
-    padded = np.zeros((h + 2, w + 2), dtype=np.float32)
-    padded[1:-1, 1:-1] = depth
-    limit = np.float32(max_jump) * depth  # 0 where there is no depth: nothing is "near" then
-    total = np.zeros_like(depth)
-    count = np.zeros_like(depth)
-    near = np.empty(depth.shape, dtype=bool)
-    diff = np.empty_like(depth)
-    for dr in (0, 1, 2):
-        for dc in (0, 1, 2):
-            nb = padded[dr : dr + h, dc : dc + w]
-            np.subtract(nb, depth, out=diff)
-            np.abs(diff, out=diff)
-            # A missing neighbour (0) is |0 - d| = d away: never within max_jump * d (max_jump < 1).
-            np.less(diff, limit, out=near)
-            total += nb * near
-            count += near
-    return np.where(count > 0, total / np.maximum(count, np.float32(1.0)), np.float32(0.0)).astype(np.float32)
+    return _kernels.smooth_depth(np.ascontiguousarray(depth, dtype=np.float32), float(max_jump))
 
 
 def vertex_map(depth: F32, intrinsics: Intrinsics) -> F32:
@@ -159,59 +128,13 @@ neighbours kept 3 % of the pixels, while a tangent along each axis from either s
 keeps about 88 % of the valid ones."""
 
 
-def _tangent(
-    v: F32, depth: F32, padded_v: F32, padded_d: F32, dr: int, dc: int, max_jump: float
-) -> tuple[F32, BoolArray]:
-    """The tangent along image axis ``(dr, dc)`` at every pixel of a (3, H, W) vertex map, and where it exists."""
-    h, w = depth.shape
-    r = NORMAL_REACH
-    sides = []
-    for sign in (1, -1):
-        found = np.zeros((h, w), dtype=bool)
-        point = np.zeros((3, h, w), dtype=np.float32)
-        for k in range(1, r + 1):
-            row, col = r + sign * k * dr, r + sign * k * dc
-            nb = padded_d[row : row + h, col : col + w]
-            # A missing neighbour (0) is |0 - d| = d away: never within max_jump * k * d (max_jump * r < 1).
-            near = np.abs(nb - depth) < np.float32(max_jump * k) * depth
-            near &= ~found
-            np.copyto(point, padded_v[:, row : row + h, col : col + w], where=near)
-            found |= near
-        sides.append((point, found))
-    (after, has_after), (before, has_before) = sides
-    # The pixel itself stands in for a missing side: one-sided differences.
-    np.copyto(after, v, where=~has_after)
-    np.copyto(before, v, where=~has_before)
-    return after - before, has_after | has_before
-
-
 def _normals(v: F32, depth: F32, max_jump: float) -> tuple[F32, BoolArray]:
-    """:func:`normal_map` on a channel-first (3, H, W) vertex map; returns (3, H, W) normals and validity."""
-    h, w = depth.shape
-    r = NORMAL_REACH
-    padded_d = np.zeros((h + 2 * r, w + 2 * r), dtype=np.float32)
-    padded_d[r:-r, r:-r] = depth
-    padded_v = np.zeros((3, h + 2 * r, w + 2 * r), dtype=np.float32)
-    padded_v[:, r:-r, r:-r] = v
-    a, ok = _tangent(v, depth, padded_v, padded_d, 0, 1, max_jump)  # along +u (right)
-    b, ok_b = _tangent(v, depth, padded_v, padded_d, 1, 0, max_jump)  # along +v (down)
-    ok &= ok_b
-    ok &= depth > 0
-    # b x a faces the camera for a surface seen from its front (a x b = x x y = +z points away).
-    nx = b[1] * a[2] - b[2] * a[1]
-    ny = b[2] * a[0] - b[0] * a[2]
-    nz = b[0] * a[1] - b[1] * a[0]
-    norm2 = nx * nx + ny * ny + nz * nz
-    ok &= norm2 > 0
-    facing = nx * v[0] + ny * v[1] + nz * v[2]
-    ok &= facing < 0  # folded (noisy, grazing) neighbourhoods give back-facing normals: not trusted
-    scale = np.zeros_like(norm2)
-    np.divide(np.float32(1.0), np.sqrt(norm2, where=ok, out=np.ones_like(norm2)), out=scale, where=ok)
-    normals = np.empty((3, h, w), dtype=np.float32)
-    np.multiply(nx, scale, out=normals[0])
-    np.multiply(ny, scale, out=normals[1])
-    np.multiply(nz, scale, out=normals[2])
-    return normals, ok
+    """:func:`normal_map` on a channel-first (3, H, W) vertex map; returns (3, H, W) normals and validity
+    (one compiled pass: :func:`_kernels.normals`)."""
+    jumps = np.array([max_jump * k for k in range(1, NORMAL_REACH + 1)], dtype=np.float32)
+    return _kernels.normals(
+        np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(depth, dtype=np.float32), jumps
+    )
 
 
 def make_level(depth: F32, intrinsics: Intrinsics) -> Level:

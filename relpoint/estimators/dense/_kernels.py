@@ -1,0 +1,353 @@
+"""Compiled per-pixel loops of the dense estimator (numba): depth downsampling and smoothing, normals,
+colour downsampling, and the fusion's gates and merge.
+
+In numpy each of these is a dozen or more passes over whole images, each writing a temporary of the
+image's size; here every pixel is read once and its result written once. Each kernel computes the
+same float32 operations in the same order as the numpy expression its docstring gives, so the results
+are bit-identical (``tests/test_dense_kernels.py`` checks them against the numpy expressions).
+
+An install builds the kernels ahead of time into the extension module ``_kernels_aot`` (numba's
+``pycc``, from the argument types each kernel names; see ``setup.py`` and :mod:`relpoint._aot_kernels`),
+so no run pays for compilation and numba is not imported. Without that module each kernel is compiled
+on its first call instead (``cache=True`` keeps the machine code for later processes); :func:`prepare`
+compiles them ahead of a run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relpoint._aot_kernels import KernelSet
+
+kernels = KernelSet(__file__, "relpoint.estimators.dense._kernels_aot")
+"""This file's kernels: prebuilt at install into ``_kernels_aot`` or compiled on first call."""
+kernel = kernels.kernel
+SIGNATURES: dict[str, str] = kernels.signatures
+"""Argument types of every kernel in numba's notation, by name: what the ahead-of-time build compiles."""
+COMPILED_AHEAD = kernels.compiled_ahead
+"""Whether the kernels below are the prebuilt machine code (True) or compiled on first call (False)."""
+source_digest = kernels.source_digest
+prepare = kernels.prepare
+"""Compile every public kernel for its declared argument types, or load it from numba's cache
+(nothing to do when :data:`COMPILED_AHEAD`); :meth:`DenseFusion.compile` calls this before a run."""
+
+
+@kernel("f4, f4")
+def _maximum(x: float, y: float) -> float:
+    """``np.maximum`` of two float32 scalars: NaN if either is NaN."""
+    if x >= y or x != x:
+        return x
+    return y
+
+
+@kernel("f4[:, ::1], f8")
+def downsample_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """Half-size depth (H//2, W//2) float32 from 2x2 blocks of ``depth`` (H, W) metres: the mean of a
+    block's valid (positive) depths, or their nearest where they spread more than ``max_jump`` times it.
+
+    numpy (:func:`relpoint.estimators.dense.maps.downsample_depth`), with ``a, b, c, d`` the block's
+    four depths in row order: ``total = a + b + c + d``; ``count`` the positive ones; ``nearest`` the
+    least positive one (inf for none); ``farthest = maximum(maximum(a, b), maximum(c, d))``;
+    ``where(farthest - nearest > f32(max_jump) * nearest, nearest, total / maximum(count, 1))``.
+    """
+    h, w = depth.shape[0] // 2, depth.shape[1] // 2
+    out = np.empty((h, w), dtype=np.float32)
+    ratio = np.float32(max_jump)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    inf = np.float32(np.inf)
+    for i in range(h):
+        for j in range(w):
+            a = depth[2 * i, 2 * j]
+            b = depth[2 * i, 2 * j + 1]
+            c = depth[2 * i + 1, 2 * j]
+            d = depth[2 * i + 1, 2 * j + 1]
+            total = a + b
+            total += c
+            total += d
+            count = zero
+            nearest = inf
+            if a > 0:
+                count += one
+                nearest = min(nearest, a)
+            if b > 0:
+                count += one
+                nearest = min(nearest, b)
+            if c > 0:
+                count += one
+                nearest = min(nearest, c)
+            if d > 0:
+                count += one
+                nearest = min(nearest, d)
+            farthest = _maximum(_maximum(a, b), _maximum(c, d))
+            if farthest - nearest > ratio * nearest:
+                out[i, j] = nearest
+            else:
+                out[i, j] = total / max(count, one)
+    return out
+
+
+@kernel("f4[:, ::1], f8")
+def smooth_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """Edge-preserving 3x3 mean (H, W) float32 of ``depth`` (H, W) metres.
+
+    numpy (:func:`relpoint.estimators.dense.maps.smooth_depth`): with the image padded by zeros and
+    ``limit = f32(max_jump) * depth``, over the nine neighbours ``nb`` in row order
+    ``near = abs(nb - depth) < limit``, ``total += nb * near``, ``count += near``; then
+    ``where(count > 0, total / maximum(count, 1), 0)``.
+    """
+    h, w = depth.shape
+    out = np.empty((h, w), dtype=np.float32)
+    ratio = np.float32(max_jump)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            own = depth[i, j]
+            limit = ratio * own
+            total = zero
+            count = zero
+            for r in range(i - 1, i + 2):
+                for c in range(j - 1, j + 2):
+                    nb = depth[r, c] if 0 <= r < h and 0 <= c < w else zero
+                    near = one if abs(nb - own) < limit else zero
+                    total += nb * near
+                    count += near
+            out[i, j] = total / max(count, one) if count > 0 else zero
+    return out
+
+
+@kernel("f4[:, :, ::1], f4[:, ::1], i8, i8, i8, i8, f4[::1]")
+def _tangent(
+    v: np.ndarray, depth: np.ndarray, i: int, j: int, dr: int, dc: int, jumps: np.ndarray
+) -> tuple[float, float, float, bool]:
+    """The tangent (3 float32) at pixel ``(i, j)`` of a (3, H, W) vertex map along image axis
+    ``(dr, dc)``, and whether it exists: the nearest usable neighbour on each side (``k`` pixels away,
+    ``k`` up to ``len(jumps)``; usable when ``abs(nb - d) < jumps[k - 1] * d``), the pixel itself
+    standing in for a side without one. Outside the image a neighbour is depth 0 at the origin.
+
+    numpy: :func:`relpoint.estimators.dense.maps._tangent`."""
+    h, w = depth.shape
+    own = depth[i, j]
+    zero = np.float32(0.0)
+    after0, after1, after2 = v[0, i, j], v[1, i, j], v[2, i, j]
+    before0, before1, before2 = after0, after1, after2
+    has_after = False
+    has_before = False
+    for sign in (1, -1):
+        for k in range(1, len(jumps) + 1):
+            r = i + sign * k * dr
+            c = j + sign * k * dc
+            inside = 0 <= r < h and 0 <= c < w
+            nb = depth[r, c] if inside else zero
+            if abs(nb - own) < jumps[k - 1] * own:
+                x = v[0, r, c] if inside else zero
+                y = v[1, r, c] if inside else zero
+                z = v[2, r, c] if inside else zero
+                if sign == 1:
+                    after0, after1, after2 = x, y, z
+                    has_after = True
+                else:
+                    before0, before1, before2 = x, y, z
+                    has_before = True
+                break
+    return after0 - before0, after1 - before1, after2 - before2, has_after or has_before
+
+
+@kernel("f4[:, :, ::1], f4[:, ::1], f4[::1]")
+def normals(v: np.ndarray, depth: np.ndarray, jumps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (3, H, W) float32 of a (3, H, W) vertex map and their validity (H, W), from the
+    tangents along image columns (``a``) and rows (``b``): ``n = b x a`` where both exist, the depth is
+    positive, ``|n| > 0`` and ``n . v < 0``; zero elsewhere. ``jumps[k - 1]`` is the relative depth step
+    a neighbour ``k`` pixels away may make (float32 ``max_jump * k``).
+
+    numpy: :func:`relpoint.estimators.dense.maps._normals`."""
+    h, w = depth.shape
+    out = np.empty((3, h, w), dtype=np.float32)
+    valid = np.empty((h, w), dtype=np.bool_)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            a0, a1, a2, has_a = _tangent(v, depth, i, j, 0, 1, jumps)
+            b0, b1, b2, has_b = _tangent(v, depth, i, j, 1, 0, jumps)
+            nx = b1 * a2 - b2 * a1
+            ny = b2 * a0 - b0 * a2
+            nz = b0 * a1 - b1 * a0
+            norm2 = nx * nx + ny * ny + nz * nz
+            facing = nx * v[0, i, j] + ny * v[1, i, j] + nz * v[2, i, j]
+            ok = has_a and has_b and depth[i, j] > 0 and norm2 > 0 and facing < 0
+            scale = one / np.sqrt(norm2) if ok else zero
+            out[0, i, j] = nx * scale
+            out[1, i, j] = ny * scale
+            out[2, i, j] = nz * scale
+            valid[i, j] = ok
+    return out, valid
+
+
+@kernel("u1[:, :, ::1], i8")
+def downsample_color(color: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of each ``factor x factor`` block of an (H, W, 3) uint8 image, rounded half up:
+    (H // factor, W // factor, 3) uint8.
+
+    numpy (:func:`relpoint.estimators.dense.estimator._downsample_color`): uint16 block sums ``total``,
+    then ``(total + n // 2) // n`` with ``n = factor ** 2``."""
+    h, w = color.shape[0] // factor, color.shape[1] // factor
+    out = np.empty((h, w, 3), dtype=np.uint8)
+    n = factor * factor
+    for i in range(h):
+        for j in range(w):
+            for channel in range(3):
+                total = 0
+                for r in range(i * factor, i * factor + factor):
+                    for c in range(j * factor, j * factor + factor):
+                        total += color[r, c, channel]
+                out[i, j, channel] = (total + n // 2) // n
+    return out
+
+
+# -- point-based fusion (relpoint.estimators.dense.fusion.PointMap.fuse) ------------------------------
+
+
+@kernel("f4, f8, f8")
+def _squared_gate(depth: float, threshold: float, quadratic: float) -> float:
+    """The squared merge distance (m^2, float32) at camera depth ``depth`` (m):
+    ``(f32(threshold) + f32(quadratic) * depth * depth) ** 2``."""
+    limit = np.float32(threshold) + np.float32(quadratic) * depth * depth
+    return limit * limit
+
+
+@kernel("f4[:, ::1], f4[:, ::1], i8, f4[:, ::1], f4[:, ::1], i8, f4, f4")
+def _passes(
+    q: np.ndarray, n_q: np.ndarray, k: int, positions: np.ndarray, normals: np.ndarray, j: int, limit: float, cos: float
+) -> bool:
+    """Whether map point ``j`` lies within ``sqrt(limit)`` of frame point ``k`` (columns of (3, n) ``q``,
+    ``n_q``) and their normals' cosine exceeds ``cos`` (float32, sums in axis order)."""
+    d0 = q[0, k] - positions[0, j]
+    d1 = q[1, k] - positions[1, j]
+    d2 = q[2, k] - positions[2, j]
+    if not d0 * d0 + d1 * d1 + d2 * d2 < limit:
+        return False
+    return n_q[0, k] * normals[0, j] + n_q[1, k] * normals[1, j] + n_q[2, k] * normals[2, j] > cos
+
+
+@kernel(
+    "i8[::1], f4[:, ::1], f4[:, ::1], f4[::1], i8[::1], i8[::1], "
+    "f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[::1], f4[::1], u1[:, ::1], f4[::1], f8, f8, f8, f8"
+)
+def fuse_gates_and_merge(
+    pixels: np.ndarray,
+    q: np.ndarray,
+    n_q: np.ndarray,
+    depth: np.ndarray,
+    filled: np.ndarray,
+    ids: np.ndarray,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray,
+    weights: np.ndarray,
+    color_weights: np.ndarray,
+    rgb: np.ndarray,
+    confidence: np.ndarray,
+    distance_threshold: float,
+    distance_quadratic: float,
+    normal_cos: float,
+    max_weight: float,
+) -> tuple[np.ndarray, int]:
+    """The filter and merge of point-based fusion, the map updated in place: which frame points passed
+    the gates (n,) bool, and how many were merged.
+
+    ``pixels`` (n,) are the frame's valid pixels; ``q``, ``n_q`` (3, n) their vertices and normals in
+    ``world`` and ``depth`` (n,) their camera depths (m); ``filled`` and ``ids`` (H*W,) the map point
+    rendered next to (for pinholes) or at each pixel, -1 for none. A point passes where its ``filled``
+    map point is within the gate (:func:`_squared_gate`) and faces alike (:func:`_passes`), judged on the
+    map as it was before this frame. A passing point whose map point is rendered at its own pixel is
+    merged into it, with ``a = confidence[pixel]`` (1 if ``confidence`` is empty):
+    ``p <- (w p + a q) / (w + a)``; ``n`` likewise, renormalised; the colour likewise with its own
+    weight, from ``rgb`` (H*W, 3) uint8 unless it is empty; ``w <- min(w + a, max_weight)``.
+
+    numpy: the filter and merge of :meth:`relpoint.estimators.dense.fusion.PointMap.fuse` as
+    ``tests/test_dense_kernels.py`` gives them.
+    """
+    n = len(pixels)
+    cos = np.float32(normal_cos)
+    passed = np.zeros(n, dtype=np.bool_)
+    for k in range(n):
+        j = filled[pixels[k]]
+        if j >= 0:
+            passed[k] = _passes(
+                q, n_q, k, positions, normals, j, _squared_gate(depth[k], distance_threshold, distance_quadratic), cos
+            )
+    one = np.float32(1.0)
+    cap = np.float32(max_weight)
+    tiny = np.float32(1e-12)
+    merged = 0
+    for k in range(n):
+        pixel = pixels[k]
+        j = ids[pixel]
+        if not passed[k] or j < 0:
+            continue
+        merged += 1
+        w = weights[j]
+        alpha = confidence[pixel] if len(confidence) else one
+        w1 = w + alpha
+        inverse = one / w1
+        a = alpha * inverse
+        b = w * inverse
+        for axis in range(3):
+            positions[axis, j] = positions[axis, j] * b + q[axis, k] * a
+        m0 = normals[0, j] * b + n_q[0, k] * a
+        m1 = normals[1, j] * b + n_q[1, k] * a
+        m2 = normals[2, j] * b + n_q[2, k] * a
+        norm = max(np.sqrt(m0 * m0 + m1 * m1 + m2 * m2), tiny)
+        normals[0, j] = m0 / norm
+        normals[1, j] = m1 / norm
+        normals[2, j] = m2 / norm
+        if len(rgb):
+            cw = color_weights[j]
+            cw1 = cw + alpha
+            for channel in range(3):
+                colors[channel, j] = (colors[channel, j] * cw + np.float32(rgb[pixel, channel]) * alpha) / cw1
+            color_weights[j] = min(cw1, cap)
+        weights[j] = min(w1, cap)
+    return passed, merged
+
+
+@kernel("i8[::1], i8[::1], f4[:, ::1], f4[:, ::1], f4[::1], i8[:, ::1], f4[:, ::1], f4[:, ::1], f8, f8, f8")
+def covered(
+    failed: np.ndarray,
+    pixels: np.ndarray,
+    q: np.ndarray,
+    n_q: np.ndarray,
+    depth: np.ndarray,
+    index_map: np.ndarray,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    distance_threshold: float,
+    distance_quadratic: float,
+    normal_cos: float,
+) -> np.ndarray:
+    """For each frame point ``failed[i]`` (an index into ``pixels``, ``q``, ``n_q``, ``depth`` as in
+    :func:`fuse_gates_and_merge`), whether a map point rendered (``index_map`` (H, W), -1 for none) at
+    one of its pixel's 8 neighbours passes the same gates, on the map as merged: (len(failed),) bool.
+
+    numpy: :meth:`relpoint.estimators.dense.fusion.PointMap._covered` (neighbours in its order)."""
+    h, w = index_map.shape
+    cos = np.float32(normal_cos)
+    out = np.zeros(len(failed), dtype=np.bool_)
+    rows = (0, 0, 1, -1, 1, 1, -1, -1)
+    cols = (1, -1, 0, 0, 1, -1, 1, -1)
+    for i in range(len(failed)):
+        k = failed[i]
+        row, col = divmod(pixels[k], w)
+        limit = _squared_gate(depth[k], distance_threshold, distance_quadratic)
+        for neighbour in range(8):
+            r = row + rows[neighbour]
+            c = col + cols[neighbour]
+            if r < 0 or r >= h or c < 0 or c >= w:
+                continue
+            j = index_map[r, c]
+            if j >= 0 and _passes(q, n_q, k, positions, normals, j, limit, cos):
+                out[i] = True
+                break
+    return out
