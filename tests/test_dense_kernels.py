@@ -28,6 +28,14 @@ from relpoint.types import Intrinsics
 
 F32 = npt.NDArray[np.float32]
 I64 = npt.NDArray[np.int64]
+
+
+def assert_bitwise_equal(actual: np.ndarray, expected: np.ndarray) -> None:
+    """Equal shapes, dtypes and bytes (so -0.0 differs from 0.0 and NaN payloads must match)."""
+    assert actual.shape == expected.shape and actual.dtype == expected.dtype
+    assert actual.tobytes() == expected.tobytes()
+
+
 KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen-0000-0399"
 
 
@@ -287,8 +295,8 @@ def _depths() -> list[np.ndarray]:
 @pytest.mark.parametrize("max_jump", [0.03, 0.2])
 def test_depth_downsampling_and_smoothing_equal_numpy_bit_for_bit(max_jump: float) -> None:
     for depth in _depths():
-        np.testing.assert_array_equal(downsample_depth(depth, max_jump), reference_downsample_depth(depth, max_jump))
-        np.testing.assert_array_equal(smooth_depth(depth, max_jump), reference_smooth_depth(depth, max_jump))
+        assert_bitwise_equal(downsample_depth(depth, max_jump), reference_downsample_depth(depth, max_jump))
+        assert_bitwise_equal(smooth_depth(depth, max_jump), reference_smooth_depth(depth, max_jump))
 
 
 @pytest.mark.parametrize("max_jump", [0.05, 0.3])
@@ -299,15 +307,15 @@ def test_normals_equal_numpy_bit_for_bit(max_jump: float) -> None:
         vertices = _vertices(depth, intrinsics)
         normals, valid = _normals(vertices, depth, max_jump)
         expected, expected_valid = reference_normals(vertices, depth, max_jump)
-        np.testing.assert_array_equal(valid, expected_valid)
-        np.testing.assert_array_equal(normals, expected)
+        assert_bitwise_equal(valid, expected_valid)
+        assert_bitwise_equal(normals, expected)
         assert 0.3 < valid.mean() < 1.0  # the images exercise both outcomes
 
 
 @pytest.mark.parametrize("factor", [1, 2, 4])
 def test_colour_downsampling_equals_numpy(factor: int) -> None:
     color = np.random.default_rng(3).integers(0, 256, (30, 42, 3), dtype=np.uint8)
-    np.testing.assert_array_equal(_downsample_color(color, factor), reference_downsample_color(color, factor))
+    assert_bitwise_equal(_downsample_color(color, factor), reference_downsample_color(color, factor))
 
 
 @pytest.mark.parametrize("with_colour_and_confidence", [False, True])
@@ -344,11 +352,11 @@ def test_fusion_equals_numpy_bit_for_bit(with_colour_and_confidence: bool) -> No
                 )
             )
         (index, stats), (expected_index, expected_stats) = results
-        np.testing.assert_array_equal(index, expected_index)
+        assert_bitwise_equal(index, expected_index)
         assert stats == expected_stats
         if frame_index:
             assert stats.merged > 0 and stats.added > 0  # both paths run
     ours, reference = maps
     assert len(ours) == len(reference)
     for name in ("positions", "normals", "colors", "weights", "color_weights", "created"):
-        np.testing.assert_array_equal(getattr(ours, name), getattr(reference, name))
+        assert_bitwise_equal(getattr(ours, name), getattr(reference, name))

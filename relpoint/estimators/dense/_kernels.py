@@ -118,70 +118,69 @@ def smooth_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
 
 
 @kernel("f4[:, :, ::1], f4[:, ::1], i8, i8, i8, i8, f4[::1]")
-def _tangent(
-    v: np.ndarray, depth: np.ndarray, i: int, j: int, dr: int, dc: int, jumps: np.ndarray
-) -> tuple[float, float, float, bool]:
-    """The tangent (3 float32) at pixel ``(i, j)`` of a (3, H, W) vertex map along image axis
-    ``(dr, dc)``, and whether it exists: the nearest usable neighbour on each side (``k`` pixels away,
-    ``k`` up to ``len(jumps)``; usable when ``abs(nb - d) < jumps[k - 1] * d``), the pixel itself
-    standing in for a side without one. Outside the image a neighbour is depth 0 at the origin.
-
-    numpy: :func:`relpoint.estimators.dense.maps._tangent`."""
+def _side(v: np.ndarray, depth: np.ndarray, i: int, j: int, di: int, dj: int, jumps: np.ndarray) -> int:
+    """How many pixels along ``(di, dj)`` from ``(i, j)`` lies the nearest usable neighbour of a (3, H, W)
+    vertex map, 0 for none: the first ``k`` (up to ``len(jumps)``) inside the image whose depth ``nb``
+    has ``abs(nb - d) < jumps[k - 1] * d``. (Outside the image depth is 0, never usable: ``jumps < 1``.)"""
     h, w = depth.shape
     own = depth[i, j]
-    zero = np.float32(0.0)
-    after0, after1, after2 = v[0, i, j], v[1, i, j], v[2, i, j]
-    before0, before1, before2 = after0, after1, after2
-    has_after = False
-    has_before = False
-    for sign in (1, -1):
-        for k in range(1, len(jumps) + 1):
-            r = i + sign * k * dr
-            c = j + sign * k * dc
-            inside = 0 <= r < h and 0 <= c < w
-            nb = depth[r, c] if inside else zero
-            if abs(nb - own) < jumps[k - 1] * own:
-                x = v[0, r, c] if inside else zero
-                y = v[1, r, c] if inside else zero
-                z = v[2, r, c] if inside else zero
-                if sign == 1:
-                    after0, after1, after2 = x, y, z
-                    has_after = True
-                else:
-                    before0, before1, before2 = x, y, z
-                    has_before = True
-                break
-    return after0 - before0, after1 - before1, after2 - before2, has_after or has_before
+    for k in range(1, len(jumps) + 1):
+        r = i + k * di
+        c = j + k * dj
+        if r < 0 or r >= h or c < 0 or c >= w:
+            return 0
+        if abs(depth[r, c] - own) < jumps[k - 1] * own:
+            return k
+    return 0
 
 
 @kernel("f4[:, :, ::1], f4[:, ::1], f4[::1]")
 def normals(v: np.ndarray, depth: np.ndarray, jumps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (3, H, W) float32 of a (3, H, W) vertex map and their validity (H, W), from the
-    tangents along image columns (``a``) and rows (``b``): ``n = b x a`` where both exist, the depth is
-    positive, ``|n| > 0`` and ``n . v < 0``; zero elsewhere. ``jumps[k - 1]`` is the relative depth step
-    a neighbour ``k`` pixels away may make (float32 ``max_jump * k``).
+    """Unit normals (3, H, W) float32 of a (3, H, W) vertex map and their validity (H, W).
 
-    numpy: :func:`relpoint.estimators.dense.maps._normals`."""
+    Along each image axis the tangent joins the nearest usable neighbour on either side (:func:`_side`;
+    the pixel itself stands in for a side without one): ``a`` along columns, ``b`` along rows; the
+    normal ``n = b x a`` is kept where both tangents exist, the depth is positive, ``|n| > 0`` and
+    ``n . v < 0``, and is zero elsewhere. ``jumps[k - 1]`` is the relative depth step a neighbour ``k``
+    pixels away may make (float32 ``max_jump * k``, all below 1).
+
+    numpy: :func:`relpoint.estimators.dense.maps._normals` before this kernel, as
+    ``tests/test_dense_kernels.py`` gives it.
+    """
     h, w = depth.shape
-    out = np.empty((3, h, w), dtype=np.float32)
-    valid = np.empty((h, w), dtype=np.bool_)
+    out = np.zeros((3, h, w), dtype=np.float32)
+    valid = np.zeros((h, w), dtype=np.bool_)
     one = np.float32(1.0)
-    zero = np.float32(0.0)
     for i in range(h):
         for j in range(w):
-            a0, a1, a2, has_a = _tangent(v, depth, i, j, 0, 1, jumps)
-            b0, b1, b2, has_b = _tangent(v, depth, i, j, 1, 0, jumps)
+            if depth[i, j] == 0:  # no vertex, no tangent: the normal is 0
+                continue
+            right = _side(v, depth, i, j, 0, 1, jumps)
+            left = _side(v, depth, i, j, 0, -1, jumps)
+            down = _side(v, depth, i, j, 1, 0, jumps)
+            up = _side(v, depth, i, j, -1, 0, jumps)
+            a0 = v[0, i, j + right] - v[0, i, j - left]
+            a1 = v[1, i, j + right] - v[1, i, j - left]
+            a2 = v[2, i, j + right] - v[2, i, j - left]
+            b0 = v[0, i + down, j] - v[0, i - up, j]
+            b1 = v[1, i + down, j] - v[1, i - up, j]
+            b2 = v[2, i + down, j] - v[2, i - up, j]
             nx = b1 * a2 - b2 * a1
             ny = b2 * a0 - b0 * a2
             nz = b0 * a1 - b1 * a0
             norm2 = nx * nx + ny * ny + nz * nz
             facing = nx * v[0, i, j] + ny * v[1, i, j] + nz * v[2, i, j]
-            ok = has_a and has_b and depth[i, j] > 0 and norm2 > 0 and facing < 0
-            scale = one / np.sqrt(norm2) if ok else zero
-            out[0, i, j] = nx * scale
-            out[1, i, j] = ny * scale
-            out[2, i, j] = nz * scale
-            valid[i, j] = ok
+            ok = (right > 0 or left > 0) and (down > 0 or up > 0) and depth[i, j] > 0 and norm2 > 0 and facing < 0
+            if ok:
+                scale = one / np.sqrt(norm2)
+                out[0, i, j] = nx * scale
+                out[1, i, j] = ny * scale
+                out[2, i, j] = nz * scale
+                valid[i, j] = True
+            else:  # as numpy's n * 0: NaN stays NaN
+                out[0, i, j] = nx * np.float32(0.0)
+                out[1, i, j] = ny * np.float32(0.0)
+                out[2, i, j] = nz * np.float32(0.0)
     return out, valid
 
 
@@ -194,15 +193,21 @@ def downsample_color(color: np.ndarray, factor: int) -> np.ndarray:
     then ``(total + n // 2) // n`` with ``n = factor ** 2``."""
     h, w = color.shape[0] // factor, color.shape[1] // factor
     out = np.empty((h, w, 3), dtype=np.uint8)
+    total = np.empty((w, 3), dtype=np.int64)
     n = factor * factor
     for i in range(h):
+        total[:] = n // 2
+        for r in range(i * factor, i * factor + factor):
+            row = color[r]
+            for j in range(w):
+                for c in range(j * factor, j * factor + factor):
+                    total[j, 0] += row[c, 0]
+                    total[j, 1] += row[c, 1]
+                    total[j, 2] += row[c, 2]
         for j in range(w):
-            for channel in range(3):
-                total = 0
-                for r in range(i * factor, i * factor + factor):
-                    for c in range(j * factor, j * factor + factor):
-                        total += color[r, c, channel]
-                out[i, j, channel] = (total + n // 2) // n
+            out[i, j, 0] = total[j, 0] // n
+            out[i, j, 1] = total[j, 1] // n
+            out[i, j, 2] = total[j, 2] // n
     return out
 
 
