@@ -356,3 +356,125 @@ def covered(
                 out[i] = True
                 break
     return out
+
+
+# -- projection: the z-buffer and projective association (fusion.PointMap.render, icp.associate) -----
+
+
+@kernel("f4, f4")
+def _minimum(x: float, y: float) -> float:
+    """``np.minimum`` of two float32 scalars: NaN if either is NaN."""
+    if x <= y or x != x:
+        return x
+    return y
+
+
+@kernel("f4, f4, f4, f8, f8, f8, f8, i8, i8")
+def _pixel(x: float, y: float, z: float, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> int:
+    """Row-major index of the pixel nearest to a camera-frame point (float32 metres), -1 when it falls
+    outside the ``width`` x ``height`` image or lies at or behind the camera (``z <= 1e-6``).
+
+    ``cx``, ``cy`` are the principal point plus 0.5 (pixel centres), so truncation finds the nearest
+    pixel. numpy: :func:`relpoint.estimators.dense.icp.project` (float32 throughout)."""
+    if not z > np.float32(1e-6):
+        return -1
+    inverse = np.float32(1.0) / z
+    u = x * inverse
+    u *= np.float32(fx)
+    u += np.float32(cx)
+    v = y * inverse
+    v *= np.float32(fy)
+    v += np.float32(cy)
+    if not (u >= 0 and u < np.float32(width) and v >= 0 and v < np.float32(height)):
+        return -1
+    return np.int64(v) * width + np.int64(u)
+
+
+@kernel("f4[:, ::1], f8, f8, f8, f8, i8, i8")
+def render(p_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> np.ndarray:
+    """Index (H*W,) of the nearest of the points ``p_cam`` (3, N) (camera frame, float32 metres) projecting
+    into each pixel (:func:`_pixel`), -1 for none; among points at the same depth the last wins.
+
+    numpy: the z-buffer of :meth:`relpoint.estimators.dense.fusion.PointMap.render` (``np.minimum.at``
+    over the depths, then each point whose depth is at most its pixel's, in order)."""
+    n = p_cam.shape[1]
+    pixels = np.empty(n, dtype=np.int64)
+    zbuffer = np.full(width * height, np.inf, dtype=np.float32)
+    for i in range(n):
+        pixel = _pixel(p_cam[0, i], p_cam[1, i], p_cam[2, i], fx, fy, cx, cy, width, height)
+        pixels[i] = pixel
+        if pixel >= 0:
+            zbuffer[pixel] = _minimum(zbuffer[pixel], p_cam[2, i])
+    index = np.full(width * height, -1, dtype=np.int64)
+    for i in range(n):
+        pixel = pixels[i]
+        if pixel >= 0 and p_cam[2, i] <= zbuffer[pixel]:
+            index[pixel] = i
+    return index
+
+
+@kernel("f4[:, ::1], f4[:, ::1], f4[:, ::1], f8, f8, f8, f8, i8, i8, f8, b1, f8")
+def associate(
+    p_cam: np.ndarray,
+    n_p: np.ndarray,
+    planes: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    max_distance_squared: float,
+    check_normals: bool,
+    normal_cos: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Projective association of map points ``p_cam`` (3, N) with normals ``n_p`` (3, N) (camera frame,
+    float32) with a frame level's ``planes`` (7, H*W): each point is paired with the vertex of the
+    pixel it projects to (:func:`_pixel`) where that pixel is valid, the squared distance is below
+    ``f32(max_distance_squared)`` and, if ``check_normals``, the normals' cosine exceeds ``f32(normal_cos)``.
+
+    Returns the paired points' indices (M,) and pixels (M,), and (3, M) float32 columns of their
+    ``p_cam``, the pixels' vertices and normals, and their ``n_p``. numpy:
+    :func:`relpoint.estimators.dense.icp.associate` after its transforms."""
+    n = p_cam.shape[1]
+    limit = np.float32(max_distance_squared)
+    cos = np.float32(normal_cos)
+    pixels = np.empty(n, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        pixel = _pixel(p_cam[0, i], p_cam[1, i], p_cam[2, i], fx, fy, cx, cy, width, height)
+        pixels[i] = -1
+        if pixel < 0 or not planes[6, pixel] > 0:
+            continue
+        d0 = p_cam[0, i] - planes[0, pixel]
+        d1 = p_cam[1, i] - planes[1, pixel]
+        d2 = p_cam[2, i] - planes[2, pixel]
+        if not d0 * d0 + d1 * d1 + d2 * d2 < limit:
+            continue
+        if (
+            check_normals
+            and not n_p[0, i] * planes[3, pixel] + n_p[1, i] * planes[4, pixel] + n_p[2, i] * planes[5, pixel] > cos
+        ):
+            continue
+        pixels[i] = pixel
+        count += 1
+    index = np.empty(count, dtype=np.int64)
+    paired = np.empty(count, dtype=np.int64)
+    source = np.empty((3, count), dtype=np.float32)
+    target = np.empty((3, count), dtype=np.float32)
+    normals = np.empty((3, count), dtype=np.float32)
+    map_normals = np.empty((3, count), dtype=np.float32)
+    m = 0
+    for i in range(n):
+        pixel = pixels[i]
+        if pixel < 0:
+            continue
+        index[m] = i
+        paired[m] = pixel
+        for axis in range(3):
+            source[axis, m] = p_cam[axis, i]
+            target[axis, m] = planes[axis, pixel]
+            normals[axis, m] = planes[3 + axis, pixel]
+            map_normals[axis, m] = n_p[axis, i]
+        m += 1
+    return index, paired, source, target, normals, map_normals

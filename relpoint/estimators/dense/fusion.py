@@ -26,7 +26,6 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators.dense import _kernels
-from relpoint.estimators.dense.icp import project
 from relpoint.estimators.dense.maps import Level
 from relpoint.geometry import FloatArray, transform_soa32
 
@@ -129,21 +128,15 @@ class PointMap:
         """Index map (H, W) int64 of the nearest map point projecting into each pixel of ``level``, -1 for none.
 
         A z-buffer over all map points: each point is projected to its nearest pixel and the smallest depth
-        per pixel wins (``np.minimum.at``); ties go to the highest id.
+        per pixel wins; ties go to the highest id (one compiled pass: :func:`_kernels.render`).
         """
         k = level.intrinsics
-        index = np.full(k.height * k.width, -1, dtype=np.int64)
         if self.size == 0:
-            return index.reshape(k.height, k.width)
+            return np.full((k.height, k.width), -1, dtype=np.int64)
         p_cam = transform_soa32(T_camera_world, self.positions)
-        pixel, inside = project(p_cam, level)
-        ids = np.flatnonzero(inside)
-        pixel = pixel[ids]
-        z = p_cam[2, ids]
-        zbuffer = np.full(k.height * k.width, np.inf, dtype=np.float32)
-        np.minimum.at(zbuffer, pixel, z)
-        nearest = np.flatnonzero(z <= zbuffer[pixel])
-        index[pixel[nearest]] = ids[nearest]
+        index = _kernels.render(
+            np.ascontiguousarray(p_cam), float(k.fx), float(k.fy), k.cx + 0.5, k.cy + 0.5, int(k.width), int(k.height)
+        )
         return index.reshape(k.height, k.width)
 
     def fuse(

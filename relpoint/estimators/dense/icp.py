@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from relpoint.estimators.dense import _kernels
 from relpoint.estimators.dense.maps import Level
 from relpoint.geometry import FloatArray, invert_pose, transform_soa32
 
@@ -62,29 +63,6 @@ class Correspondences:
         return len(self.index)
 
 
-def project(points_cam: F32, level: Level) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
-    """Nearest pixel (row-major index) of camera-frame points (3, N) in ``level``, and whether it is inside.
-
-    Points at or behind the camera (z <= 0) are outside; the pixel of a point outside is 0.
-    """
-    k = level.intrinsics
-    x, y, z = points_cam
-    inv = np.float32(1.0) / np.where(z > 1e-6, z, np.float32(-1.0))  # negative: fails the u >= 0 test below
-    u = x * inv
-    u *= np.float32(k.fx)
-    u += np.float32(k.cx + 0.5)
-    v = y * inv
-    v *= np.float32(k.fy)
-    v += np.float32(k.cy + 0.5)
-    inside = (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height) & (z > 1e-6)
-    # floor(c + 0.5) is the nearest pixel; u, v are non-negative inside, so truncation is floor.
-    pixel = v.astype(np.int64)
-    pixel *= k.width
-    pixel += u.astype(np.int64)
-    pixel[~inside] = 0
-    return pixel, inside
-
-
 def associate(
     T_camera_world: FloatArray,
     points: F32,
@@ -94,6 +72,11 @@ def associate(
     normal_cos_threshold: float,
 ) -> Correspondences:
     """Projective data association of map points with a frame level (section 2.1).
+
+    Each map point, moved into the camera, is paired with the frame vertex at the pixel it projects to
+    (the nearest pixel; points at or behind the camera, or outside the image, are not paired) when that
+    pixel is valid and the pair passes the distance and normal gates (one compiled pass:
+    :func:`_kernels.associate`).
 
     Parameters
     ----------
@@ -106,26 +89,14 @@ def associate(
         and the frame normal; -1 disables the check.
     """
     p_cam = transform_soa32(T_camera_world, points)
-    pixel, inside = project(p_cam, level)
-    # Pixels outside the image point at pixel 0; the validity plane rejects them below.
-    gathered = np.take(level.planes, pixel, axis=1)
-    ok = inside & (gathered[6] > 0)
-    q = gathered[:3]
-    n_q = gathered[3:6]
-    diff = p_cam - q
-    ok &= (diff * diff).sum(axis=0) < np.float32(distance_threshold**2)
     n_p = T_camera_world[:3, :3].astype(np.float32) @ normals
-    if normal_cos_threshold > -1.0:
-        ok &= (n_p * n_q).sum(axis=0) > np.float32(normal_cos_threshold)
-    idx = np.flatnonzero(ok)
-    return Correspondences(
-        np.take(p_cam, idx, axis=1).T,
-        np.take(q, idx, axis=1).T,
-        np.take(n_q, idx, axis=1).T,
-        idx,
-        pixel[idx],
-        np.take(n_p, idx, axis=1).T,
-    )
+    k = level.intrinsics
+    idx, pixels, source, target, target_normals, map_normals = _kernels.associate(
+        np.ascontiguousarray(p_cam), np.ascontiguousarray(n_p), level.planes, float(k.fx), float(k.fy),
+        k.cx + 0.5, k.cy + 0.5, int(k.width), int(k.height), float(distance_threshold**2),
+        bool(normal_cos_threshold > -1.0), float(normal_cos_threshold),
+    )  # fmt: skip
+    return Correspondences(source.T, target.T, target_normals.T, idx, pixels, map_normals.T)
 
 
 def linear_system(source: F32, target: F32, normals: F32) -> tuple[F32, F32]:
