@@ -1,10 +1,12 @@
 """Compiled per-pixel loops of the dense estimator (numba): depth downsampling and smoothing, normals,
-colour downsampling, and the fusion's gates and merge.
+colour downsampling, the z-buffer, projective association, and the fusion's gates, merge and cover test.
 
 In numpy each of these is a dozen or more passes over whole images, each writing a temporary of the
 image's size; here every pixel is read once and its result written once. Each kernel computes the
 same float32 operations in the same order as the numpy expression its docstring gives, so the results
-are bit-identical (``tests/test_dense_kernels.py`` checks them against the numpy expressions).
+are bit-identical: ``tests/test_dense_kernels.py`` keeps the numpy code each kernel replaced
+(``reference_*``) and compares them byte for byte. The 3x3 rotations of whole point sets stay numpy
+matrix products outside the kernels (their rounding is BLAS's).
 
 An install builds the kernels ahead of time into the extension module ``_kernels_aot`` (numba's
 ``pycc``, from the argument types each kernel names; see ``setup.py`` and :mod:`relpoint._aot_kernels`),
@@ -45,7 +47,7 @@ def downsample_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
     """Half-size depth (H//2, W//2) float32 from 2x2 blocks of ``depth`` (H, W) metres: the mean of a
     block's valid (positive) depths, or their nearest where they spread more than ``max_jump`` times it.
 
-    numpy (:func:`relpoint.estimators.dense.maps.downsample_depth`), with ``a, b, c, d`` the block's
+    numpy (``reference_downsample_depth``), with ``a, b, c, d`` the block's
     four depths in row order: ``total = a + b + c + d``; ``count`` the positive ones; ``nearest`` the
     least positive one (inf for none); ``farthest = maximum(maximum(a, b), maximum(c, d))``;
     ``where(farthest - nearest > f32(max_jump) * nearest, nearest, total / maximum(count, 1))``.
@@ -91,7 +93,7 @@ def downsample_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
 def smooth_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
     """Edge-preserving 3x3 mean (H, W) float32 of ``depth`` (H, W) metres.
 
-    numpy (:func:`relpoint.estimators.dense.maps.smooth_depth`): with the image padded by zeros and
+    numpy (``reference_smooth_depth``): with the image padded by zeros and
     ``limit = f32(max_jump) * depth``, over the nine neighbours ``nb`` in row order
     ``near = abs(nb - depth) < limit``, ``total += nb * near``, ``count += near``; then
     ``where(count > 0, total / maximum(count, 1), 0)``.
@@ -144,8 +146,7 @@ def normals(v: np.ndarray, depth: np.ndarray, jumps: np.ndarray) -> tuple[np.nda
     ``n . v < 0``, and is zero elsewhere. ``jumps[k - 1]`` is the relative depth step a neighbour ``k``
     pixels away may make (float32 ``max_jump * k``, all below 1).
 
-    numpy: :func:`relpoint.estimators.dense.maps._normals` before this kernel, as
-    ``tests/test_dense_kernels.py`` gives it.
+    numpy: ``reference_normals``.
     """
     h, w = depth.shape
     out = np.zeros((3, h, w), dtype=np.float32)
@@ -189,7 +190,7 @@ def downsample_color(color: np.ndarray, factor: int) -> np.ndarray:
     """Mean of each ``factor x factor`` block of an (H, W, 3) uint8 image, rounded half up:
     (H // factor, W // factor, 3) uint8.
 
-    numpy (:func:`relpoint.estimators.dense.estimator._downsample_color`): uint16 block sums ``total``,
+    numpy (``reference_downsample_color``): uint16 block sums ``total``,
     then ``(total + n // 2) // n`` with ``n = factor ** 2``."""
     h, w = color.shape[0] // factor, color.shape[1] // factor
     out = np.empty((h, w, 3), dtype=np.uint8)
@@ -271,8 +272,7 @@ def fuse_gates_and_merge(
     ``p <- (w p + a q) / (w + a)``; ``n`` likewise, renormalised; the colour likewise with its own
     weight, from ``rgb`` (H*W, 3) uint8 unless it is empty; ``w <- min(w + a, max_weight)``.
 
-    numpy: the filter and merge of :meth:`relpoint.estimators.dense.fusion.PointMap.fuse` as
-    ``tests/test_dense_kernels.py`` gives them.
+    numpy: the filter and merge of ``ReferencePointMap.fuse``.
     """
     n = len(pixels)
     cos = np.float32(normal_cos)
@@ -336,7 +336,7 @@ def covered(
     :func:`fuse_gates_and_merge`), whether a map point rendered (``index_map`` (H, W), -1 for none) at
     one of its pixel's 8 neighbours passes the same gates, on the map as merged: (len(failed),) bool.
 
-    numpy: :meth:`relpoint.estimators.dense.fusion.PointMap._covered` (neighbours in its order)."""
+    numpy: ``ReferencePointMap._covered`` (neighbours in its order)."""
     h, w = index_map.shape
     cos = np.float32(normal_cos)
     out = np.zeros(len(failed), dtype=np.bool_)
@@ -375,7 +375,7 @@ def _pixel(x: float, y: float, z: float, fx: float, fy: float, cx: float, cy: fl
     outside the ``width`` x ``height`` image or lies at or behind the camera (``z <= 1e-6``).
 
     ``cx``, ``cy`` are the principal point plus 0.5 (pixel centres), so truncation finds the nearest
-    pixel. numpy: :func:`relpoint.estimators.dense.icp.project` (float32 throughout)."""
+    pixel. numpy: ``reference_project`` (float32 throughout)."""
     if not z > np.float32(1e-6):
         return -1
     inverse = np.float32(1.0) / z
@@ -395,8 +395,8 @@ def render(p_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, width:
     """Index (H*W,) of the nearest of the points ``p_cam`` (3, N) (camera frame, float32 metres) projecting
     into each pixel (:func:`_pixel`), -1 for none; among points at the same depth the last wins.
 
-    numpy: the z-buffer of :meth:`relpoint.estimators.dense.fusion.PointMap.render` (``np.minimum.at``
-    over the depths, then each point whose depth is at most its pixel's, in order)."""
+    numpy: ``reference_render`` (``np.minimum.at`` over the depths, then each point whose depth is at
+    most its pixel's, in order)."""
     n = p_cam.shape[1]
     pixels = np.empty(n, dtype=np.int64)
     zbuffer = np.full(width * height, np.inf, dtype=np.float32)
@@ -434,8 +434,8 @@ def associate(
     ``f32(max_distance_squared)`` and, if ``check_normals``, the normals' cosine exceeds ``f32(normal_cos)``.
 
     Returns the paired points' indices (M,) and pixels (M,), and (3, M) float32 columns of their
-    ``p_cam``, the pixels' vertices and normals, and their ``n_p``. numpy:
-    :func:`relpoint.estimators.dense.icp.associate` after its transforms."""
+    ``p_cam``, the pixels' vertices and normals, and their ``n_p``. numpy: ``reference_associate``
+    after its transforms."""
     n = p_cam.shape[1]
     limit = np.float32(max_distance_squared)
     cos = np.float32(normal_cos)
