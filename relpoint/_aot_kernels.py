@@ -117,14 +117,21 @@ def checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument
     A prebuilt kernel reads its arrays as declared without looking (a strided view would be read
     wrongly, a float32 array past its end), where a numba dispatcher would compile a variant; so a
     call with any other array is refused with a TypeError naming the kernel and argument.
+
+    The check is generated for the signature: one condition over every array argument, written out
+    (class, dtype, dimensions, C order), that compares dtypes by identity (numpy's built-in dtypes
+    are shared objects). A call it does not pass, such as one whose dtype is an equal but separate
+    object, goes to the full check with ``!=``. About 1 us for four arrays, against 2.7 us for a loop
+    over the declared arrays: an iteration of Relative Point makes some twenty such calls.
     """
+    declared = _ARGUMENT.findall(argument_types)
     arrays = [
         (position, _DTYPES[code], dimensions.count(",") + 1)
-        for position, (code, dimensions) in enumerate(_ARGUMENT.findall(argument_types))
+        for position, (code, dimensions) in enumerate(declared)
         if dimensions
     ]
 
-    def call(*arguments: Any) -> Any:
+    def refuse_or_call(*arguments: Any) -> Any:
         for position, dtype, ndim in arrays:
             array = arguments[position]
             if (
@@ -136,4 +143,18 @@ def checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument
                 raise TypeError(f"{function.__name__}: argument {position} must be a C-ordered {ndim}-d {dtype} array")
         return prebuilt(*arguments)
 
-    return functools.update_wrapper(call, function)
+    names = ", ".join(f"a{position}" for position in range(len(declared)))
+    tests = " and ".join(
+        f"a{position}.__class__ is ndarray and a{position}.dtype is dtype{position}"
+        f" and a{position}.ndim == {ndim} and a{position}.flags.c_contiguous"
+        for position, _, ndim in arrays
+    )
+    source = f"def call({names}{', /' if declared else ''}):\n"
+    if tests:
+        source += f"    if {tests}:\n        return prebuilt({names})\n    return refuse_or_call({names})\n"
+    else:
+        source += f"    return prebuilt({names})\n"
+    namespace: dict[str, Any] = {"ndarray": np.ndarray, "prebuilt": prebuilt, "refuse_or_call": refuse_or_call}
+    namespace.update({f"dtype{position}": dtype for position, dtype, _ in arrays})
+    exec(compile(source, f"<checked {function.__name__}>", "exec"), namespace)
+    return functools.update_wrapper(namespace["call"], function)

@@ -113,12 +113,20 @@ def test_prebuilt_kernels_equal_the_jit_ones_bit_for_bit(monkeypatch: pytest.Mon
 def test_prebuilt_kernels_refuse_arrays_they_would_misread() -> None:
     sums, weights, ids = np.arange(30.0).reshape(10, 3), np.ones(10), np.array([0, 4, 9])
     np.testing.assert_array_equal(_kernels.gather_positions(sums, weights, ids), sums[ids])
+    # A dtype equal to the declared one but a separate object (numpy's own are shared) is taken too.
+    tagged = np.dtype(np.float64, metadata={"unit": "m"})
+    assert tagged is not sums.dtype
+    np.testing.assert_array_equal(_kernels.gather_positions(sums.astype(tagged), weights, ids), sums[ids])
     for bad in (
         (np.asfortranarray(sums), weights, ids),
         (sums[::2], weights[::2], ids[:2]),
         (sums.astype(np.float32), weights, ids),
+        (sums.astype(">f8"), weights, ids),
         (sums, weights, ids.astype(np.int32)),
         (sums, weights, [0, 4, 9]),
+        (sums, weights.reshape(10, 1), ids),
+        (sums.ravel(), weights, ids),
+        (np.ma.masked_array(sums), weights, ids),
     ):
         with pytest.raises(TypeError, match="gather_positions: argument"):
             _kernels.gather_positions(*bad)
