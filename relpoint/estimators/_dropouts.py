@@ -31,6 +31,7 @@ turning back and forth: FastSLAM placed right after the gap, lost 0.5 s later, A
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class DropoutRegistration:
             self._intervals.append((stamp_ns - self._stamp_ns) * 1e-9)
             self._since_typical += 1
             if len(self._intervals) <= _REFRESH or self._since_typical >= _REFRESH:
-                self._typical, self._since_typical = float(np.median(self._intervals)), 0
+                self._typical, self._since_typical = _median(self._intervals), 0
         if len(points) >= 3:
             self._points, self._stamp_ns = points, stamp_ns
 
@@ -134,6 +135,14 @@ class DropoutRegistration:
         covariance = np.diag(np.r_[np.full(3, noise**2), np.full(3, (noise / max(spread, noise)) ** 2)])
         self.registered += dropout
         return R, t, covariance
+
+
+def _median(values: Iterable[float]) -> float:
+    """The median of a few floats, as ``numpy.median`` gives it to the bit (the mean of the middle two
+    of an even count), in about 2 us where numpy takes 15-40 us for 64 values held in a deque."""
+    ordered = sorted(values)
+    half = len(ordered) // 2
+    return ordered[half] if len(ordered) % 2 else (ordered[half - 1] + ordered[half]) / 2
 
 
 def _holds(measured: tuple[float, int] | None) -> bool:
