@@ -575,14 +575,19 @@ class FinalAdjustment(EstimatorState):
     def _keep_support(self, k: int, points: FloatArray, ids: IntArray, mapped: npt.NDArray[np.bool_] | None) -> None:
         """Keep up to ``relocate_points`` of this iteration's observations of ``mapped`` points (None: not
         located), and, on a keyframe of the bundle adjustment, up to ``BUNDLE_KEPT_PER_KEYFRAME``."""
+        store = self.store
+        every_uid = every_point = None  # every point's uid and observation (float32), when a keyframe keeps them all
         if self.config.final_adjustment and self.config.bundle_adjustment and k % self._keyframe_stride == 0:
-            kept = np.arange(len(ids))
             if len(ids) > BUNDLE_KEPT_PER_KEYFRAME:
                 # A dense view keeps its mapped points seen most so far, as the solve will prefer them.
-                seen = self.store.n_obs[ids] + (0 if mapped is None else mapped * (self._iteration + 1))
+                seen = store.n_obs[ids] + (0 if mapped is None else mapped * (self._iteration + 1))
                 kept = np.sort(np.argsort(-seen, kind="stable")[:BUNDLE_KEPT_PER_KEYFRAME])
-            self._observations[k] = (self.store.uid[ids[kept]], points[kept].astype(np.float32))
-            self._kept_observations += len(kept)
+                self._observations[k] = (store.uid[ids[kept]], points[kept].astype(np.float32))
+                self._kept_observations += len(kept)
+            else:
+                every_uid, every_point = store.uid[ids], points.astype(np.float32)
+                self._observations[k] = (every_uid, every_point)
+                self._kept_observations += len(ids)
             while self._kept_observations > BUNDLE_MAX_OBSERVATIONS:
                 # Memory and the solve follow the keyframes, not the log: every other one goes.
                 self._keyframe_stride *= 2
@@ -594,11 +599,14 @@ class FinalAdjustment(EstimatorState):
             # The first iteration defines ``world``; a coasted one had no usable fit.
             self._support.append(None)
             return
-        use = np.flatnonzero(mapped)
+        use = mapped.nonzero()[0]
         keep = self.config.relocate_points
         if len(use) > keep:
             use = use[np.arange(keep) * (len(use) - 1) // (keep - 1)]  # evenly spread
-        self._support.append((self.store.uid[ids[use]], points[use].astype(np.float32)))
+        if every_uid is None:
+            self._support.append((store.uid[ids[use]], points[use].astype(np.float32)))
+        else:  # the same values as above, from the keyframe's arrays
+            self._support.append((every_uid[use], every_point[use]))
 
     def adjust(self) -> bool:
         """Joint least-squares adjustment of every placed group and mapped point (:mod:`.adjustment`).

@@ -72,10 +72,10 @@ class DynamicSweep(EstimatorState):
         it and the binning's ``threshold`` is reported moving; the rest of those the binning put
         outside are only left out (see ``dynamic_tail_sigmas``). ``observations`` is (M, L, 3).
         """
-        outside = np.flatnonzero(~static)
+        outside = (~static).nonzero()[0]
         if len(outside) == 0 or self.config.dynamic_tail_sigmas <= 0:
             return np.ones(len(outside), bool)
-        references = np.flatnonzero(static)[: self.config.dynamic_references]
+        references = static.nonzero()[0][: self.config.dynamic_references]
         everyone = np.arange(len(observations))
         deviation = np.median(
             [distance_deviation(observations, np.full(len(everyone), r), everyone) for r in references], axis=0

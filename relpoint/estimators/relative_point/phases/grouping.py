@@ -40,7 +40,7 @@ class Grouping(EstimatorState):
 
     def _add_points(self, points: FloatArray, ids: IntArray, k: int, gt_ids: IntArray | None) -> IntArray:
         """Create points for unmatched observations, then append every observation to its ring."""
-        new = np.flatnonzero(ids == NO_MATCH)
+        new = (ids == NO_MATCH).nonzero()[0]
         if len(new):
             ids[new] = self.store.new_points(len(new))
             self.ungrouped.add(ids[new])
@@ -124,7 +124,7 @@ class Grouping(EstimatorState):
             root = True
         if outcome != SELECTION_MADE:
             return False
-        iterations = first + np.flatnonzero(interval)
+        iterations = first + interval.nonzero()[0]
         moving, beyond, verified = self._detect_dynamic(k, members, iterations)
         if len(moving):
             members = members[~np.isin(members, moving)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from itertools import accumulate
 
 import numpy as np
 import numpy.typing as npt
@@ -32,8 +33,7 @@ class Localisation(EstimatorState):
         # Each recently seen point, once: from the charting of the iteration it was last seen in.
         first = k - config.match_window
         seen = [self.charting.seen(t) for t in range(first, k)]
-        offsets = np.zeros(len(seen) + 1, np.int64)
-        np.cumsum([len(ids_t) for ids_t in seen], out=offsets[1:])
+        offsets = np.array([0, *accumulate(len(ids_t) for ids_t in seen)], np.int64)
         refs, reference, age = recent_references(np.concatenate(seen), offsets, first, store.last_iter, store.obs)
         if len(refs) == 0:
             return ids
@@ -47,7 +47,7 @@ class Localisation(EstimatorState):
 
     def _match_globally(self, points: FloatArray, ids: IntArray, k: int) -> None:
         """Global matching (paper II-D) of unmatched points through the provisional current position."""
-        unmatched = np.flatnonzero(ids == NO_MATCH)
+        unmatched = (ids == NO_MATCH).nonzero()[0]
         if len(unmatched) == 0 or len(self.index) == 0:
             return
         store = self.store
