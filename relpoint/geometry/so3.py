@@ -80,10 +80,10 @@ def quaternion_xyzw(R: FloatArray) -> tuple[float, float, float, float]:
     else:
         s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
         q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
-    norm = math.sqrt(sum(c * c for c in q))
-    sign = -1.0 if q[3] < 0.0 else 1.0
-    x, y, z, w = (sign * c / norm for c in q)
-    return x, y, z, w
+    qx, qy, qz, qw = q
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    sign = -1.0 if qw < 0.0 else 1.0
+    return sign * qx / norm, sign * qy / norm, sign * qz / norm, sign * qw / norm
 
 
 def smallest_rotation(u: FloatArray, v: FloatArray) -> FloatArray:

@@ -269,8 +269,7 @@ class DynamicSweep(EstimatorState):
             return False
         store = self.store
         neighbours = [self.index.candidates_at(key) for key in keys.tolist()]
-        offsets = np.zeros(len(neighbours) + 1, np.int64)
-        np.cumsum([len(found) for found in neighbours], out=offsets[1:])
+        offsets = np.array([0, *itertools.accumulate(len(found) for found in neighbours)], np.int64)
         candidates = np.fromiter(itertools.chain.from_iterable(neighbours), np.int64, int(offsets[-1]))
         return bool(older_within(store.pos_sum, store.pos_weight, store.uid, newly, candidates, offsets, float(bound2)))
 
