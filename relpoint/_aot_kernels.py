@@ -119,10 +119,11 @@ def checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument
     call with any other array is refused with a TypeError naming the kernel and argument.
 
     The check is generated for the signature: one condition over every array argument, written out
-    (class, dtype, dimensions, C order), that compares dtypes by identity (numpy's built-in dtypes
-    are shared objects). A call it does not pass, such as one whose dtype is an equal but separate
-    object, goes to the full check with ``!=``. About 1 us for four arrays, against 2.7 us for a loop
-    over the declared arrays: an iteration of Relative Point makes some twenty such calls.
+    (class, dtype, dimensions, C order), rather than a loop over the declared arrays; a call it does
+    not pass goes to the loop, which names the argument. About 1 us for four arrays against 1.8 us
+    for the loop alone: an iteration of Relative Point makes some twenty such calls. (Dtypes are
+    compared with ``==``: arrays the kernels return carry a dtype object of their own, equal to
+    numpy's but not it.)
     """
     declared = _ARGUMENT.findall(argument_types)
     arrays = [
@@ -145,7 +146,7 @@ def checked(prebuilt: Callable[..., Any], function: Callable[..., Any], argument
 
     names = ", ".join(f"a{position}" for position in range(len(declared)))
     tests = " and ".join(
-        f"a{position}.__class__ is ndarray and a{position}.dtype is dtype{position}"
+        f"a{position}.__class__ is ndarray and a{position}.dtype == dtype{position}"
         f" and a{position}.ndim == {ndim} and a{position}.flags.c_contiguous"
         for position, _, ndim in arrays
     )

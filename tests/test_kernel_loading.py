@@ -113,7 +113,7 @@ def test_prebuilt_kernels_equal_the_jit_ones_bit_for_bit(monkeypatch: pytest.Mon
 def test_prebuilt_kernels_refuse_arrays_they_would_misread() -> None:
     sums, weights, ids = np.arange(30.0).reshape(10, 3), np.ones(10), np.array([0, 4, 9])
     np.testing.assert_array_equal(_kernels.gather_positions(sums, weights, ids), sums[ids])
-    # A dtype equal to the declared one but a separate object (numpy's own are shared) is taken too.
+    # A dtype equal to the declared one but a separate object (as the kernels return) is taken too.
     tagged = np.dtype(np.float64, metadata={"unit": "m"})
     assert tagged is not sums.dtype
     np.testing.assert_array_equal(_kernels.gather_positions(sums.astype(tagged), weights, ids), sums[ids])
