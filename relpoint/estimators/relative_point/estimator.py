@@ -219,7 +219,7 @@ class RelativePointEstimator(
             self.motion.to_interval((observation.stamp_ns - self._previous_stamp_ns) * 1e-9)
         self._previous_stamp_ns = observation.stamp_ns
         points = np.asarray(observation.points, dtype=np.float64)
-        finite = np.all(np.isfinite(points), axis=1)
+        finite = np.isfinite(points).all(axis=1)
         self.counts["nonfinite_points"] += int(np.count_nonzero(~finite))
         points = points[finite]
         gt_ids = None if observation.ids is None else np.asarray(observation.ids)[finite]

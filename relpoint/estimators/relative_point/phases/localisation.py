@@ -29,7 +29,8 @@ class Localisation(EstimatorState):
     def _register(self, points: FloatArray, k: int) -> IntArray:
         """Local matching (paper II-A): ids (N,) of the recent points matched, ``NO_MATCH`` elsewhere."""
         config, store = self.config, self.store
-        ids = np.full(len(points), NO_MATCH, np.int64)
+        ids = np.empty(len(points), np.int64)
+        ids.fill(NO_MATCH)
         # Each recently seen point, once: from the charting of the iteration it was last seen in.
         first = k - config.match_window
         seen = [self.charting.seen(t) for t in range(first, k)]
@@ -90,8 +91,9 @@ class Localisation(EstimatorState):
     def _mapped_static(self, ids: IntArray) -> npt.NDArray[np.bool_]:
         """Which of this iteration's point ids (NO_MATCH for none) have a global position and are static."""
         store = self.store
-        safe = np.where(ids != NO_MATCH, ids, 0)
-        return (ids != NO_MATCH) & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
+        known = ids != NO_MATCH
+        safe = np.where(known, ids, 0)
+        return known & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
 
     def _fit_pose(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
         """``T_world_sensor`` fitting observations (N, 3) (sensor frame) to their points' global positions.
