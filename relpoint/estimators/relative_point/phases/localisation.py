@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from itertools import accumulate
+from itertools import accumulate, chain
 
 import numpy as np
 import numpy.typing as npt
@@ -56,18 +56,23 @@ class Localisation(EstimatorState):
         recent = k - self.config.match_window
         bound2 = self.config.global_match_bound**2
         claims: list[tuple[float, int, int]] = []
-        keys = self.index.keys(world).tolist()
-        for q, position, key in zip(unmatched.tolist(), world, keys, strict=True):
-            candidates = np.asarray(self.index.candidates_at(key), np.int64)
-            if len(candidates) == 0:
-                continue
-            candidates = candidates[store.last_iter[candidates] < recent]
-            if len(candidates) == 0:
-                continue
-            d2 = np.sum((store.positions(candidates) - position) ** 2, axis=1)
-            best = int(np.argmin(d2))
-            if d2[best] <= bound2:
-                claims.append((float(d2[best]), q, int(candidates[best])))
+        # Every unmatched point's index neighbours in one array (each point's in the index's order),
+        # those seen within the matching window left out; each point claims its nearest within bound.
+        found = [self.index.candidates_at(key) for key in self.index.keys(world).tolist()]
+        counts = [len(neighbours) for neighbours in found]
+        candidates = np.fromiter(chain.from_iterable(found), np.int64, sum(counts))
+        older = store.last_iter[candidates] < recent
+        owner = np.repeat(np.arange(len(unmatched)), counts)[older]  # row in ``unmatched`` of each
+        candidates = candidates[older]
+        d2 = np.sum((store.positions(candidates) - world[owner]) ** 2, axis=1)
+        ends = np.cumsum(np.bincount(owner, minlength=len(unmatched))).tolist()
+        start = 0
+        for q, end in zip(unmatched.tolist(), ends, strict=True):
+            if end > start:
+                best = start + int(np.argmin(d2[start:end]))
+                if d2[best] <= bound2:
+                    claims.append((float(d2[best]), q, int(candidates[best])))
+            start = end
         taken: set[int] = set()
         for _, q, point in sorted(claims):
             if point not in taken:
