@@ -40,7 +40,17 @@ def assert_bitwise_equal(actual: np.ndarray, expected: np.ndarray) -> None:
 KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen-0000-0399"
 
 
-def reference_downsample_depth(depth: np.ndarray, max_jump: float = 0.03) -> np.ndarray:
+def _reference_edge_limit(depth: np.ndarray, max_jump: float, noise: tuple[float, float] | None) -> np.ndarray:
+    limit = np.float32(max_jump) * depth
+    if noise is not None:
+        constant, quadratic = noise
+        np.maximum(limit, np.float32(constant) + np.float32(quadratic) * depth * depth, out=limit)
+    return limit
+
+
+def reference_downsample_depth(
+    depth: np.ndarray, max_jump: float = 0.03, noise: tuple[float, float] | None = None
+) -> np.ndarray:
     h, w = depth.shape[0] // 2 * 2, depth.shape[1] // 2 * 2
     depth = np.asarray(depth, dtype=np.float32)
     a, b, c, d = (depth[r:h:2, s:w:2] for r in (0, 1) for s in (0, 1))
@@ -57,15 +67,24 @@ def reference_downsample_depth(depth: np.ndarray, max_jump: float = 0.03) -> np.
     np.minimum(nearest, np.where(d > 0, d, inf), out=nearest)
     farthest = np.maximum(np.maximum(a, b), np.maximum(c, d))
     mean = total / np.maximum(count, np.float32(1.0))
-    jump = farthest - nearest > np.float32(max_jump) * nearest
+    if noise is None:
+        jump = farthest - nearest > np.float32(max_jump) * nearest
+    else:
+        jump = farthest - nearest > _reference_edge_limit(
+            np.where(count > 0, nearest, np.float32(0.0)), max_jump, noise
+        )
     return np.where(jump, nearest, mean).astype(np.float32, copy=False)
 
 
-def reference_smooth_depth(depth: np.ndarray, max_jump: float = 0.03) -> np.ndarray:
+def reference_smooth_depth(
+    depth: np.ndarray, max_jump: float = 0.03, noise: tuple[float, float] | None = None
+) -> np.ndarray:
     h, w = depth.shape
     padded = np.zeros((h + 2, w + 2), dtype=np.float32)
     padded[1:-1, 1:-1] = depth
-    limit = np.float32(max_jump) * depth
+    limit = _reference_edge_limit(depth, max_jump, noise)
+    if noise is not None:
+        limit[depth <= 0] = 0
     total = np.zeros_like(depth)
     count = np.zeros_like(depth)
     near = np.empty(depth.shape, dtype=bool)
@@ -376,11 +395,15 @@ def _depths() -> list[np.ndarray]:
     return depths
 
 
+@pytest.mark.parametrize("noise", [None, (0.004, 0.008), (0.02, 0.02), (0.0, 0.0)])
 @pytest.mark.parametrize("max_jump", [0.03, 0.2])
-def test_depth_downsampling_and_smoothing_equal_numpy_bit_for_bit(max_jump: float) -> None:
+def test_depth_downsampling_and_smoothing_equal_numpy_bit_for_bit(
+    max_jump: float, noise: tuple[float, float] | None
+) -> None:
     for depth in _depths():
-        assert_bitwise_equal(downsample_depth(depth, max_jump), reference_downsample_depth(depth, max_jump))
-        assert_bitwise_equal(smooth_depth(depth, max_jump), reference_smooth_depth(depth, max_jump))
+        expected = reference_downsample_depth(depth, max_jump, noise)
+        assert_bitwise_equal(downsample_depth(depth, max_jump, noise), expected)
+        assert_bitwise_equal(smooth_depth(depth, max_jump, noise), reference_smooth_depth(depth, max_jump, noise))
 
 
 @pytest.mark.parametrize("max_jump", [0.05, 0.3])

@@ -42,15 +42,18 @@ def _maximum(x: float, y: float) -> float:
     return y
 
 
-@kernel("f4[:, ::1], f8")
-def downsample_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
+@kernel("f4[:, ::1], f8, b1, f8, f8")
+def downsample_depth(depth: np.ndarray, max_jump: float, noisy: bool, constant: float, quadratic: float) -> np.ndarray:
     """Half-size depth (H//2, W//2) float32 from 2x2 blocks of ``depth`` (H, W) metres: the mean of a
-    block's valid (positive) depths, or their nearest where they spread more than ``max_jump`` times it.
+    block's valid (positive) depths, or their nearest where they spread more than ``max_jump`` times it
+    (with ``noisy``, more than ``max(max_jump z, constant + quadratic z^2)`` at the nearest depth ``z``,
+    0 for a block without depth).
 
     numpy (``reference_downsample_depth``), with ``a, b, c, d`` the block's
     four depths in row order: ``total = a + b + c + d``; ``count`` the positive ones; ``nearest`` the
     least positive one (inf for none); ``farthest = maximum(maximum(a, b), maximum(c, d))``;
-    ``where(farthest - nearest > f32(max_jump) * nearest, nearest, total / maximum(count, 1))``.
+    ``where(farthest - nearest > f32(max_jump) * nearest, nearest, total / maximum(count, 1))``; with
+    ``noisy`` the limit is ``maximum(f32(max_jump) * z, f32(constant) + f32(quadratic) * z * z)``.
     """
     h, w = depth.shape[0] // 2, depth.shape[1] // 2
     out = np.empty((h, w), dtype=np.float32)
@@ -82,21 +85,29 @@ def downsample_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
                 count += one
                 nearest = min(nearest, d)
             farthest = _maximum(_maximum(a, b), _maximum(c, d))
-            if farthest - nearest > ratio * nearest:
+            if noisy:
+                z = nearest if count > 0 else zero
+                limit = _maximum(ratio * z, np.float32(constant) + np.float32(quadratic) * z * z)
+            else:
+                limit = ratio * nearest
+            if farthest - nearest > limit:
                 out[i, j] = nearest
             else:
                 out[i, j] = total / max(count, one)
     return out
 
 
-@kernel("f4[:, ::1], f8")
-def smooth_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
-    """Edge-preserving 3x3 mean (H, W) float32 of ``depth`` (H, W) metres.
+@kernel("f4[:, ::1], f8, b1, f8, f8")
+def smooth_depth(depth: np.ndarray, max_jump: float, noisy: bool, constant: float, quadratic: float) -> np.ndarray:
+    """Edge-preserving 3x3 mean (H, W) float32 of ``depth`` (H, W) metres: of the neighbours within
+    ``max_jump`` times the pixel's depth ``z`` (with ``noisy``, within ``max(max_jump z, constant +
+    quadratic z^2)``; nothing is near a pixel without depth).
 
     numpy (``reference_smooth_depth``): with the image padded by zeros and
     ``limit = f32(max_jump) * depth``, over the nine neighbours ``nb`` in row order
     ``near = abs(nb - depth) < limit``, ``total += nb * near``, ``count += near``; then
-    ``where(count > 0, total / maximum(count, 1), 0)``.
+    ``where(count > 0, total / maximum(count, 1), 0)``; with ``noisy`` the limit is
+    ``maximum(limit, f32(constant) + f32(quadratic) * depth * depth)``, 0 where ``depth <= 0``.
     """
     h, w = depth.shape
     out = np.empty((h, w), dtype=np.float32)
@@ -107,6 +118,10 @@ def smooth_depth(depth: np.ndarray, max_jump: float) -> np.ndarray:
         for j in range(w):
             own = depth[i, j]
             limit = ratio * own
+            if noisy:
+                limit = _maximum(limit, np.float32(constant) + np.float32(quadratic) * own * own)
+                if own <= 0:
+                    limit = zero
             total = zero
             count = zero
             for r in range(i - 1, i + 2):

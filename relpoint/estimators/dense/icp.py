@@ -287,6 +287,9 @@ class IcpSettings:
     depth_weighting: bool = False
     map_normals: bool = False
     rotation_iterations: int = 0
+    huber_noise: tuple[float, float] | None = None
+    """``(constant, quadratic)``: the Huber threshold at a pair's depth ``z`` is at least ``constant + quadratic
+    z^2`` metres (from the depth noise measured from the frames; None: ``huber_delta`` alone)."""
 
 
 @dataclass(frozen=True)
@@ -302,6 +305,9 @@ class TrackResult:
     """Directions of motion the finest level's pairs left unobserved (degenerate geometry, e.g. one plane)."""
     rotation_start: bool = False
     """ICP started from the rotation-only alignment (:func:`rotation_start`) rather than from ``T_init``."""
+    pair_depths: F32 | None = None
+    pair_residuals: F32 | None = None
+    """The finest level's last pairs: their depths in the frame and point-to-plane residuals, metres."""
 
 
 def depth_sigma(z: F32) -> F32:
@@ -317,11 +323,17 @@ def depth_sigma(z: F32) -> F32:
 SIGMA_1M = float(0.0012 + 0.0019 * 0.6**2)
 
 
-def _huber_weights(residuals: F32, delta: float) -> F32 | None:
-    if delta <= 0:
+def _huber_weights(residuals: F32, settings: IcpSettings, depths: F32) -> F32 | None:
+    """Huber weights of point-to-plane residuals (metres) of pairs at ``depths`` (metres): threshold
+    ``huber_delta``, or the measured noise's where that is larger (``huber_noise``)."""
+    if settings.huber_delta <= 0:
         return None
     a = np.abs(residuals)
-    return np.minimum(np.float32(1.0), np.float32(delta) / np.maximum(a, np.float32(1e-12)))
+    delta: float | F32 = np.float32(settings.huber_delta)
+    if settings.huber_noise is not None:
+        constant, quadratic = settings.huber_noise
+        delta = np.maximum(delta, np.float32(constant) + np.float32(quadratic) * depths * depths)
+    return np.minimum(np.float32(1.0), delta / np.maximum(a, np.float32(1e-12)))
 
 
 def alignment_cost(
@@ -379,7 +391,10 @@ def track(
             T = motion_matrix(found.project(motion_vector(T @ invert_pose(T_start)))) @ T_start
             fit = _iterate(source_levels[0], pyramid[0], T, 0, settings, within=found)
             total += fit.iterations
-    return TrackResult(fit.T_camera_world, fit.ok, total, fit.correspondences, fit.rmse, unobserved, rotated)
+    return TrackResult(
+        fit.T_camera_world, fit.ok, total, fit.correspondences, fit.rmse, unobserved, rotated,
+        fit.pair_depths, fit.pair_residuals,
+    )  # fmt: skip
 
 
 def rotation_start(
@@ -407,7 +422,7 @@ def rotation_start(
         if len(pairs) < settings.min_correspondences:
             return None, used
         A, b = linear_system(pairs.source, pairs.target, pairs.normals)
-        weights = _huber_weights(b, settings.huber_delta)
+        weights = _huber_weights(b, settings, pairs.target[:, 2])
         AtA, Atb = normal_equations(A[:, :3], b, weights)
         if not np.all(np.isfinite(AtA)) or np.linalg.eigvalsh(AtA)[0] <= NUMERICAL_SHARE * np.trace(AtA):
             return None, used
@@ -434,6 +449,8 @@ class _Fit:
     rmse: float
     AtA: FloatArray | None
     noise: FloatArray | None
+    pair_depths: F32 | None = None
+    pair_residuals: F32 | None = None
 
 
 def _iterate(
@@ -453,6 +470,7 @@ def _iterate(
     iterations = n = 0
     rmse = float("nan")
     AtA = noise = None
+    b = depths = None
     for _ in range(settings.iterations[level_index]):
         pairs = associate(T, points, normals, level, settings.distance_threshold, settings.normal_cos_threshold)
         iterations += 1
@@ -462,7 +480,8 @@ def _iterate(
             return _Fit(T, level_index > 0, iterations, n, rmse, None, None)
         plane_normals = pairs.map_normals if settings.map_normals else pairs.normals
         A, b = linear_system(pairs.source, pairs.target, plane_normals)
-        weights = _huber_weights(b, settings.huber_delta)
+        depths = pairs.target[:, 2]
+        weights = _huber_weights(b, settings, pairs.target[:, 2])
         if settings.depth_weighting:
             inverse_variance = (np.float32(SIGMA_1M) / depth_sigma(pairs.target[:, 2])) ** 2
             weights = inverse_variance if weights is None else weights * inverse_variance
@@ -481,4 +500,4 @@ def _iterate(
             np.linalg.norm(x[3:]) < settings.convergence_translation
         ):
             break
-    return _Fit(T, True, iterations, n, rmse, AtA, noise)
+    return _Fit(T, True, iterations, n, rmse, AtA, noise, depths, b)

@@ -70,25 +70,40 @@ def scaled_intrinsics(intrinsics: Intrinsics, factor: int) -> Intrinsics:
     )
 
 
-def downsample_depth(depth: F32, max_jump: float = 0.03) -> F32:
+EdgeNoise = tuple[float, float]
+"""``(constant, quadratic)`` of a depth difference ``constant + quadratic z^2`` metres that neighbouring
+pixels' noise reaches at depth ``z`` (:mod:`.noise`): an edge threshold never rejects less."""
+
+
+def downsample_depth(depth: F32, max_jump: float = 0.03, noise: EdgeNoise | None = None) -> F32:
     """Halve a depth image (H, W) -> (H//2, W//2) by averaging the valid depths of each 2x2 block.
 
     A block whose valid depths spread more than ``max_jump`` times their minimum (relative; a depth
-    discontinuity) takes the nearest depth instead of a mean that would float between two surfaces.
-    Blocks without any valid depth are 0. (One compiled pass: :func:`_kernels.downsample_depth`.)
+    discontinuity), or more than ``noise`` gives where that is larger, takes the nearest depth instead of a
+    mean that would float between two surfaces. Blocks without any valid depth are 0. (One compiled
+    pass: :func:`_kernels.downsample_depth`.)
     """
-    return _kernels.downsample_depth(np.ascontiguousarray(depth, dtype=np.float32), float(max_jump))
+    constant, quadratic = noise if noise is not None else (0.0, 0.0)
+    return _kernels.downsample_depth(
+        np.ascontiguousarray(depth, dtype=np.float32), float(max_jump), noise is not None, float(constant),
+        float(quadratic),
+    )  # fmt: skip
 
 
-def smooth_depth(depth: F32, max_jump: float = 0.03) -> F32:
+def smooth_depth(depth: F32, max_jump: float = 0.03, noise: EdgeNoise | None = None) -> F32:
     """Edge-preserving 3x3 mean of a depth image (a box-kernel bilateral filter, as KinectFusion smooths depth).
 
     Each valid pixel becomes the mean of the valid pixels of its 3x3 neighbourhood whose depth lies within
-    ``max_jump`` (relative) of its own; invalid pixels stay 0. Averaging nine samples reduces the noise
-    and the quantisation steps that would otherwise tilt the normals. (One compiled pass:
-    :func:`_kernels.smooth_depth`.)
+    ``max_jump`` (relative) of its own, or within what ``noise`` gives where that is larger (noisy depth
+    would otherwise reject most neighbours and stay unsmoothed); invalid pixels stay 0. Averaging nine
+    samples reduces the noise and the quantisation steps that would otherwise tilt the normals. (One
+    compiled pass: :func:`_kernels.smooth_depth`.)
     """
-    return _kernels.smooth_depth(np.ascontiguousarray(depth, dtype=np.float32), float(max_jump))
+    constant, quadratic = noise if noise is not None else (0.0, 0.0)
+    return _kernels.smooth_depth(
+        np.ascontiguousarray(depth, dtype=np.float32), float(max_jump), noise is not None, float(constant),
+        float(quadratic),
+    )  # fmt: skip
 
 
 def vertex_map(depth: F32, intrinsics: Intrinsics) -> F32:
@@ -161,22 +176,31 @@ def build_pyramid(
     max_depth: float = np.inf,
     skip: int = 0,
     smooth: bool = False,
+    edge_noise: EdgeNoise | None = None,
 ) -> list[Level]:
     """The frame's pyramid: level ``l`` is the input downsampled ``2**(l + skip)`` times (``levels`` levels).
 
     Depths outside ``[min_depth, max_depth]`` are treated as missing. With ``smooth`` the first level is
-    filtered by :func:`smooth_depth` (coarser levels average it further).
+    filtered by :func:`smooth_depth` (coarser levels average it further). ``edge_noise``: the depth
+    difference neighbouring pixels' noise reaches at the input resolution (None: the relative thresholds
+    alone); each halving averages four pixels and halves it.
     """
     depth = np.asarray(depth, dtype=np.float32)
     current = np.where((depth >= min_depth) & (depth <= max_depth), depth, np.float32(0.0)).astype(np.float32)
     out: list[Level] = []
+
+    def halved(noise: EdgeNoise | None) -> EdgeNoise | None:
+        return None if noise is None else (noise[0] / 2, noise[1] / 2)
+
     for _ in range(skip):
-        current = downsample_depth(current)
+        current = downsample_depth(current, noise=edge_noise)
+        edge_noise = halved(edge_noise)
     if smooth:
-        current = smooth_depth(current)
+        current = smooth_depth(current, noise=edge_noise)
     for level in range(skip, skip + levels):
         k = scaled_intrinsics(intrinsics, 2**level) if level else intrinsics
         if level > skip:
-            current = downsample_depth(current)
+            current = downsample_depth(current, noise=edge_noise)
+            edge_noise = halved(edge_noise)
         out.append(make_level(current, k))
     return out
