@@ -34,7 +34,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from _reference import load_module
+from _reference import carry_state, load_module, reference_config
 
 REPO = Path(__file__).resolve().parents[1]
 #: The EKF before the batched, symmetric update and the preallocated covariance.
@@ -46,15 +46,16 @@ def load_reference(revision: str) -> ModuleType:
     return load_module(revision, "relpoint.estimators.ekf")
 
 
-def reference_copy(ekf: Any, reference_class: type) -> Any:
-    """A reference-implementation filter holding a copy of ``ekf``'s state (its covariance as a plain array)."""
-    state = copy.deepcopy(ekf.__dict__)
-    covariance = ekf.covariance
-    for name in ("_P_block", "_size"):
-        state.pop(name, None)
-    other = reference_class.__new__(reference_class)
-    other.__dict__.update(state)
-    other._P = covariance
+def reference_copy(ekf: Any, reference_module: ModuleType) -> Any:
+    """A filter of the reference revision, built by its own constructor from ``ekf``'s settings, holding a
+    copy of ``ekf``'s state (:func:`_reference.carry_state`; the covariance as a plain array); prints what
+    it keeps of its own."""
+    other = reference_module.EkfSlam(reference_config(ekf.config, reference_module.EkfConfig))
+    kept = carry_state(other, ekf)
+    other._P = ekf.covariance
+    kept = [name for name in kept if name != "_P"]
+    if kept:
+        print("reference keeps its own " + ", ".join(kept))
     return other
 
 
@@ -147,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no comparison: the map never held {args.landmarks} landmarks (raise --iterations or --density)")
         return 0
     current, done = snapshot
-    reference = reference_copy(current, load_reference(args.reference).EkfSlam)
+    reference = reference_copy(current, load_reference(args.reference))
     profiled = copy.deepcopy(current) if args.profile else None
     batch = observations[done : done + args.compare]
     timed = {"current": [], "reference": []}

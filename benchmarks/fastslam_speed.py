@@ -24,9 +24,10 @@ import copy
 import dataclasses
 import os
 import time
+from types import ModuleType
 from typing import Any
 
-from _reference import load_module
+from _reference import carry_state, load_module, reference_config
 
 #: The last revision whose FastSLAM associated points in numpy.
 REFERENCE = "913402b"
@@ -36,10 +37,14 @@ def load_average() -> str:
     return "load average " + " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
-def reference_copy(slam: Any, reference_class: type) -> Any:
-    """A reference-implementation filter holding a deep copy of ``slam``'s state."""
-    other = reference_class.__new__(reference_class)
-    other.__dict__.update(copy.deepcopy(slam.__dict__))
+def reference_copy(slam: Any, reference_module: ModuleType) -> Any:
+    """A filter of the reference revision, built by its own constructor from ``slam``'s settings, holding a
+    deep copy of ``slam``'s state (:func:`_reference.carry_state`); prints what it keeps of its own."""
+    config = reference_config(slam.config, reference_module.FastSlamConfig)
+    other = reference_module.FastSlam(config, copy.deepcopy(slam._rng))
+    kept = carry_state(other, slam)
+    if kept:
+        print("reference keeps its own " + ", ".join(kept))
     return other
 
 
@@ -87,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             window = times[-args.window :]
             print(
                 f"{len(times) - len(window) + 1:>5}-{len(times):<6} {slam.map_size:>9} "
-                f"{np.mean(points[-args.window:]):>6.0f} {np.mean(window):>10.4f} {np.max(window):>9.4f}"
+                f"{np.mean(points[-args.window :]):>6.0f} {np.mean(window):>10.4f} {np.max(window):>9.4f}"
             )
         if slam.map_size >= args.landmarks:
             break
@@ -102,22 +107,31 @@ def main(argv: list[str] | None = None) -> int:
     if slam.map_size < args.landmarks:
         print(f"the map never held {args.landmarks} landmarks (raise --density)")
         return 0
-    reference = reference_copy(slam, load_module(args.reference, "relpoint.estimators.fastslam").FastSlam)
+    reference = reference_copy(slam, load_module(args.reference, "relpoint.estimators.fastslam"))
     timed: dict[str, list[float]] = {"current": [], "reference": []}
     print(
         f"comparison from iteration {len(times) + 1}: {slam.map_size} landmarks, "
         f"{np.mean([len(o.points) for o in observations]):.0f} observations per iteration, "
         f"{len(observations)} iterations; {load_average()}"
     )
+    poses = {}
     for observation in observations:
         for name, filter_ in (("reference", reference), ("current", slam)):
             start = time.perf_counter()
-            filter_.step(observation)
+            poses[name] = filter_.step(observation)
             timed[name].append(time.perf_counter() - start)
     mean = {name: float(np.mean(values)) for name, values in timed.items()}
     print(
         f"reference ({args.reference}) {mean['reference']:.4f} s/it, current {mean['current']:.4f} s/it "
         f"(max {np.max(timed['current']):.4f}), speed-up {mean['reference'] / mean['current']:.1f}x; {load_average()}"
+    )
+    # The reference is an older algorithm: its pose is not expected to match; the current one's, printed in
+    # full, stays the same across changes meant to leave results unchanged.
+    print(
+        "last pose: current "
+        + " ".join(repr(float(value)) for value in poses["current"].position)
+        + ", reference "
+        + " ".join(f"{value:.6f}" for value in poses["reference"].position)
     )
     return 0
 
