@@ -364,3 +364,31 @@ def test_compiled_landmark_update_equals_the_numpy_update() -> None:
     np.testing.assert_allclose(means, expected_means, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(covs, expected_covs, rtol=1e-10, atol=1e-14)
     assert seen.sum() == len(p) and set(last[p, j].tolist()) == {7} and last.sum() == 7 * len(p)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_candidate_search_over_the_landmarks_near_the_points_equals_the_full_search(seed: int) -> None:
+    """fastslam.near_slots hands the compiled search only the slots near the points' box: the same
+    candidates as the search over every slot, for particles of unequal map sizes, landmarks far from
+    the points, a landmark slot beyond a particle's count and a non-finite point."""
+    from relpoint.estimators import _fastslam_kernels
+    from relpoint.estimators.fastslam import near_slots
+    from relpoint.geometry import so3_exp
+
+    rng = np.random.default_rng(seed)
+    n, m, radius = 6, 400, 2.0
+    truth = rng.uniform(-60, 60, (m, 3))  # most of the map far from the sensor
+    positions = rng.normal(0, 0.2, (n, 3))
+    rotations = so3_exp(rng.normal(0, 0.01, (n, 3)))
+    counts = rng.integers(m // 2, m + 1, n).astype(np.int64)
+    means = truth[None] + rng.normal(0, 0.3, (n, m, 3))
+    means[0, counts[0] :] = 0.0  # stale slots beyond a count (at the sensor) are no candidates
+    seen = truth[np.linalg.norm(truth, axis=1) < 30.0]  # what the sensor sees
+    points = np.concatenate([seen + rng.normal(0, 0.3, seen.shape), rng.uniform(-5, 5, (10, 3))])
+    points[3] = np.nan
+    points = np.ascontiguousarray(points)
+    offsets, slots = near_slots(points, positions, rotations, means, counts, radius)
+    expected_offsets, expected_slots = _fastslam_kernels.near_slots(points, positions, rotations, means, counts, radius)
+    assert len(expected_slots) > 10  # the case is not empty
+    np.testing.assert_array_equal(offsets, expected_offsets)
+    np.testing.assert_array_equal(slots, expected_slots)

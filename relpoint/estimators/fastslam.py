@@ -136,6 +136,45 @@ def low_variance_resample(weights: npt.ArrayLike, rng: np.random.Generator) -> n
     return np.minimum(np.searchsorted(cumulative, pointers, side="left"), n - 1).astype(np.int64)
 
 
+#: :func:`near_slots` keeps the slots within this many search radii of the points' box in ``world``:
+#: a margin for rounding only (the compiled search measures in the sensor frame).
+_PRESELECT_MARGIN = 1.001
+
+
+def near_slots(
+    points: FloatArray, positions: FloatArray, rotations: FloatArray, means: FloatArray,
+    counts: npt.NDArray[np.int64], radius: float,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:  # fmt: skip
+    """Per point, the landmark slots within ``radius`` of it in at least one particle: CSR ``(offsets,
+    slots)``, the same as :func:`relpoint.estimators._fastslam_kernels.near_slots` over every slot.
+
+    The compiled search takes every particle's every landmark into the sensor frame, which at 2,500
+    landmarks cost as much as the whole association (13 ms an iteration), while only the landmarks
+    around the sensor can be near a point. It is handed only the slots whose box over the particles
+    (``world``) meets the box of every particle's points grown by the radius: a slot outside it is
+    farther than ``radius`` from every point in every particle. The kept slots stay in order, so each
+    particle's live ones (``j < counts[p]``) are still a prefix of them.
+
+    ``points`` (N, 3) sensor frame, C-contiguous; ``positions`` (P, 3), ``rotations`` (P, 3, 3)
+    ``R_world_sensor``; ``means`` (P, M, 3) world; ``counts`` (P,) slots in use; ``radius`` (m).
+    """
+    width = int(counts.max(initial=0))
+    if len(points) == 0 or width == 0:
+        return _fastslam_kernels.near_slots(points, positions, rotations, means, counts, radius)
+    world = (positions[:, None, :] + points @ np.swapaxes(rotations, 1, 2)).reshape(-1, 3)
+    margin = _PRESELECT_MARGIN * radius
+    # fmin/fmax skip NaN: a non-finite point or landmark is near nothing, in the compiled search too.
+    low, high = np.fmin.reduce(world, axis=0) - margin, np.fmax.reduce(world, axis=0) + margin
+    live = means[:, :width]
+    slot_low, slot_high = np.fmin.reduce(live, axis=0), np.fmax.reduce(live, axis=0)  # (width, 3)
+    kept = np.flatnonzero(np.all((slot_high >= low) & (slot_low <= high), axis=1))
+    kept_counts = np.searchsorted(kept, counts).astype(np.int64)  # the kept slots below each particle's count
+    offsets, slots = _fastslam_kernels.near_slots(
+        points, positions, rotations, np.ascontiguousarray(live[:, kept]), kept_counts, radius
+    )
+    return offsets, kept[slots]
+
+
 def _fix_update(
     P: FloatArray, H: FloatArray, nu: FloatArray, P_fix: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -850,7 +889,7 @@ class FastSlam(Estimator[PointObservation]):
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
         rotations = np.ascontiguousarray(self.rotations, dtype=np.float64)
         twists = np.ascontiguousarray(self.twists, dtype=np.float64)
-        offsets, slots = _fastslam_kernels.near_slots(
+        offsets, slots = near_slots(
             points, positions, rotations, self.means, counts, float(self._search_radius * reach)
         )
         Sigma = np.ascontiguousarray(Sigma, dtype=np.float64).copy()
