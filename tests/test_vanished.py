@@ -34,6 +34,15 @@ def test_point_spacing_is_the_median_nearest_neighbour_distance() -> None:
     assert point_spacing(grid[:1]) == 0.0
 
 
+def test_point_spacing_adds_the_squared_distances_as_numpy_sums_them() -> None:
+    rng = np.random.default_rng(2)
+    points = rng.normal(0, 20, (300, 3))
+    sample = points[::2]  # 300 points: every second one (SPACING_SAMPLE)
+    d2 = np.sum((sample[:, None, :] - sample[None, :, :]) ** 2, axis=2)
+    np.fill_diagonal(d2, np.inf)
+    assert point_spacing(points) == float(np.sqrt(np.median(d2.min(axis=1))))
+
+
 def test_in_view_needs_points_all_around_not_one_stray() -> None:
     points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [20.0, 0.0, 0.0]])
     landmarks = np.array([[0.4, 0.4, 0.0], [20.5, 0.0, 0.0], [100.0, 0.0, 0.0]])

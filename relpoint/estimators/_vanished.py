@@ -61,7 +61,12 @@ def point_spacing(points: FloatArray) -> float:
     if len(points) < 2:
         return 0.0
     sample = points[:: max(1, -(-len(points) // SPACING_SAMPLE))]
-    d2 = np.sum((sample[:, None, :] - sample[None, :, :]) ** 2, axis=2)
+    # The squared distances summed axis by axis, as np.sum over the (n, n, 3) differences adds them,
+    # without that array.
+    d2 = np.zeros((len(sample), len(sample)))
+    for axis in range(3):
+        difference = sample[:, None, axis] - sample[None, :, axis]
+        d2 += difference * difference
     np.fill_diagonal(d2, np.inf)
     return float(np.sqrt(np.median(d2.min(axis=1))))
 
