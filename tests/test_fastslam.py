@@ -3,6 +3,8 @@ landmarks, and short simulated runs of both variants with error bounds a regress
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -83,6 +85,30 @@ def test_low_variance_resampling_is_proportional_and_seeded() -> None:
     assert not np.array_equal(first, other)
     counts = np.bincount(first, minlength=100)
     assert np.all(np.abs(counts - 100 * weights) < 1.0)
+
+
+def test_resampling_through_spare_arrays_gives_each_particle_its_source_s_state() -> None:
+    """Resampling gathers the landmark arrays into spare arrays it keeps and reuses: every particle holds
+    its drawn source's state, resampling after resampling and across a growth of the capacity."""
+    from relpoint.estimators.fastslam import _PARTICLE_ARRAYS
+
+    n = 6
+    slam = FastSlam(FastSlamConfig(particles=n), np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    for round_ in range(4):
+        if round_ == 2:
+            slam._ensure_capacity(slam._capacity + 1)
+        for attr in _PARTICLE_ARRAYS:  # distinct values in every particle's rows
+            array = getattr(slam, attr)
+            array[...] = rng.integers(0, 1000, array.shape).astype(array.dtype)
+        before = {attr: getattr(slam, attr).copy() for attr in _PARTICLE_ARRAYS}
+        slam.log_weights = np.log(np.array([0.5, 0.5, 0, 0, 0, 0]) + 1e-12)
+        slam.log_weights -= np.log(np.exp(slam.log_weights).sum())
+        index = low_variance_resample(slam.weights, copy.deepcopy(slam._rng))
+        slam._resample_if_degenerate()
+        assert set(index.tolist()) == {0, 1}
+        for attr in _PARTICLE_ARRAYS:
+            np.testing.assert_array_equal(getattr(slam, attr), before[attr][index], err_msg=attr)
 
 
 def test_weights_stay_normalised_and_resampling_resets_them() -> None:

