@@ -223,7 +223,8 @@ def _fit_small_motion(
     r, v = offsets, innovations
     count = total(np.ones(len(group)))
     r_sum = np.stack([total(r[:, a]) for a in range(3)], axis=1)
-    rr = np.stack([np.stack([total(r[:, a] * r[:, b]) for b in range(3)], axis=1) for a in range(3)], axis=1)
+    products = {(a, b): total(r[:, a] * r[:, b]) for a in range(3) for b in range(a, 3)}  # r_a r_b is r_b r_a
+    rr = np.stack([np.stack([products[min(a, b), max(a, b)] for b in range(3)], axis=1) for a in range(3)], axis=1)
     normal = np.zeros((groups, 6, 6))
     normal[:, :3, :3] = count[:, None, None] * np.eye(3)
     normal[:, :3, 3:] = -skew(r_sum)
@@ -327,5 +328,6 @@ class MotionTest:
 
     def widen(self, covariances: FloatArray, moving: npt.NDArray[np.bool_]) -> None:
         """Widen the covariances of the moving landmarks (``covariances[moving]``, in place)."""
-        if moving.any():
-            covariances[moving] += self.widening * np.eye(3)
+        where = np.nonzero(moving)  # one pass over the flags, not three (any, read, write)
+        if len(where[0]):
+            covariances[where] += self.widening * np.eye(3)
