@@ -88,19 +88,27 @@ def test_low_variance_resampling_is_proportional_and_seeded() -> None:
 
 
 def test_resampling_through_spare_arrays_gives_each_particle_its_source_s_state() -> None:
-    """Resampling gathers the landmark arrays into spare arrays it keeps and reuses: every particle holds
-    its drawn source's state, resampling after resampling and across a growth of the capacity."""
-    from relpoint.estimators.fastslam import _PARTICLE_ARRAYS
+    """Resampling copies the landmark arrays' used slots into spare arrays it keeps and reuses: every
+    particle holds its drawn source's state, and every slot beyond those ever used its empty value,
+    resampling after resampling and across a growth of the capacity."""
+    from relpoint.estimators.fastslam import _PARTICLE_ARRAYS, _SLOT_ARRAYS
 
     n = 6
     slam = FastSlam(FastSlamConfig(particles=n), np.random.default_rng(0))
     rng = np.random.default_rng(1)
-    for round_ in range(4):
+    for round_, used in enumerate((10, 10, 40, 70, 70)):
         if round_ == 2:
             slam._ensure_capacity(slam._capacity + 1)
+        slam.counts[:] = used
+        slam._slots_used = used
         for attr in _PARTICLE_ARRAYS:  # distinct values in every particle's rows
             array = getattr(slam, attr)
-            array[...] = rng.integers(0, 1000, array.shape).astype(array.dtype)
+            values = rng.integers(0, 1000, array.shape).astype(array.dtype)
+            if attr in _SLOT_ARRAYS:
+                assert np.all(array[:, used:] == _SLOT_ARRAYS[attr])  # as the filter keeps them
+                array[:, :used] = values[:, :used]
+            else:
+                array[...] = values
         before = {attr: getattr(slam, attr).copy() for attr in _PARTICLE_ARRAYS}
         slam.log_weights = np.log(np.array([0.5, 0.5, 0, 0, 0, 0]) + 1e-12)
         slam.log_weights -= np.log(np.exp(slam.log_weights).sum())

@@ -262,9 +262,10 @@ class FastSlam(Estimator[PointObservation]):
         self._suspect = np.full((n, self._capacity), -1, dtype=np.int64)
         self._suspect_misses = np.zeros((n, self._capacity), dtype=np.int64)
         self._born = np.full((n, self._capacity), -1, dtype=np.int64)  # iteration each landmark was started
-        # One spare array per shape and type of the slot arrays, that resampling gathers into (its old
-        # array becomes the next spare): a fifth to a half more memory than the slot arrays take.
-        self._spare_slot_arrays: dict[tuple[tuple[int, ...], str], np.ndarray] = {}
+        # One spare array per shape, type and empty value of the slot arrays, that resampling gathers
+        # into (its old array becomes the next spare): about two thirds more memory than they take.
+        self._spare_slot_arrays: dict[tuple[tuple[int, ...], str, float], np.ndarray] = {}
+        self._slots_used = 0  # the most landmarks any particle has held so far: slots beyond are empty
         self._view = SensorView() if cfg.drop_vanished else None
         self._log_vanished = math.log(cfg.vanished_probability)
         self._mover_test = MotionTest(cfg.mover_gate_probability, self._search_radius) if cfg.follow_movers else None
@@ -994,6 +995,7 @@ class FastSlam(Estimator[PointObservation]):
         self._suspect_misses[p, slots] = 0
         self._born[p, slots] = self._stats["iterations"]
         self.counts += np.bincount(p, minlength=self.config.particles)
+        self._slots_used = max(self._slots_used, int(self.counts.max()))
         self._stats["started"] += len(p)
         return p, slots, i
 
@@ -1150,11 +1152,18 @@ class FastSlam(Estimator[PointObservation]):
             # The landmark arrays (tens of MB at thousands of landmarks) are gathered into a spare array
             # of their shape, and the old one kept as the next spare: gathered into fresh memory, their
             # first-touch page faults cost more than the copy (14 -> 5 ms an iteration at 2,500 landmarks).
-            key = (array.shape, array.dtype.str)
+            # Only the slots some particle has used are copied: beyond them every slot array holds its
+            # empty value in every particle, and so does a spare, which only arrays of the same empty
+            # value share (means and covariances, turned and shifted with their particle by fixes,
+            # are never read there).
+            empty = _SLOT_ARRAYS[attr]
+            key = (array.shape, array.dtype.str, empty)
             spare = self._spare_slot_arrays.pop(key, None)
             if spare is None:
-                spare = np.empty_like(array)
-            np.take(array, index, axis=0, out=spare, mode="clip")  # every index is in range; "clip" is not buffered
+                spare = np.full_like(array, empty)
+            used = self._slots_used
+            for row, source in enumerate(index.tolist()):  # rows: a gather into part of each is buffered
+                spare[row, :used] = array[source, :used]
             setattr(self, attr, spare)
             self._spare_slot_arrays[key] = array
         self.log_weights = np.full(n, -math.log(n))
