@@ -661,6 +661,11 @@ class FastSlam(Estimator[PointObservation]):
         best = int(np.argmax(self.log_weights))
         return int(np.count_nonzero(self._seen[best, : int(self.counts[best])] < self.config.min_observations))
 
+    def _moving_landmarks(self) -> int:
+        """The best particle's landmarks flagged moving (its slots past ``counts`` are stale copies)."""
+        best = int(np.argmax(self.log_weights))
+        return int(np.count_nonzero(self._moving[best, : int(self.counts[best])]))
+
     def summary(self) -> dict[str, Any]:
         w = self.weights
         return {
@@ -670,7 +675,7 @@ class FastSlam(Estimator[PointObservation]):
             "angular_acceleration_noise": self.config.angular_noise,
             "landmarks": self.map_size,
             "landmarks_not_mapped": self._not_mapped(),
-            "moving_landmarks": int(self._moving[int(np.argmax(self.log_weights))].sum()),
+            "moving_landmarks": self._moving_landmarks(),
             "effective_sample_size": float(1.0 / np.sum(w**2)),
             "time_gaps_bridged": self._gaps.bridged,
             "dropouts_registered": self._dropouts.registered,
