@@ -1223,6 +1223,34 @@ def test_index_kernels_equal_numpy() -> None:
         assert np.array_equal(mapped, stay) and np.array_equal(mapped_keys, keys)
 
 
+def test_global_matching_kernel_equals_numpy() -> None:
+    rng = np.random.default_rng(27)
+    for trial in range(100):
+        s = random_store_arrays(rng, 60)
+        if trial % 2:  # all mapped but some: unmapped candidates only in some trials
+            s["pos_weight"][s["pos_weight"] <= 0] = 1.0
+        s["pos_sum"][1::7], s["pos_weight"][1::7] = s["pos_sum"][0], s["pos_weight"][0]  # ties
+        last_iter = rng.integers(0, 20, 60)
+        recent = int(rng.integers(0, 21))
+        counts = rng.integers(0, 12, 6)
+        candidates = rng.integers(0, 60, int(counts.sum()))
+        world = rng.normal(0, 10, (6, 3))
+        found_d2, found_id = _kernels.nearest_older_candidates(
+            candidates, counts, last_iter, recent, s["pos_sum"], s["pos_weight"], world
+        )
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        for q in range(6):
+            c = candidates[starts[q] : starts[q + 1]]
+            c = c[last_iter[c] < recent]
+            if len(c) == 0:
+                assert found_id[q] == -1 and found_d2[q] == np.inf
+                continue
+            d2 = np.sum((_kernels.gather_positions(s["pos_sum"], s["pos_weight"], c) - world[q]) ** 2, axis=1)
+            best = np.argmin(d2)
+            assert found_id[q] == c[best]
+            assert np.array_equal(found_d2[q], d2[best], equal_nan=True)
+
+
 def test_merge_check_kernels_equal_numpy() -> None:
     rng = np.random.default_rng(26)
     for _ in range(100):

@@ -1920,3 +1920,60 @@ def extend_open_group(
         for a in range(3):
             rel_sum[r, a] += relative[r, 0, a]
     return OPEN_GROUP_AVERAGED
+
+
+# -- global matching (section II-D) ---------------------------------------------------------------
+
+
+@kernel("i8[::1], i8[::1], i8[::1], i8, f8[:, ::1], f8[::1], f8[:, ::1]")
+def nearest_older_candidates(
+    candidates: np.ndarray,
+    counts: np.ndarray,
+    last_iter: np.ndarray,
+    recent: int,
+    pos_sum: np.ndarray,
+    pos_weight: np.ndarray,
+    world: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each query position's nearest candidate point not seen since iteration ``recent``.
+
+    ``world`` (Q, 3) are the query positions (``world``, m); ``candidates`` holds each query's
+    candidate point ids in turn, ``counts`` (Q,) how many are each query's. Returns the squared
+    distance (Q,) m^2 and the id (Q,) of each query's nearest candidate with ``last_iter >= recent``
+    left out (-1 and infinity where none is left; the first of equal ones; NaN and the first
+    unmapped one where a candidate has no global position, as ``argmin`` picks NaN). numpy, per
+    query ``q`` with candidates ``c``::
+
+        c = c[last_iter[c] < recent]
+        d2 = sum((gather_positions(pos_sum, pos_weight, c) - world[q]) ** 2, axis=1)
+        best = argmin(d2);  d2[best], c[best]
+    """
+    q_count = counts.shape[0]
+    best_d2 = np.full(q_count, np.inf)
+    best_id = np.full(q_count, -1, np.int64)
+    start = 0
+    for q in range(q_count):
+        end = start + counts[q]
+        x, y, z = world[q, 0], world[q, 1], world[q, 2]
+        for r in range(start, end):
+            i = candidates[r]
+            if last_iter[i] >= recent:
+                continue
+            w = pos_weight[i]
+            if w <= 0.0:
+                d2 = np.nan
+            else:
+                w = max(w, 1e-300)
+                dx = pos_sum[i, 0] / w - x
+                dy = pos_sum[i, 1] / w - y
+                dz = pos_sum[i, 2] / w - z
+                d2 = dx * dx
+                d2 += dy * dy
+                d2 += dz * dz
+            if best_id[q] < 0 or d2 < best_d2[q] or (d2 != d2 and best_d2[q] == best_d2[q]):
+                best_d2[q] = d2
+                best_id[q] = i
+            if d2 != d2:
+                break  # argmin stops at the first NaN
+        start = end
+    return best_d2, best_id

@@ -8,7 +8,7 @@ from itertools import accumulate, chain
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import pose_anchors, recent_references
+from relpoint.estimators.relative_point._kernels import nearest_older_candidates, pose_anchors, recent_references
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -55,24 +55,19 @@ class Localisation(EstimatorState):
         world = apply_transform(self._provisional_pose(), points[unmatched])
         recent = k - self.config.match_window
         bound2 = self.config.global_match_bound**2
-        claims: list[tuple[float, int, int]] = []
-        # Every unmatched point's index neighbours in one array (each point's in the index's order),
-        # those seen within the matching window left out; each point claims its nearest within bound.
+        # Every unmatched point's index neighbours in one array (each point's in the index's order);
+        # each point claims its nearest within bound among those not seen within the matching window.
         found = [self.index.candidates_at(key) for key in self.index.keys(world).tolist()]
         counts = [len(neighbours) for neighbours in found]
         candidates = np.fromiter(chain.from_iterable(found), np.int64, sum(counts))
-        older = store.last_iter[candidates] < recent
-        owner = np.repeat(np.arange(len(unmatched)), counts)[older]  # row in ``unmatched`` of each
-        candidates = candidates[older]
-        d2 = np.sum((store.positions(candidates) - world[owner]) ** 2, axis=1)
-        ends = np.cumsum(np.bincount(owner, minlength=len(unmatched))).tolist()
-        start = 0
-        for q, end in zip(unmatched.tolist(), ends, strict=True):
-            if end > start:
-                best = start + int(np.argmin(d2[start:end]))
-                if d2[best] <= bound2:
-                    claims.append((float(d2[best]), q, int(candidates[best])))
-            start = end
+        nearest_d2, nearest = nearest_older_candidates(
+            candidates, np.array(counts, np.int64), store.last_iter, recent, store.pos_sum, store.pos_weight, world
+        )
+        claims = [
+            (d2, q, point)
+            for q, d2, point in zip(unmatched.tolist(), nearest_d2.tolist(), nearest.tolist(), strict=True)
+            if point >= 0 and d2 <= bound2
+        ]
         taken: set[int] = set()
         for _, q, point in sorted(claims):
             if point not in taken:
