@@ -1251,6 +1251,22 @@ def test_global_matching_kernel_equals_numpy() -> None:
             assert np.array_equal(found_d2[q], d2[best], equal_nan=True)
 
 
+def test_bookkeeping_mask_and_least_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(28)
+    for _ in range(50):
+        s = random_store_arrays(rng, 60)
+        ids = np.where(rng.random(40) < 0.2, -1, rng.integers(0, 60, 40))
+        known = ids != -1
+        safe = np.where(known, ids, 0)
+        expected = known & (s["pos_weight"][safe] > 0) & ~s["dynamic"][safe]
+        assert np.array_equal(_kernels.mapped_static_mask(ids, s["pos_weight"], s["dynamic"]), expected)
+        values = rng.integers(-3, 6, 60)
+        members = rng.integers(0, 60, int(rng.integers(1, 20)))
+        assert _kernels.least_at(values, members) == values[members].min()
+    with pytest.raises(ValueError, match="no ids"):
+        _kernels.least_at(np.zeros(3, np.int64), np.zeros(0, np.int64))
+
+
 def test_merge_check_kernels_equal_numpy() -> None:
     rng = np.random.default_rng(26)
     for _ in range(100):

@@ -1977,3 +1977,33 @@ def nearest_older_candidates(
                 break  # argmin stops at the first NaN
         start = end
     return best_d2, best_id
+
+
+# -- per-iteration bookkeeping ---------------------------------------------------------------------
+
+
+@kernel("i8[::1], f8[::1], b1[::1]")
+def mapped_static_mask(ids: np.ndarray, pos_weight: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    """Which of the point ids (N,) (-1 for none) have a global position and are not flagged ``dynamic``.
+
+    numpy: ``known = ids != -1;  safe = where(known, ids, 0);  known & (pos_weight[safe] > 0) & ~dynamic[safe]``.
+    """
+    n = ids.shape[0]
+    out = np.zeros(n, np.bool_)
+    for r in range(n):
+        i = ids[r]
+        if i != -1 and pos_weight[i] > 0 and not dynamic[i]:
+            out[r] = True
+    return out
+
+
+@kernel("i8[::1], i8[::1]")
+def least_at(values: np.ndarray, ids: np.ndarray) -> int:
+    """The least of ``values`` at ``ids`` (N,), N > 0. numpy: ``values[ids].min()``."""
+    if ids.shape[0] == 0:
+        raise ValueError("least_at: no ids")
+    least = values[ids[0]]
+    for r in range(1, ids.shape[0]):
+        if values[ids[r]] < least:
+            least = values[ids[r]]
+    return least

@@ -92,6 +92,7 @@ from relpoint.estimators._dropouts import DropoutRegistration
 from relpoint.estimators._noise import SIMULATOR_SIGMA
 from relpoint.estimators.base import POINTS, Estimator
 from relpoint.estimators.relative_point import _kernels
+from relpoint.estimators.relative_point._kernels import least_at
 from relpoint.estimators.relative_point.charting import PointCharting
 from relpoint.estimators.relative_point.config import RelativePointConfig
 from relpoint.estimators.relative_point.grouping import UngroupedList
@@ -388,7 +389,7 @@ class RelativePointEstimator(
             group = groups.groups.get(gid)
             if group is None:
                 continue
-            if not group.is_open and store.n_later_groups[group.members].min() >= 1:
+            if not group.is_open and least_at(store.n_later_groups, group.members) >= 1:
                 groups.remove(gid)
                 self.counts["first_groups_retired"] += 1
             else:
@@ -400,7 +401,7 @@ class RelativePointEstimator(
                 continue
             closed = [groups.groups[g] for g in refs if not groups.groups[g].is_open and groups.groups[g].kind != ROOT]
             for group in sorted(closed, key=lambda g: g.weight):
-                if store.n_groups[group.members].min() >= 2:
+                if least_at(store.n_groups, group.members) >= 2:
                     groups.remove(group.gid)
                     self.counts["groups_pruned"] += 1
                     break

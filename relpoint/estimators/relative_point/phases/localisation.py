@@ -8,7 +8,12 @@ from itertools import accumulate, chain
 import numpy as np
 import numpy.typing as npt
 
-from relpoint.estimators.relative_point._kernels import nearest_older_candidates, pose_anchors, recent_references
+from relpoint.estimators.relative_point._kernels import (
+    mapped_static_mask,
+    nearest_older_candidates,
+    pose_anchors,
+    recent_references,
+)
 from relpoint.estimators.relative_point.lsf import fit_transform
 from relpoint.estimators.relative_point.points import IntArray
 from relpoint.estimators.relative_point.registration import NO_MATCH
@@ -90,10 +95,7 @@ class Localisation(EstimatorState):
 
     def _mapped_static(self, ids: IntArray) -> npt.NDArray[np.bool_]:
         """Which of this iteration's point ids (NO_MATCH for none) have a global position and are static."""
-        store = self.store
-        known = ids != NO_MATCH
-        safe = np.where(known, ids, 0)
-        return known & (store.pos_weight[safe] > 0) & ~store.dynamic[safe]
+        return mapped_static_mask(ids, self.store.pos_weight, self.store.dynamic)  # NO_MATCH is -1
 
     def _fit_pose(self, points: FloatArray, ids: IntArray) -> FloatArray | None:
         """``T_world_sensor`` fitting observations (N, 3) (sensor frame) to their points' global positions.
