@@ -1267,6 +1267,28 @@ def test_bookkeeping_mask_and_least_kernels_equal_numpy() -> None:
         _kernels.least_at(np.zeros(3, np.int64), np.zeros(0, np.int64))
 
 
+def test_group_member_and_support_kernels_equal_numpy() -> None:
+    rng = np.random.default_rng(29)
+    for trial in range(50):
+        s = random_store_arrays(rng, 60)
+        members = rng.permutation(60)[: int(rng.integers(0, 30))]
+        assert np.array_equal(
+            _kernels.unmapped_members(s["pos_weight"], members), members[~(s["pos_weight"][members] > 0)]
+        )
+        counts = rng.integers(0, 8, 60)
+        assert np.array_equal(_kernels.members_above(counts, members, 4), members[counts[members] > 4])
+        n, keep = int(rng.integers(0, 120)), int(rng.integers(3, 40))
+        mapped = rng.random(n) < (0.2 if trial % 2 else 0.9)
+        ids = rng.integers(0, 60, n)
+        points = rng.normal(0, 30, (n, 3))
+        use = mapped.nonzero()[0]
+        if len(use) > keep:
+            use = use[np.arange(keep) * (len(use) - 1) // (keep - 1)]
+        rows, uids, kept = _kernels.support_observations(mapped, keep, ids, s["uid"], points)
+        assert np.array_equal(rows, use) and np.array_equal(uids, s["uid"][ids[use]])
+        assert kept.dtype == np.float32 and np.array_equal(kept, points[use].astype(np.float32))
+
+
 def test_merge_check_kernels_equal_numpy() -> None:
     rng = np.random.default_rng(26)
     for _ in range(100):

@@ -2007,3 +2007,66 @@ def least_at(values: np.ndarray, ids: np.ndarray) -> int:
         if values[ids[r]] < least:
             least = values[ids[r]]
     return least
+
+
+@kernel("f8[::1], i8[::1]")
+def unmapped_members(pos_weight: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """The points among ``members`` (N,) without a global position, in order. numpy: ``members[~(pos_weight[members] > 0)]``."""
+    out = np.empty(members.shape[0], np.int64)
+    n = 0
+    for r in range(members.shape[0]):
+        if not pos_weight[members[r]] > 0.0:
+            out[n] = members[r]
+            n += 1
+    return out[:n].copy()
+
+
+@kernel("i8[::1], i8[::1], i8")
+def members_above(values: np.ndarray, members: np.ndarray, bound: int) -> np.ndarray:
+    """The points among ``members`` (N,) whose ``values`` exceed ``bound``, in order. numpy: ``members[values[members] > bound]``."""
+    out = np.empty(members.shape[0], np.int64)
+    n = 0
+    for r in range(members.shape[0]):
+        if values[members[r]] > bound:
+            out[n] = members[r]
+            n += 1
+    return out[:n].copy()
+
+
+@kernel("b1[::1], i8, i8[::1], i8[::1], f8[:, ::1]")
+def support_observations(
+    mapped: np.ndarray, keep: int, ids: np.ndarray, uid: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to ``keep`` (>= 2) of an iteration's observations of ``mapped`` points, evenly spread.
+
+    ``mapped`` (N,) marks the usable observations, ``ids`` (N,) their points, ``uid`` the store's
+    uids by point and ``points`` (N, 3) the observations. Returns the rows kept, their points'
+    uids and their observations as float32. numpy::
+
+        use = mapped.nonzero()[0]
+        if len(use) > keep: use = use[arange(keep) * (len(use) - 1) // (keep - 1)]
+        use, uid[ids[use]], points[use].astype(float32)
+    """
+    n = 0
+    for r in range(mapped.shape[0]):
+        if mapped[r]:
+            n += 1
+    rows = np.empty(n, np.int64)
+    n = 0
+    for r in range(mapped.shape[0]):
+        if mapped[r]:
+            rows[n] = r
+            n += 1
+    if n > keep:
+        spread = np.empty(keep, np.int64)
+        for j in range(keep):
+            spread[j] = rows[j * (n - 1) // (keep - 1)]
+        rows = spread
+    m = rows.shape[0]
+    uids = np.empty(m, np.int64)
+    kept = np.empty((m, 3), np.float32)
+    for j in range(m):
+        uids[j] = uid[ids[rows[j]]]
+        for a in range(3):
+            kept[j, a] = np.float32(points[rows[j], a])
+    return rows, uids, kept

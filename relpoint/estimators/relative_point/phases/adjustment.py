@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from relpoint.estimators._noise import SIMULATOR_SIGMA
+from relpoint.estimators.relative_point._kernels import support_observations
 from relpoint.estimators.relative_point.adjustment import (
     Adjustment,
     adjust_network,
@@ -599,12 +600,9 @@ class FinalAdjustment(EstimatorState):
             # The first iteration defines ``world``; a coasted one had no usable fit.
             self._support.append(None)
             return
-        use = mapped.nonzero()[0]
-        keep = self.config.relocate_points
-        if len(use) > keep:
-            use = use[np.arange(keep) * (len(use) - 1) // (keep - 1)]  # evenly spread
+        use, uids, kept = support_observations(mapped, int(self.config.relocate_points), ids, store.uid, points)
         if every_uid is None:
-            self._support.append((store.uid[ids[use]], points[use].astype(np.float32)))
+            self._support.append((uids, kept))
         else:  # the same values as above, from the keyframe's arrays
             self._support.append((every_uid[use], every_point[use]))
 

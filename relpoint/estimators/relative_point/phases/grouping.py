@@ -14,7 +14,9 @@ from relpoint.estimators.relative_point._kernels import (
     creation_triage,
     group_relative_map,
     group_selection,
+    members_above,
     regroup_due,
+    unmapped_members,
 )
 from relpoint.estimators.relative_point.groups import (
     FIRST,
@@ -153,7 +155,7 @@ class Grouping(EstimatorState):
             is_open=bool(iterations[-1] == k),
             anchor_targets=anchor_targets,
         )
-        newly_mapped = members[~store.mapped(members)]
+        newly_mapped = unmapped_members(store.pos_weight, members)
         if not self.groups.add(group):
             return False
         self._flag_dynamic(moving, "grouping", beyond)
@@ -165,7 +167,7 @@ class Grouping(EstimatorState):
         if group.kind == ROOT and self.counts["root_groups"]:
             self._map_restarts.append(k)
         self.counts[{ROOT: "root_groups", FIRST: "first_groups", LATER: "regroups"}[group.kind]] += 1
-        crowded = members[store.n_groups[members] > config.max_groups_per_point]
+        crowded = members_above(store.n_groups, members, int(config.max_groups_per_point))
         self._over_grouped.update(crowded.tolist())
         return True
 
