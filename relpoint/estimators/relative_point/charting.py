@@ -31,10 +31,10 @@ class PointCharting:
 
     def chart(self, iteration: int, ids: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """Record the points seen in ``iteration``; return a mask (N,) of duplicate entries in ``ids``."""
-        ids = np.asarray(ids, dtype=np.int64)
-        ordered = np.sort(ids)
-        if len(ordered) < 2 or bool(np.all(ordered[1:] != ordered[:-1])):  # the usual case: no duplicates
-            unique, duplicate = ordered, np.zeros(len(ids), bool)
+        ids = np.ascontiguousarray(ids, dtype=np.int64)
+        unique = distinct_ascending(ids)  # a new array: ids are row numbers, np.unique in linear time
+        if len(unique) == len(ids):  # the usual case: no duplicates
+            duplicate = np.zeros(len(ids), bool)
         else:
             unique, first = np.unique(ids, return_index=True)
             duplicate = np.ones(len(ids), bool)

@@ -220,10 +220,15 @@ class RelativePointEstimator(
             self.motion.to_interval((observation.stamp_ns - self._previous_stamp_ns) * 1e-9)
         self._previous_stamp_ns = observation.stamp_ns
         points = np.asarray(observation.points, dtype=np.float64)
-        finite = np.isfinite(points).all(axis=1)
-        self.counts["nonfinite_points"] += int(np.count_nonzero(~finite))
-        points = points[finite]
-        gt_ids = None if observation.ids is None else np.asarray(observation.ids)[finite]
+        finite = np.isfinite(points)
+        if finite.all():  # the usual case: every point kept (a copy, as the masking below gives)
+            points = points.copy()
+            gt_ids = None if observation.ids is None else np.array(observation.ids)
+        else:
+            finite = finite.all(axis=1)
+            self.counts["nonfinite_points"] += int(np.count_nonzero(~finite))
+            points = points[finite]
+            gt_ids = None if observation.ids is None else np.asarray(observation.ids)[finite]
         if len(points) == 0:
             self.counts["empty_iterations"] += 1
             self.counts["degenerate_iterations"] += 1
