@@ -72,18 +72,10 @@ def downsample_depth(depth: np.ndarray, max_jump: float, noisy: bool, constant: 
             total += d
             count = zero
             nearest = inf
-            if a > 0:
-                count += one
-                nearest = min(nearest, a)
-            if b > 0:
-                count += one
-                nearest = min(nearest, b)
-            if c > 0:
-                count += one
-                nearest = min(nearest, c)
-            if d > 0:
-                count += one
-                nearest = min(nearest, d)
+            for value in (a, b, c, d):
+                if value > 0:
+                    count += one
+                    nearest = min(nearest, value)
             farthest = _maximum(_maximum(a, b), _maximum(c, d))
             if noisy:
                 z = nearest if count > 0 else zero

@@ -29,7 +29,7 @@ from relpoint.estimators.base import DEPTH, Estimator
 from relpoint.estimators.dense import _kernels
 from relpoint.estimators.dense.fusion import PointMap, colors_filled
 from relpoint.estimators.dense.icp import SIGMA_1M, IcpSettings, alignment_cost, depth_sigma, track
-from relpoint.estimators.dense.maps import EdgeNoise, Level, build_pyramid
+from relpoint.estimators.dense.maps import EDGE_JUMP, EdgeNoise, Level, build_pyramid
 from relpoint.estimators.dense.noise import REFERENCE_DEPTH, DepthNoise, fit_noise, second_differences
 from relpoint.estimators.spec import EstimatorSpec
 from relpoint.geometry import FloatArray, invert_pose
@@ -321,7 +321,7 @@ class DenseFusion(Estimator[DepthFrame]):
             return
         self.pixel_noise = model
         edge = model.scaled(EDGE_SIGMAS * math.sqrt(2.0))
-        self._edge_noise = (edge.constant, edge.quadratic) if edge.exceeds(0.0, 0.03, 0.0) else None
+        self._edge_noise = (edge.constant, edge.quadratic) if edge.exceeds(0.0, EDGE_JUMP, 0.0) else None
         averaged = (3.0 if self.config.smooth_depth else 1.0) * self._downsample(frame.intrinsics)
         gate = model.scaled(GATE_SIGMAS * math.sqrt(2.0) / averaged)
         self._fusion_distance = self.config.fusion_distance
@@ -355,7 +355,9 @@ class DenseFusion(Estimator[DepthFrame]):
         widened = []
         if self._edge_noise is not None:
             edge = self._edge_noise[0] + self._edge_noise[1] * REFERENCE_DEPTH**2
-            widened.append(f"edge thresholds {edge * 100:.2g} cm at {REFERENCE_DEPTH:g} m (was 3 % of the depth)")
+            widened.append(
+                f"edge thresholds {edge * 100:.2g} cm at {REFERENCE_DEPTH:g} m (was {EDGE_JUMP * 100:g} % of the depth)"
+            )
         if (self._fusion_distance, self._fusion_quadratic) != (
             self.config.fusion_distance, self.config.fusion_distance_quadratic
         ):  # fmt: skip

@@ -481,9 +481,9 @@ def _iterate(
         plane_normals = pairs.map_normals if settings.map_normals else pairs.normals
         A, b = linear_system(pairs.source, pairs.target, plane_normals)
         depths = pairs.target[:, 2]
-        weights = _huber_weights(b, settings, pairs.target[:, 2])
+        weights = _huber_weights(b, settings, depths)
         if settings.depth_weighting:
-            inverse_variance = (np.float32(SIGMA_1M) / depth_sigma(pairs.target[:, 2])) ** 2
+            inverse_variance = (np.float32(SIGMA_1M) / depth_sigma(depths)) ** 2
             weights = inverse_variance if weights is None else weights * inverse_variance
         rmse = float(np.sqrt(np.mean(np.square(b, dtype=np.float64))))
         AtA, Atb = normal_equations(A, b, weights)

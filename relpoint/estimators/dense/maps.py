@@ -70,12 +70,16 @@ def scaled_intrinsics(intrinsics: Intrinsics, factor: int) -> Intrinsics:
     )
 
 
+EDGE_JUMP = 0.03
+"""Largest relative depth step (of the depth) between neighbouring pixels of one surface that the edge
+thresholds of smoothing and downsampling allow (set for a Kinect v1's noise; widened by ``noise``)."""
+
 EdgeNoise = tuple[float, float]
 """``(constant, quadratic)`` of a depth difference ``constant + quadratic z^2`` metres that neighbouring
 pixels' noise reaches at depth ``z`` (:mod:`.noise`): an edge threshold never rejects less."""
 
 
-def downsample_depth(depth: F32, max_jump: float = 0.03, noise: EdgeNoise | None = None) -> F32:
+def downsample_depth(depth: F32, max_jump: float = EDGE_JUMP, noise: EdgeNoise | None = None) -> F32:
     """Halve a depth image (H, W) -> (H//2, W//2) by averaging the valid depths of each 2x2 block.
 
     A block whose valid depths spread more than ``max_jump`` times their minimum (relative; a depth
@@ -90,7 +94,7 @@ def downsample_depth(depth: F32, max_jump: float = 0.03, noise: EdgeNoise | None
     )  # fmt: skip
 
 
-def smooth_depth(depth: F32, max_jump: float = 0.03, noise: EdgeNoise | None = None) -> F32:
+def smooth_depth(depth: F32, max_jump: float = EDGE_JUMP, noise: EdgeNoise | None = None) -> F32:
     """Edge-preserving 3x3 mean of a depth image (a box-kernel bilateral filter, as KinectFusion smooths depth).
 
     Each valid pixel becomes the mean of the valid pixels of its 3x3 neighbourhood whose depth lies within
